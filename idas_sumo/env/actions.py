@@ -1,0 +1,145 @@
+"""The paper's seven actions and its three masks (kinematic, rule, safety), as pure array functions.
+
+An agent's acceleration persists between steps; the five Δa actions change it by a jerk-bounded
+step, hard brake sets it to -4 m/s², and release brake sets it to 0 m/s² (allowed only directly
+after a hard brake). A mask entry of 1 means the action may be taken. The final mask is the
+intersection of the three allowed sets (the paper's union of the masked-out sets). Hard brake is
+never masked, so every agent always has at least one action.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.baselines.idm import DEFAULT_IDM, IDMParams, idm_acceleration
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+STEP_LENGTH_S = 0.2  # 5 Hz decisions
+DELTA_ACCEL_MPS2: tuple[float, ...] = (-0.2, -0.1, 0.0, 0.1, 0.2)
+HARD_BRAKE_MPS2 = -4.0
+RELEASE_BRAKE_MPS2 = 0.0
+N_DELTA_ACTIONS = len(DELTA_ACCEL_MPS2)
+HARD_BRAKE = N_DELTA_ACTIONS  # action index 5
+RELEASE_BRAKE = N_DELTA_ACTIONS + 1  # action index 6
+N_ACTIONS = N_DELTA_ACTIONS + 2
+ACTION_NAMES: tuple[str, ...] = ("da-0.2", "da-0.1", "da0", "da+0.1", "da+0.2", "hard_brake", "release_brake")
+
+MIN_ACCEL_MPS2 = -2.0  # kinematic range outside hard braking
+MAX_ACCEL_MPS2 = 2.0
+MERGE_EXEMPTION_M = 100.0  # the merge car may exceed its road's limit this close to the merge point
+_TOLERANCE = 1e-6
+
+
+def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> FloatArray:
+    """Acceleration (m/s²) each agent drives with after taking ``actions`` (int array)."""
+    prev = np.asarray(prev_accel, dtype=np.float64)
+    act = np.asarray(actions, dtype=np.int64)
+    if np.any((act < 0) | (act >= N_ACTIONS)):
+        raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
+    deltas = np.asarray(DELTA_ACCEL_MPS2 + (0.0, 0.0))[act]
+    accel = np.round(prev + deltas, 6)  # keep the 0.1 grid exact over long episodes
+    accel = np.where(act == HARD_BRAKE, HARD_BRAKE_MPS2, accel)
+    return np.asarray(np.where(act == RELEASE_BRAKE, RELEASE_BRAKE_MPS2, accel), dtype=np.float64)
+
+
+def candidate_accelerations(prev_accel: npt.ArrayLike) -> FloatArray:
+    """(n_agents, 7) acceleration each action would produce."""
+    prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
+    return np.stack([next_acceleration(prev, np.full(prev.shape, a)) for a in range(N_ACTIONS)], axis=-1)
+
+
+def kinematic_mask(prev_accel: npt.ArrayLike) -> BoolArray:
+    """Δa actions keep a in [-2, 2] m/s²; release brake only directly after a hard brake."""
+    prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
+    cand = candidate_accelerations(prev)
+    allowed = (cand >= MIN_ACCEL_MPS2 - _TOLERANCE) & (cand <= MAX_ACCEL_MPS2 + _TOLERANCE)
+    allowed[:, HARD_BRAKE] = True
+    allowed[:, RELEASE_BRAKE] = np.isclose(prev, HARD_BRAKE_MPS2)
+    return np.asarray(allowed, dtype=np.bool_)
+
+
+def effective_speed_limit(
+    road_limit_mps: npt.ArrayLike,
+    dist_to_merge_m: npt.ArrayLike,
+    exemption_limit_mps: npt.ArrayLike,
+) -> FloatArray:
+    """The limit the rule mask enforces: a car on the slower incoming road may go up to
+    ``exemption_limit_mps`` (the outgoing road's limit) within 100 m before the merge point."""
+    road = np.asarray(road_limit_mps, dtype=np.float64)
+    dist = np.asarray(dist_to_merge_m, dtype=np.float64)
+    exempt = (dist >= 0.0) & (dist <= MERGE_EXEMPTION_M)
+    return np.asarray(np.where(exempt, np.maximum(road, exemption_limit_mps), road), dtype=np.float64)
+
+
+def rule_mask(prev_accel: npt.ArrayLike, speed_mps: npt.ArrayLike, speed_limit_mps: npt.ArrayLike) -> BoolArray:
+    """Actions whose next speed v + a·dt stays within the (effective) speed limit."""
+    cand = candidate_accelerations(prev_accel)
+    v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))[:, None]
+    limit = np.atleast_1d(np.asarray(speed_limit_mps, dtype=np.float64))[:, None]
+    allowed = v + cand * STEP_LENGTH_S <= limit + _TOLERANCE
+    allowed[:, HARD_BRAKE] = True
+    return np.asarray(allowed, dtype=np.bool_)
+
+
+def safety_bound(
+    speed_mps: npt.ArrayLike,
+    gap_m: npt.ArrayLike,
+    leader_speed_mps: npt.ArrayLike,
+    params: IDMParams = DEFAULT_IDM,
+) -> FloatArray:
+    """The largest acceleration (m/s²) the safety mask allows: IDM's interaction part.
+
+    IDM's free-road term is left out on purpose: with v0 = the speed limit it is ~1 at the limit, which
+    would forbid every non-braking action whenever any car is in sight. The rule mask enforces the limit.
+    """
+    v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))
+    gap = np.atleast_1d(np.asarray(gap_m, dtype=np.float64))
+    bound = idm_acceleration(v, np.inf, gap, v - np.asarray(leader_speed_mps), params)
+    return np.asarray(np.where(np.isinf(gap), np.inf, bound), dtype=np.float64)
+
+
+def safety_mask(
+    prev_accel: npt.ArrayLike,
+    speed_mps: npt.ArrayLike,
+    gap_m: npt.ArrayLike,
+    leader_speed_mps: npt.ArrayLike,
+    params: IDMParams = DEFAULT_IDM,
+) -> BoolArray:
+    """Actions whose acceleration does not exceed IDM's to the car in front (gap = inf: no leader)."""
+    cand = candidate_accelerations(prev_accel)
+    bound = safety_bound(speed_mps, gap_m, leader_speed_mps, params)
+    allowed = cand <= bound[:, None] + _TOLERANCE
+    allowed[:, HARD_BRAKE] = True
+    return np.asarray(allowed, dtype=np.bool_)
+
+
+@dataclass(frozen=True)
+class MaskInputs:
+    """Per-agent physical quantities the masks need (1-D arrays of equal length)."""
+
+    prev_accel_mps2: FloatArray
+    speed_mps: FloatArray
+    speed_limit_mps: FloatArray
+    gap_m: FloatArray
+    leader_speed_mps: FloatArray
+
+
+def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDArray[np.int8]:
+    """(n_agents, 7) int8 mask: kinematic ∩ rule ∩ safety."""
+    allowed = (
+        kinematic_mask(inputs.prev_accel_mps2)
+        & rule_mask(inputs.prev_accel_mps2, inputs.speed_mps, inputs.speed_limit_mps)
+        & safety_mask(
+            inputs.prev_accel_mps2,
+            inputs.speed_mps,
+            inputs.gap_m,
+            inputs.leader_speed_mps,
+            params,
+        )
+    )
+    return allowed.astype(np.int8)

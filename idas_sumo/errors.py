@@ -1,0 +1,21 @@
+"""The project's exception types. The CLI maps them onto exit codes (DESIGN.md section 4)."""
+
+from __future__ import annotations
+
+
+class IdasError(Exception):
+    """Base class for every error idas-sumo raises on purpose."""
+
+    exit_code = 1
+
+
+class InputError(IdasError):
+    """Bad user input: a file, flag or value we cannot use. Exit code 2."""
+
+    exit_code = 2
+
+
+class SimulationError(IdasError):
+    """SUMO failed while running (carries SUMO's own message where it has one). Exit code 1."""
+
+    exit_code = 1
