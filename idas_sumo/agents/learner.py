@@ -1,0 +1,307 @@
+"""The IDAS learner: one shared actor, a decentralised critic V and a centralised COMA critic Q.
+
+Stage 1 (Robot World) trains the actor and V with ∇J1 only (``use_central_critic=False``); stage 2
+(Intelligent World) adds Q and uses ∇J = α∇J1 + (1-α)∇J2. Both critics have soft-updated target
+networks. All networks exist in both stages so a stage-1 checkpoint loads into stage 2 as is.
+
+Our reading of the paper's Q target (eq. for L(φ2)): it names a target policy π̂ for the next
+joint action. We bootstrap SARSA-style from the actions the agents actually took at t+1, which
+were drawn from the current policy (the on-policy limit of π̂); this needs no resampling of the
+other agents' next actions and keeps the joint action consistent with the recorded state.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss
+from idas_sumo.agents.networks import Actor, CentralCritic, ValueCritic
+from idas_sumo.agents.returns import GAMMA, td_advantages, td_targets
+from idas_sumo.agents.state_layout import STATE_LAYOUT_ID, STATE_SLOTS
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
+from idas_sumo.errors import InputError
+
+__all__ = ["Batch", "Learner", "LearnerConfig"]
+
+CHECKPOINT_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """Hyper-parameters of the learner; validated once on construction."""
+
+    lr_actor: float = 1e-4
+    """Adam learning rate of the actor."""
+    lr_value: float = 1e-3
+    """Adam learning rate of the decentralised critic V."""
+    lr_central: float = 1e-3
+    """Adam learning rate of the centralised critic Q."""
+    gamma: float = GAMMA
+    """Discount per 0.2 s decision step (paper: 0.9)."""
+    alpha: float = ALPHA
+    """Weight of ∇J1 in α∇J1 + (1-α)∇J2 (paper: 0.7); treated as 1 when the central critic is off."""
+    use_central_critic: bool = False
+    """False: stage 1, J1 only, Q is neither trained nor used. True: stage 2, J1 + J2."""
+    target_tau: float = 0.01
+    """Soft target update rate: target ← (1-τ) target + τ online, after every update (ours)."""
+    entropy_coef: float = 0.0
+    """Weight of the mean policy entropy subtracted from the actor loss (ours; the paper has none)."""
+    max_grad_norm: float = 10.0
+    """Global L2 norm each network's gradient is clipped to before its Adam step (ours)."""
+    device: str = "cpu"
+    """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
+
+    def __post_init__(self) -> None:
+        for name in ("lr_actor", "lr_value", "lr_central", "max_grad_norm"):
+            if not getattr(self, name) > 0.0:
+                raise InputError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0.0 < self.gamma <= 1.0:
+            raise InputError(f"gamma must lie in (0, 1], got {self.gamma}")
+        if not 0.0 <= self.alpha <= 1.0:
+            raise InputError(f"alpha must lie in [0, 1], got {self.alpha}")
+        if not 0.0 < self.target_tau <= 1.0:
+            raise InputError(f"target_tau must lie in (0, 1], got {self.target_tau}")
+        if self.entropy_coef < 0.0:
+            raise InputError(f"entropy_coef must be non-negative, got {self.entropy_coef}")
+
+    @property
+    def effective_alpha(self) -> float:
+        """α actually used: 1 in stage 1, where J2 has no critic."""
+        return self.alpha if self.use_central_critic else 1.0
+
+
+@dataclass
+class Batch:
+    """B agent-steps. Central-critic fields may be None in stage 1.
+
+    ``done`` is 1 when the agent's episode ended at this step by finishing or colliding (no
+    bootstrap); a timeout is 0 (bootstrap). ``next_valid`` is 1 when the agent also acts at t+1,
+    i.e. ``next_state``/``next_others_actions``/``next_slot``/``next_action`` are meaningful.
+    """
+
+    obs: torch.Tensor  # (B, OBS_DIM) float32
+    mask: torch.Tensor  # (B, N_ACTIONS) bool, the mask the action was drawn under
+    action: torch.Tensor  # (B,) int64
+    reward: torch.Tensor  # (B,) float32, individual reward
+    next_obs: torch.Tensor  # (B, OBS_DIM) float32
+    done: torch.Tensor  # (B,) float32
+    state: torch.Tensor | None = None  # (B, STATE_DIM)
+    others_actions: torch.Tensor | None = None  # (B, OTHERS_ACTIONS_DIM)
+    slot: torch.Tensor | None = None  # (B,) int64
+    joint_reward: torch.Tensor | None = None  # (B,) sum of all agents' rewards at t
+    next_state: torch.Tensor | None = None
+    next_others_actions: torch.Tensor | None = None
+    next_slot: torch.Tensor | None = None
+    next_action: torch.Tensor | None = None  # (B,) int64, any value where next_valid is 0
+    next_valid: torch.Tensor | None = None  # (B,) float32
+
+    def to(self, device: torch.device | str) -> Batch:
+        moved: dict[str, Any] = {
+            f.name: (None if (v := getattr(self, f.name)) is None else v.to(device))
+            for f in dataclasses.fields(self)
+        }
+        return Batch(**moved)
+
+
+def _soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
+    with torch.no_grad():
+        for t_param, o_param in zip(target.parameters(), online.parameters(), strict=True):
+            t_param.lerp_(o_param, tau)
+
+
+def _frozen_copy(net: nn.Module) -> nn.Module:
+    target = copy.deepcopy(net)
+    for p in target.parameters():
+        p.requires_grad_(False)
+    return target
+
+
+def _require(value: torch.Tensor | None, name: str) -> torch.Tensor:
+    if value is None:
+        raise ValueError(f"Batch.{name} is required when the central critic is on")
+    return value
+
+
+class Learner:
+    """Actor, V, Q, their targets and Adam optimisers; ``act`` for rollouts, ``update`` to learn."""
+
+    def __init__(self, config: LearnerConfig, seed: int = 0) -> None:
+        self.config = config
+        self.device = torch.device(config.device)
+        torch.manual_seed(seed)  # network initialisation only; sampling uses the caller's generator
+        self.actor = Actor().to(self.device)
+        self.value = ValueCritic().to(self.device)
+        self.central = CentralCritic().to(self.device)
+        self.value_target = _frozen_copy(self.value)
+        self.central_target = _frozen_copy(self.central)
+        self.opt_actor = torch.optim.Adam(self.actor.parameters(), lr=config.lr_actor)
+        self.opt_value = torch.optim.Adam(self.value.parameters(), lr=config.lr_value)
+        self.opt_central = torch.optim.Adam(self.central.parameters(), lr=config.lr_central)
+
+    def act(
+        self,
+        obs: npt.NDArray[np.float32],
+        mask: npt.NDArray[np.int8],
+        generator: torch.Generator,
+        deterministic: bool = False,
+    ) -> npt.NDArray[np.int64]:
+        """Actions (B,) for B agents; never a masked one. ``generator`` must be a CPU generator."""
+        if obs.ndim != 2 or obs.shape[1] != OBS_DIM or mask.shape != (obs.shape[0], N_ACTIONS):
+            raise ValueError(
+                f"expected obs (B, {OBS_DIM}) and mask (B, {N_ACTIONS}), got {obs.shape} and {mask.shape}"
+            )
+        allowed = torch.from_numpy(np.asarray(mask) != 0)
+        if not bool(allowed.any(dim=1).all()):
+            raise ValueError("every agent needs at least one allowed action (hard brake is never masked)")
+        with torch.inference_mode():
+            obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
+            logits = self.actor.masked_logits(obs_t, allowed.to(self.device)).cpu()
+            if deterministic:
+                actions = logits.argmax(dim=1)
+            else:
+                # Categorical.sample takes no generator; multinomial does, and never draws a 0-probability
+                # entry, so masked actions (probability exactly 0) cannot come out.
+                probs = torch.softmax(logits, dim=1)
+                actions = torch.multinomial(probs, 1, generator=generator).squeeze(1)
+        chosen = allowed.gather(1, actions.unsqueeze(1))
+        assert bool(chosen.all()), "sampled a masked action"
+        out: npt.NDArray[np.int64] = actions.numpy().astype(np.int64)
+        return out
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One gradient step on V, (Q), and the actor from B agent-steps; returns scalar metrics."""
+        cfg = self.config
+        b = batch.to(self.device)
+        mask = b.mask.bool()
+        action = b.action.long()
+        if not bool(mask.gather(1, action.unsqueeze(1)).all()):
+            raise ValueError("batch holds an action its own mask forbids")
+        reward = b.reward.float()
+        done = b.done.float()
+
+        # --- decentralised critic V: L(φ1) with the target network V̂ in the bootstrap.
+        values = self.value(b.obs)
+        with torch.no_grad():
+            v_target = td_targets(reward, self.value_target(b.next_obs), done, cfg.gamma)
+            # A1 uses the online critic on both ends (paper eq. for ∇J1).
+            adv_v = td_advantages(reward, values.detach(), self.value(b.next_obs), done, cfg.gamma)
+        v_loss = 0.5 * (v_target - values).pow(2).mean()
+        self.opt_value.zero_grad(set_to_none=True)
+        v_loss.backward()
+        nn.utils.clip_grad_norm_(self.value.parameters(), cfg.max_grad_norm)
+        self.opt_value.step()
+
+        # --- policy, needed by the COMA baseline before the actor step.
+        dist = self.actor.distribution(b.obs, mask)
+        log_probs = dist.log_prob(action)
+        entropy = dist.entropy()
+
+        # --- centralised critic Q: L(φ2), SARSA bootstrap from the actions taken at t+1.
+        q_loss_value = 0.0
+        adv_q: torch.Tensor | None = None
+        q_mean = 0.0
+        if cfg.use_central_critic:
+            state = _require(b.state, "state")
+            others = _require(b.others_actions, "others_actions")
+            slot = _require(b.slot, "slot").long()
+            joint_reward = _require(b.joint_reward, "joint_reward").float()
+            next_valid = _require(b.next_valid, "next_valid").float()
+            with torch.no_grad():
+                # Rows without a next step carry arbitrary slot/action; clamp so gather stays in range,
+                # the factor next_valid then zeroes them.
+                next_q = self.central_target(
+                    _require(b.next_state, "next_state"),
+                    _require(b.next_others_actions, "next_others_actions"),
+                    _require(b.next_slot, "next_slot").long().clamp(0, STATE_SLOTS - 1),
+                )
+                next_a = _require(b.next_action, "next_action").long().clamp(0, N_ACTIONS - 1)
+                next_q_taken = next_q.gather(1, next_a.unsqueeze(1)).squeeze(1)
+                q_target = joint_reward + cfg.gamma * next_valid * (1.0 - done) * next_q_taken
+            q_all = self.central(state, others, slot)
+            q_taken = q_all.gather(1, action.unsqueeze(1)).squeeze(1)
+            q_loss = 0.5 * (q_target - q_taken).pow(2).mean()
+            self.opt_central.zero_grad(set_to_none=True)
+            q_loss.backward()
+            nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
+            self.opt_central.step()
+            q_loss_value = float(q_loss.item())
+            q_mean = float(q_taken.detach().mean().item())
+            adv_q = coma_advantage(q_all.detach(), dist.probs.detach(), action)
+
+        # --- actor: ∇J = α∇J1 + (1-α)∇J2.
+        actor_loss = combined_policy_loss(
+            log_probs, adv_v, adv_q, cfg.effective_alpha, entropy=entropy, entropy_coef=cfg.entropy_coef
+        )
+        self.opt_actor.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        actor_grad_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
+        self.opt_actor.step()
+
+        _soft_update(self.value_target, self.value, cfg.target_tau)
+        if cfg.use_central_critic:
+            _soft_update(self.central_target, self.central, cfg.target_tau)
+
+        return {
+            "actor_loss": float(actor_loss.item()),
+            "v_loss": float(v_loss.item()),
+            "q_loss": q_loss_value,  # 0.0 in stage 1
+            "entropy": float(entropy.detach().mean().item()),
+            "adv_v_mean": float(adv_v.mean().item()),
+            "adv_q_mean": 0.0 if adv_q is None else float(adv_q.mean().item()),
+            "v_mean": float(values.detach().mean().item()),
+            "q_mean": q_mean,
+            "actor_grad_norm": float(actor_grad_norm.item()),
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume: nets, targets, optimisers, config and layout ids.
+
+        Plain tensors, numbers, strings and dicts only, so ``torch.load(weights_only=True)`` reads it.
+        """
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "obs_layout_id": OBS_LAYOUT_ID,
+            "state_layout_id": STATE_LAYOUT_ID,
+            "config": dataclasses.asdict(self.config),
+            "actor": self.actor.state_dict(),
+            "value": self.value.state_dict(),
+            "central": self.central.state_dict(),
+            "value_target": self.value_target.state_dict(),
+            "central_target": self.central_target.state_dict(),
+            "opt_actor": self.opt_actor.state_dict(),
+            "opt_value": self.opt_value.state_dict(),
+            "opt_central": self.opt_central.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any], load_optimisers: bool = True) -> None:
+        """Restore from ``state_dict()``. The config stays this learner's own (stage 2 may load stage 1).
+
+        Raises InputError when the checkpoint was written for another observation or state layout.
+        """
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise InputError(
+                f"unknown checkpoint format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}"
+            )
+        for key, expected in (("obs_layout_id", OBS_LAYOUT_ID), ("state_layout_id", STATE_LAYOUT_ID)):
+            if state.get(key) != expected:
+                raise InputError(
+                    f"checkpoint {key} {state.get(key)!r} does not match this build's {expected!r}"
+                )
+        self.actor.load_state_dict(state["actor"])
+        self.value.load_state_dict(state["value"])
+        self.central.load_state_dict(state["central"])
+        self.value_target.load_state_dict(state["value_target"])
+        self.central_target.load_state_dict(state["central_target"])
+        if load_optimisers:
+            self.opt_actor.load_state_dict(state["opt_actor"])
+            self.opt_value.load_state_dict(state["opt_value"])
+            self.opt_central.load_state_dict(state["opt_central"])

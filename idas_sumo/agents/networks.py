@@ -1,0 +1,148 @@
+"""The actor, the decentralised critic V(o, b) and the centralised COMA critic Q(s, a, b).
+
+Sizes follow the paper's Fig. 4 and Sec. V-B: a conv layer of 2 filters 3×30, stride 1, on the
+grids; fc 32-32-32 on the scalars; fc 64-64-64 after the concatenation; ReLU everywhere. The
+centralised critic is two FC layers of 128 units (Fig. 3).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import torch
+from torch import nn
+from torch.distributions import Categorical
+
+from idas_sumo.agents.state_layout import OTHERS_ACTIONS_DIM, STATE_DIM, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.layout import GRID_CELLS, N_CHANNELS, N_LANES, N_SCALARS, OBS_DIM
+
+__all__ = [
+    "CENTRAL_INPUT_DIM",
+    "MASKED_LOGIT",
+    "STATE_DIM",
+    "STATE_FEATURES",
+    "STATE_SLOTS",
+    "Actor",
+    "CentralCritic",
+    "GridEncoder",
+    "ValueCritic",
+]
+
+CONV_FILTERS = 2
+KERNEL_LANES = 3  # kernel height along the lane axis
+KERNEL_CELLS = 30  # kernel width along the road: 30 cells = 15 m
+LANE_PAD = 1  # one empty row above and below the two lanes so the 3-tall kernel fits
+CONV_OUT_LANES = N_LANES + 2 * LANE_PAD - KERNEL_LANES + 1  # 2
+CONV_OUT_CELLS = GRID_CELLS - KERNEL_CELLS + 1  # 371
+CONV_FEATURES = CONV_FILTERS * CONV_OUT_LANES * CONV_OUT_CELLS  # 1484
+SCALAR_HIDDEN = 32  # fc1..fc3
+JOINT_HIDDEN = 64  # fc4..fc6
+CENTRAL_HIDDEN = 128
+CENTRAL_INPUT_DIM = STATE_DIM + OTHERS_ACTIONS_DIM + STATE_SLOTS  # 288
+
+# Finite rather than -inf: a fully masked row then stays NaN-free, and 0·MASKED_LOGIT = 0 in the
+# entropy. exp(-1e9) underflows to exactly 0, so a masked action has probability exactly 0.
+MASKED_LOGIT = -1e9
+ACTOR_HEAD_GAIN = 0.01  # near-uniform initial policy (CleanRL's choice for policy heads)
+
+
+def _mlp(sizes: list[int]) -> nn.Sequential:
+    """Linear layers with a ReLU after every one (the paper uses ReLU on all hidden layers)."""
+    layers: list[nn.Module] = []
+    for n_in, n_out in itertools.pairwise(sizes):
+        layers += [nn.Linear(n_in, n_out), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+class GridEncoder(nn.Module):
+    """Observation (B, OBS_DIM) -> features (B, JOINT_HIDDEN).
+
+    How a 3×30 kernel meets two 1-D grids (the paper does not say; this is our reading): the two
+    lanes' grids form one image with 2 channels (occupancy, relative speed), 2 rows (obs_cl, obs_ol)
+    and 400 columns. The row (lane) axis is zero-padded by one row on each side, giving 4 rows, so
+    the 3-tall kernel sees both lanes plus one padding row: output row 0 is centred on obs_cl,
+    row 1 on obs_ol. Two 3×30 filters, stride 1, give (2, 2, 371) = 1484 features, flattened.
+    The 5 scalars go through fc 32-32-32; both parts are concatenated and go through fc 64-64-64.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(
+            N_CHANNELS,
+            CONV_FILTERS,
+            kernel_size=(KERNEL_LANES, KERNEL_CELLS),
+            stride=1,
+            padding=(LANE_PAD, 0),
+        )
+        self.scalars = _mlp([N_SCALARS, SCALAR_HIDDEN, SCALAR_HIDDEN, SCALAR_HIDDEN])
+        self.joint = _mlp([SCALAR_HIDDEN + CONV_FEATURES, JOINT_HIDDEN, JOINT_HIDDEN, JOINT_HIDDEN])
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if obs.shape[-1] != OBS_DIM:
+            raise ValueError(f"observation must have {OBS_DIM} features, got {tuple(obs.shape)}")
+        scalars = obs[:, :N_SCALARS]
+        # layout.py orders the grid lane-major: [cl occ, cl rel, ol occ, ol rel] -> (B, lane, ch, cell);
+        # conv2d wants (B, ch, lane, cell).
+        grid = obs[:, N_SCALARS:].reshape(-1, N_LANES, N_CHANNELS, GRID_CELLS).transpose(1, 2)
+        conv = torch.relu(self.conv(grid)).flatten(1)
+        return self.joint(torch.cat([self.scalars(scalars), conv], dim=1))
+
+
+class Actor(nn.Module):
+    """π(a | o, b): GridEncoder then a linear head of N_ACTIONS logits, masked before the softmax."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.encoder = GridEncoder()
+        self.head = nn.Linear(JOINT_HIDDEN, N_ACTIONS)
+        nn.init.orthogonal_(self.head.weight, gain=ACTOR_HEAD_GAIN)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Unmasked logits (B, N_ACTIONS)."""
+        out: torch.Tensor = self.head(self.encoder(obs))
+        return out
+
+    def masked_logits(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Logits with disallowed actions (mask false/0) set to MASKED_LOGIT."""
+        return self(obs).masked_fill(~mask.bool(), MASKED_LOGIT)
+
+    def distribution(self, obs: torch.Tensor, mask: torch.Tensor) -> Categorical:
+        """The masked policy; masked actions get probability exactly 0."""
+        return Categorical(logits=self.masked_logits(obs, mask))
+
+
+class ValueCritic(nn.Module):
+    """Decentralised critic V(o, b): the actor's structure with one output; gives ∇J1."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.encoder = GridEncoder()
+        self.head = nn.Linear(JOINT_HIDDEN, 1)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Values (B,)."""
+        out: torch.Tensor = self.head(self.encoder(obs)).squeeze(-1)
+        return out
+
+
+class CentralCritic(nn.Module):
+    """Centralised COMA critic Q(s, (a⁻ⁿ, ·), b): one Q-value per own action of agent n.
+
+    Input: the global state (STATE_DIM, carries every vehicle's b_prio and b_type), the other
+    agents' actions one-hot (OTHERS_ACTIONS_DIM, own slot zeroed) and agent n's slot one-hot
+    (STATE_SLOTS). Two FC layers of 128 with ReLU, then N_ACTIONS outputs, so the counterfactual
+    baseline needs one forward pass (COMA's critic head).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.body = _mlp([CENTRAL_INPUT_DIM, CENTRAL_HIDDEN, CENTRAL_HIDDEN])
+        self.head = nn.Linear(CENTRAL_HIDDEN, N_ACTIONS)
+
+    def forward(self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+        """Q-values (B, N_ACTIONS); ``slot`` is (B,) int64 in [0, STATE_SLOTS)."""
+        slot_onehot = nn.functional.one_hot(slot.long(), STATE_SLOTS).to(state.dtype)
+        out: torch.Tensor = self.head(self.body(torch.cat([state, others_actions, slot_onehot], dim=1)))
+        return out

@@ -1,0 +1,70 @@
+"""The global state the centralised critic Q sees, and how the other agents' actions are encoded.
+
+The state is a fixed number of vehicle slots (STATE_SLOTS), each a row of STATE_FEATURES floats::
+
+    [present, on_main, on_merge, on_out, dist_to_merge / 250 m, speed / 20 m/s, accel / 4 m/s²,
+     b_prio, b_type / 2, controlled]
+
+flattened row-major into a vector of STATE_DIM floats. Empty slots are all zeros (``present`` = 0).
+The critic also gets the other agents' actions one-hot (STATE_SLOTS × N_ACTIONS, the own slot and
+absent or uncontrolled slots zeroed) and the own slot one-hot (STATE_SLOTS), so one shared network
+answers for every agent (COMA's agent-id input).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.layout import ACCEL_SCALE_MPS2, B_TYPE_SCALE, DIST_SCALE_M, SPEED_SCALE_MPS
+
+# 8 learning agents in stage 2 plus room for SUMO's own cars in stage 1 (2 to 8 per road).
+STATE_SLOTS = 16
+STATE_FEATURE_NAMES: tuple[str, ...] = (
+    "present",
+    "on_main",
+    "on_merge",
+    "on_out",
+    "dist_to_merge",
+    "speed",
+    "accel",
+    "b_prio",
+    "b_type",
+    "controlled",
+)
+STATE_FEATURES = len(STATE_FEATURE_NAMES)  # 10
+STATE_DIM = STATE_SLOTS * STATE_FEATURES  # 160
+OTHERS_ACTIONS_DIM = STATE_SLOTS * N_ACTIONS  # 112
+
+# Scales shared with the observation so both critics see the same units.
+STATE_DIST_SCALE_M = DIST_SCALE_M
+STATE_SPEED_SCALE_MPS = SPEED_SCALE_MPS
+STATE_ACCEL_SCALE_MPS2 = ACCEL_SCALE_MPS2
+STATE_B_TYPE_SCALE = B_TYPE_SCALE
+
+FEATURE_INDEX: dict[str, int] = {name: i for i, name in enumerate(STATE_FEATURE_NAMES)}
+
+# Recorded in checkpoints so a critic trained on another state layout is refused on load.
+STATE_LAYOUT_ID = f"slots{STATE_SLOTS}-features{STATE_FEATURES}-actions{N_ACTIONS}-v1"
+
+
+def others_actions_onehot(actions: npt.ArrayLike, acting: npt.ArrayLike) -> npt.NDArray[np.float32]:
+    """(STATE_SLOTS, OTHERS_ACTIONS_DIM) float32: row n is what slot n's critic input sees.
+
+    ``actions``: (STATE_SLOTS,) int action per slot (ignored where ``acting`` is false);
+    ``acting``: (STATE_SLOTS,) bool, true for slots whose vehicle is a learning agent that acted.
+    Row n holds every acting slot's action one-hot except slot n's own, which COMA marginalises.
+    """
+    act = np.asarray(actions, dtype=np.int64)
+    on = np.asarray(acting, dtype=np.bool_)
+    if act.shape != (STATE_SLOTS,) or on.shape != (STATE_SLOTS,):
+        raise ValueError(f"actions and acting must have shape ({STATE_SLOTS},)")
+    if np.any(on & ((act < 0) | (act >= N_ACTIONS))):
+        raise ValueError(f"acting slots need actions in [0, {N_ACTIONS}), got {act[on].tolist()}")
+    joint = np.zeros((STATE_SLOTS, N_ACTIONS), dtype=np.float32)
+    joint[np.flatnonzero(on), act[on]] = 1.0
+    rows = np.broadcast_to(joint.reshape(1, -1), (STATE_SLOTS, OTHERS_ACTIONS_DIM)).copy()
+    for n in range(STATE_SLOTS):
+        rows[n, n * N_ACTIONS : (n + 1) * N_ACTIONS] = 0.0
+    return rows
