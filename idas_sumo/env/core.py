@@ -1,0 +1,406 @@
+"""The adapter between SUMO and the learning code: one episode of the merge, stepped by agent actions.
+
+``MergeSimulation`` owns the backend, turns SUMO's raw vehicle states into a ``TrafficSnapshot``,
+applies the masked actions as speed commands, and scores each step with the paper's named reward
+parts. Both environments (PettingZoo and Gymnasium) are thin wrappers around it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.agents.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.env.actions import (
+    HARD_BRAKE,
+    STEP_LENGTH_S,
+    MaskInputs,
+    action_masks,
+    candidate_accelerations,
+    effective_speed_limit,
+    next_acceleration,
+)
+from idas_sumo.env.layout import (
+    ACCEL_SCALE_MPS2,
+    B_TYPE_SCALE,
+    DIST_SCALE_M,
+    SPEED_SCALE_MPS,
+    VISIBILITY_M,
+)
+from idas_sumo.env.observation import build_observations
+from idas_sumo.env.rewards import (
+    FINISH_DISTANCE_PAST_MERGE_M,
+    IMPEDE_PENALTY,
+    REWARD_PART_NAMES,
+    RewardConfig,
+    collide_reward,
+    finish_reward,
+    flow_penalty,
+)
+from idas_sumo.env.scenario import Scenario, VehicleSpec
+from idas_sumo.env.snapshot import MAIN, MERGE, OUT, ROAD_NAMES, TrafficSnapshot, lane_relations, leaders
+from idas_sumo.errors import SimulationError
+from idas_sumo.sim.backend import SumoBackend, VehicleStates
+from idas_sumo.sim.netgen import MergeNet, read_merge_net
+
+FloatArray = npt.NDArray[np.float64]
+HARD_BRAKE_DETECT_MPS2 = -3.0  # a SUMO-driven car decelerating harder than this counts as a hard brake
+DEFAULT_MAX_EPISODE_S = 60.0  # ours: timeout, not a success
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Episode rules shared by every environment."""
+
+    max_episode_s: float = DEFAULT_MAX_EPISODE_S
+    """Simulated seconds before the episode is cut off (a timeout is not a success)."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+
+    def __post_init__(self) -> None:
+        if not (self.max_episode_s > 0):
+            raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+
+
+@dataclass
+class StepOutcome:
+    """Everything one step produced, per agent that acted in it."""
+
+    rewards: dict[str, float]
+    reward_parts: dict[str, dict[str, float]]
+    joint_reward: float
+    """Sum of the agents' rewards plus the shared flow penalty (the centralised critic's reward)."""
+    terminated: dict[str, bool]
+    truncated: dict[str, bool]
+    end_reason: dict[str, str]
+    """'finished', 'collided', 'removed' or 'timeout' for agents whose episode ended this step."""
+    hard_brakes: list[str]
+    hard_brakes_merge_zone: int
+    collisions: list[tuple[str, str]]
+    replaced_actions: dict[str, int]
+    """Agents whose requested action was masked, and the action applied instead."""
+
+
+class MergeSimulation:
+    """One merge episode at a time on a SUMO backend (one per process)."""
+
+    def __init__(
+        self,
+        net: MergeNet | str | Path,
+        seed: int = 0,
+        config: EnvConfig | None = None,
+        gui: bool = False,
+    ) -> None:
+        self.net = net if isinstance(net, MergeNet) else read_merge_net(net)
+        self.config = config or EnvConfig()
+        self.backend = SumoBackend(self.net, seed=seed, gui=gui)
+        self.speed_limits_mps = {"main": self.net.main.speed_limit_mps, "merge": self.net.merge.speed_limit_mps}
+        self.road_lengths_m = {"main": self.net.main.length_m, "merge": self.net.merge.length_m}
+        self._edge_road = {self.net.main.edge_id: MAIN, self.net.merge.edge_id: MERGE, self.net.out.edge_id: OUT}
+        self._via_length = {MAIN: self.net.main.via_length_m, MERGE: self.net.merge.via_length_m}
+        self._road_length = {MAIN: self.net.main.length_m, MERGE: self.net.merge.length_m}
+        self._road_limit = {
+            MAIN: self.net.main.speed_limit_mps,
+            MERGE: self.net.merge.speed_limit_mps,
+            OUT: self.net.out.speed_limit_mps,
+        }
+        self.scenario: Scenario | None = None
+        self.snapshot = _empty_snapshot()
+        self._spec: dict[str, VehicleSpec] = {}
+        self._slot: dict[str, int] = {}
+        self._accel: dict[str, float] = {}
+        self._active: list[str] = []
+        self._done: dict[str, str] = {}
+        self._last_obs: dict[str, npt.NDArray[np.float32]] = {}
+        self._closed = False
+
+    # -- episode -------------------------------------------------------------------------------
+    def reset(self, scenario: Scenario) -> None:
+        if self._closed:
+            raise SimulationError("this environment is closed; create a new one")
+        self.scenario = scenario
+        self._spec = {v.id: v for v in scenario.vehicles}
+        self._slot = {v.id: i for i, v in enumerate(scenario.vehicles) if i < STATE_SLOTS}
+        self._accel = {}
+        self._active = []
+        self._done = {}
+        self._last_obs = {}
+        self.backend.reset(scenario)
+        events = self.backend.step()  # insertion step: vehicles appear where the scenario puts them
+        self._read_snapshot()
+        self._admit(events.departed)
+
+    @property
+    def time_s(self) -> float:
+        return self.backend.time_s()
+
+    @property
+    def active_agents(self) -> list[str]:
+        """Controlled vehicles on the road that still act (in scenario order)."""
+        return list(self._active)
+
+    @property
+    def finished_agents(self) -> dict[str, str]:
+        """Agents whose episode ended, with the reason."""
+        return dict(self._done)
+
+    @property
+    def episode_over(self) -> bool:
+        assert self.scenario is not None
+        controlled = [v for v in self.scenario.vehicles if v.controlled]
+        all_done = all(v.id in self._done for v in controlled)
+        return all_done or (not self._active and self.backend.pending_count() == 0)
+
+    def _admit(self, departed: list[str]) -> None:
+        for vid in departed:
+            spec = self._spec.get(vid)
+            if spec is not None and spec.controlled and vid not in self._done and vid not in self._active:
+                self._active.append(vid)
+                self._accel[vid] = 0.0
+        order = {v.id: i for i, v in enumerate(self.scenario.vehicles)} if self.scenario else {}
+        self._active.sort(key=lambda v: order[v])
+
+    def _read_snapshot(self) -> None:
+        self.snapshot = self._snapshot_from(self.backend.vehicle_states())
+
+    def _snapshot_from(self, states: VehicleStates) -> TrafficSnapshot:
+        n = len(states.ids)
+        road = np.empty(n, dtype=np.int64)
+        dist = np.empty(n)
+        limit = np.empty(n)
+        for i, (vid, edge) in enumerate(zip(states.ids, states.edge, strict=True)):
+            origin = MAIN if self._spec[vid].road == "main" else MERGE
+            edge_road = self._edge_road.get(edge)
+            pos = float(states.lane_pos_m[i])
+            if edge_road in (MAIN, MERGE):
+                road[i] = edge_road
+                dist[i] = self._road_length[edge_road] - pos
+            elif edge_road == OUT:
+                road[i] = OUT
+                dist[i] = -(self._via_length[origin] + pos)
+            else:  # junction-internal lane: already past the merge point
+                road[i] = OUT
+                dist[i] = -pos
+            if road[i] == OUT:
+                limit[i] = self._road_limit[OUT]
+            else:
+                limit[i] = effective_speed_limit(self._road_limit[road[i]], dist[i], self._road_limit[OUT])
+        return TrafficSnapshot(
+            ids=states.ids,
+            road=road,
+            dist_to_merge_m=dist,
+            speed_mps=states.speed_mps.copy(),
+            accel_mps2=states.accel_mps2.copy(),
+            length_m=np.full(n, 5.0),
+            speed_limit_mps=limit,
+        )
+
+    def b_prio(self, road: npt.NDArray[np.int64]) -> FloatArray:
+        assert self.scenario is not None
+        s = self.scenario
+        table = np.array([s.main_prio, s.merge_prio, max(s.main_prio, s.merge_prio)], dtype=np.float64)
+        return np.asarray(table[road], dtype=np.float64)
+
+    # -- observation ---------------------------------------------------------------------------
+    def observe(self, agent_ids: list[str] | None = None) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int8]]:
+        """(observations, action masks) for the given active agents (default: all), in that order."""
+        ids = self._active if agent_ids is None else agent_ids
+        if not ids:
+            return np.zeros((0, 1605), dtype=np.float32), np.zeros((0, 7), dtype=np.int8)
+        egos = self.snapshot.index(ids)
+        prev_accel = np.array([self._accel[a] for a in ids])
+        b_type = np.array([self._spec[a].b_type for a in ids])
+        obs = build_observations(self.snapshot, egos, prev_accel, self.b_prio(self.snapshot.road[egos]), b_type)
+        masks = self.masks(ids)
+        for i, a in enumerate(ids):
+            self._last_obs[a] = obs[i]
+        return obs, masks
+
+    def masks(self, agent_ids: list[str]) -> npt.NDArray[np.int8]:
+        egos = self.snapshot.index(agent_ids)
+        leader, gap = leaders(self.snapshot, egos)
+        leader_speed = np.where(leader >= 0, self.snapshot.speed_mps[np.maximum(leader, 0)], 0.0)
+        return action_masks(
+            MaskInputs(
+                prev_accel_mps2=np.array([self._accel[a] for a in agent_ids]),
+                speed_mps=self.snapshot.speed_mps[egos],
+                speed_limit_mps=self.snapshot.speed_limit_mps[egos],
+                gap_m=gap,
+                leader_speed_mps=leader_speed,
+            )
+        )
+
+    def last_observation(self, agent_id: str) -> npt.NDArray[np.float32]:
+        return self._last_obs[agent_id]
+
+    def prev_accel(self, agent_id: str) -> float:
+        return self._accel[agent_id]
+
+    def spec(self, vehicle_id: str) -> VehicleSpec:
+        return self._spec[vehicle_id]
+
+    def slot(self, vehicle_id: str) -> int:
+        return self._slot.get(vehicle_id, -1)
+
+    def state(self) -> npt.NDArray[np.float32]:
+        """Global state for the centralised critic (layout in ``agents/state_layout.py``)."""
+        state = np.zeros((STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
+        snap = self.snapshot
+        prio = self.b_prio(snap.road)
+        for i, vid in enumerate(snap.ids):
+            slot = self._slot.get(vid)
+            if slot is None:
+                continue
+            spec = self._spec[vid]
+            state[slot] = (
+                1.0,
+                snap.road[i] == MAIN,
+                snap.road[i] == MERGE,
+                snap.road[i] == OUT,
+                snap.dist_to_merge_m[i] / DIST_SCALE_M,
+                snap.speed_mps[i] / SPEED_SCALE_MPS,
+                snap.accel_mps2[i] / ACCEL_SCALE_MPS2,
+                prio[i],
+                spec.b_type / B_TYPE_SCALE,
+                float(spec.controlled and vid in self._active),
+            )
+        return state.reshape(STATE_DIM)
+
+    def agent_info(self, agent_id: str) -> dict[str, object]:
+        """Raw physical values of an agent now (or at its last step on the road)."""
+        if agent_id in self.snapshot.ids:
+            i = int(self.snapshot.index([agent_id])[0])
+            return {
+                "speed_mps": float(self.snapshot.speed_mps[i]),
+                "accel_mps2": float(self._accel.get(agent_id, self.snapshot.accel_mps2[i])),
+                "dist_to_merge_m": float(self.snapshot.dist_to_merge_m[i]),
+                "road": ROAD_NAMES[int(self.snapshot.road[i])],
+            }
+        return {"speed_mps": float("nan"), "accel_mps2": float("nan"), "dist_to_merge_m": float("nan"), "road": "gone"}
+
+    # -- stepping ------------------------------------------------------------------------------
+    def step(self, actions: dict[str, int]) -> StepOutcome:
+        if self.scenario is None:
+            raise SimulationError("step() before reset()")
+        acting = list(self._active)
+        missing = [a for a in acting if a not in actions]
+        if missing:
+            raise ValueError(f"no action for active agents {missing}")
+        before = self.snapshot
+        replaced: dict[str, int] = {}
+        hard_brakers: list[str] = []
+        if acting:
+            requested = np.array([int(actions[a]) for a in acting], dtype=np.int64)
+            masks = self.masks(acting)
+            applied = _enforce_masks(requested, masks, np.array([self._accel[a] for a in acting]))
+            for a, req, app in zip(acting, requested, applied, strict=True):
+                if req != app:
+                    replaced[a] = int(app)
+            new_accel = next_acceleration([self._accel[a] for a in acting], applied)
+            egos = before.index(acting)
+            next_speed = np.maximum(before.speed_mps[egos] + new_accel * STEP_LENGTH_S, 0.0)
+            self.backend.set_speeds({a: float(v) for a, v in zip(acting, next_speed, strict=True)})
+            for a, acc, act in zip(acting, new_accel, applied, strict=True):
+                self._accel[a] = float(acc)
+                if act == HARD_BRAKE:
+                    hard_brakers.append(a)
+        events = self.backend.step()
+        self._read_snapshot()
+        after = self.snapshot
+
+        # SUMO-driven cars (robots, finished agents handed back) brake hard on their own.
+        present_before = set(before.ids)
+        for i, vid in enumerate(after.ids):
+            if vid not in self._active and vid in present_before and after.accel_mps2[i] <= HARD_BRAKE_DETECT_MPS2:
+                hard_brakers.append(vid)
+        brake_idx = [int(before.index([v])[0]) for v in hard_brakers]
+        merge_zone_brakes = before.dist_to_merge_m[brake_idx] if brake_idx else np.zeros(0)
+        flow = flow_penalty(merge_zone_brakes)
+        culprits = _impeding_vehicles(before, brake_idx)
+
+        parts = {a: dict.fromkeys(REWARD_PART_NAMES, 0.0) for a in acting}
+        terminated = dict.fromkeys(acting, False)
+        truncated = dict.fromkeys(acting, False)
+        end_reason: dict[str, str] = {}
+        in_sim = set(after.ids)
+        for a in acting:
+            parts[a]["flow"] = flow
+            parts[a]["impede"] = IMPEDE_PENALTY * culprits.count(a)
+            spec = self._spec[a]
+            if a in events.collided:
+                prio = self.b_prio(before.road[before.index([a])])[0]
+                parts[a]["collide"] = float(collide_reward(prio, self.config.reward.collision_sign))
+                end_reason[a] = "collided"
+            elif a not in in_sim:
+                end_reason[a] = "removed"
+            elif after.dist_to_merge_m[after.index([a])[0]] <= -FINISH_DISTANCE_PAST_MERGE_M:
+                parts[a]["finish"] = float(finish_reward(spec.b_type))
+                end_reason[a] = "finished"
+            if a in end_reason:
+                terminated[a] = True
+        timeout = self.time_s >= self.config.max_episode_s - 1e-9
+        for a in acting:
+            if a not in end_reason and timeout:
+                truncated[a] = True
+                end_reason[a] = "timeout"
+        rewards = {a: parts[a]["finish"] + parts[a]["collide"] + parts[a]["impede"] for a in acting}
+        joint = float(sum(rewards.values()) + flow)
+        for a, reason in end_reason.items():
+            self._done[a] = reason
+            self._active.remove(a)
+            if reason == "finished":
+                self.backend.release(a)
+        self._admit(events.departed)
+        return StepOutcome(
+            rewards=rewards,
+            reward_parts=parts,
+            joint_reward=joint,
+            terminated=terminated,
+            truncated=truncated,
+            end_reason=end_reason,
+            hard_brakes=hard_brakers,
+            hard_brakes_merge_zone=int(-flow),
+            collisions=events.collision_pairs,
+            replaced_actions=replaced,
+        )
+
+    def timed_out(self) -> bool:
+        return self.time_s >= self.config.max_episode_s - 1e-9
+
+    def close(self) -> None:
+        self.backend.close()
+        self._closed = True
+
+
+def _enforce_masks(
+    requested: npt.NDArray[np.int64], masks: npt.NDArray[np.int8], prev_accel: FloatArray
+) -> npt.NDArray[np.int64]:
+    """Replace each masked request by the allowed action with the closest (then lower) acceleration."""
+    allowed = masks[np.arange(len(requested)), requested].astype(bool)
+    if allowed.all():
+        return requested
+    cand = candidate_accelerations(prev_accel)
+    wanted = cand[np.arange(len(requested)), requested][:, None]
+    cost = np.where(masks.astype(bool), np.abs(cand - wanted) + 1e-3 * cand, np.inf)
+    return np.where(allowed, requested, np.argmin(cost, axis=1)).astype(np.int64)
+
+
+def _impeding_vehicles(before: TrafficSnapshot, brake_idx: list[int]) -> list[str]:
+    """For each hard-braking vehicle, the nearest vehicle ahead of it on either lane (within sight)."""
+    if not brake_idx:
+        return []
+    egos = np.asarray(brake_idx, dtype=np.int64)
+    same, other = lane_relations(before.road, egos)
+    ahead = before.dist_to_merge_m[egos][:, None] - before.dist_to_merge_m[None, :]
+    candidates = (same | other) & (ahead >= 0.0) & (ahead <= VISIBILITY_M)
+    distance = np.where(candidates, ahead, np.inf)
+    nearest = np.argmin(distance, axis=1)
+    rows = np.arange(len(egos))
+    return [before.ids[j] for r, j in zip(rows, nearest, strict=True) if np.isfinite(distance[r, j])]
+
+
+def _empty_snapshot() -> TrafficSnapshot:
+    z = np.zeros(0)
+    return TrafficSnapshot((), np.zeros(0, dtype=np.int64), z, z, z, z, z)

@@ -1,0 +1,69 @@
+"""The paper's observation, built for all agents at once with numpy (layout in ``layout.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.env.layout import (
+    CELL_M,
+    GRID_CELLS,
+    N_SCALARS,
+    OBS_DIM,
+    RELATIVE_SPEED_SCALE_MPS,
+    SCALAR_SCALES,
+    VISIBILITY_M,
+)
+from idas_sumo.env.snapshot import TrafficSnapshot, lane_relations
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
+
+
+def build_grids(snapshot: TrafficSnapshot, egos: IntArray) -> npt.NDArray[np.float32]:
+    """(n_egos, 2 lanes, 2 channels, 400 cells): occupancy and relative speed along each lane.
+
+    A vehicle occupies every cell its body (rear to front bumper) touches. Cells are centred on the ego's
+    front bumper: cell 200 starts there, lower cells lie behind, higher ahead.
+    """
+    n_egos = len(egos)
+    grids = np.zeros((n_egos, 2, 2, GRID_CELLS), dtype=np.float32)
+    if n_egos == 0:
+        return grids
+    same, other = lane_relations(snapshot.road, egos)
+    ahead_front = snapshot.dist_to_merge_m[egos][:, None] - snapshot.dist_to_merge_m[None, :]  # (egos, veh)
+    ahead_rear = ahead_front - snapshot.length_m[None, :]
+    first = np.floor((ahead_rear + VISIBILITY_M) / CELL_M).astype(np.int64)
+    last = np.floor((ahead_front + VISIBILITY_M) / CELL_M).astype(np.int64)
+    visible = (last >= 0) & (first < GRID_CELLS)
+    first = np.clip(first, 0, GRID_CELLS - 1)
+    last = np.clip(last, 0, GRID_CELLS - 1)
+    rel_speed = (snapshot.speed_mps[None, :] - snapshot.speed_mps[egos][:, None]) / RELATIVE_SPEED_SCALE_MPS
+    # Paint each body with a difference array: +x at its first cell, -x after its last, then a cumsum.
+    diff = np.zeros((n_egos, 2, 2, GRID_CELLS + 1), dtype=np.float64)
+    for lane, related in enumerate((same, other)):
+        e, v = np.nonzero(related & visible)
+        for channel, value in enumerate((np.ones(len(e)), rel_speed[e, v])):
+            np.add.at(diff, (e, lane, channel, first[e, v]), value)
+            np.add.at(diff, (e, lane, channel, last[e, v] + 1), -value)
+    painted = np.cumsum(diff, axis=-1)[..., :GRID_CELLS]
+    grids[:, :, 0, :] = painted[:, :, 0, :] > 0.5
+    grids[:, :, 1, :] = np.where(grids[:, :, 0, :] > 0, painted[:, :, 1, :], 0.0)
+    return grids
+
+
+def build_observations(
+    snapshot: TrafficSnapshot,
+    egos: IntArray,
+    prev_accel_mps2: FloatArray,
+    b_prio: FloatArray,
+    b_type: FloatArray,
+) -> npt.NDArray[np.float32]:
+    """(n_egos, OBS_DIM) float32 observations; ``prev_accel`` is the acceleration the agent drives with."""
+    obs = np.empty((len(egos), OBS_DIM), dtype=np.float32)
+    scalars = np.stack(
+        [snapshot.speed_mps[egos], prev_accel_mps2, snapshot.dist_to_merge_m[egos], b_prio, b_type], axis=-1
+    )
+    obs[:, :N_SCALARS] = scalars / np.asarray(SCALAR_SCALES)
+    obs[:, N_SCALARS:] = build_grids(snapshot, egos).reshape(len(egos), -1)
+    return obs

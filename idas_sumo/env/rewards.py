@@ -1,0 +1,48 @@
+"""The paper's four named reward parts, as pure functions (values from Section V-B)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+REWARD_PART_NAMES: tuple[str, ...] = ("finish", "collide", "impede", "flow")
+IMPEDE_PENALTY = -5.0
+FLOW_PENALTY_PER_HARD_BRAKE = -1.0
+MERGE_ZONE_RADIUS_M = 50.0  # the merging zone: within 50 m of the merge point
+FINISH_DISTANCE_PAST_MERGE_M = 50.0  # ours: a vehicle finishes at the merging zone's far edge
+CollisionSign = Literal["paper", "lower_priority_pays"]
+
+
+def finish_reward(b_type: npt.ArrayLike) -> FloatArray:
+    """r_finish = (15·b_type + 50) / 4, once on finishing: 5 at b_type = -2, 20 at b_type = 2."""
+    return np.asarray((15.0 * np.asarray(b_type, dtype=np.float64) + 50.0) / 4.0)
+
+
+def collide_reward(b_prio: npt.ArrayLike, sign: CollisionSign = "paper") -> FloatArray:
+    """r_collide = -5·b_prio - 5 as printed in the paper (the higher-priority car pays more).
+
+    The paper's text says the lower-priority car should take more responsibility; ``lower_priority_pays``
+    implements that reading: -5·(1 - b_prio) - 5.
+    """
+    prio = np.asarray(b_prio, dtype=np.float64)
+    if sign == "lower_priority_pays":
+        prio = 1.0 - prio
+    return np.asarray(-5.0 * prio - 5.0)
+
+
+def flow_penalty(hard_brake_dist_to_merge_m: npt.ArrayLike) -> float:
+    """r_flow: -1 per hard brake within the merging zone; shared, enters only the joint reward."""
+    d = np.asarray(hard_brake_dist_to_merge_m, dtype=np.float64)
+    return float(FLOW_PENALTY_PER_HARD_BRAKE * np.count_nonzero(np.abs(d) <= MERGE_ZONE_RADIUS_M))
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Which variant of the paper's rewards to use."""
+
+    collision_sign: CollisionSign = "paper"
+    """'paper' (-5·b_prio - 5, the default) or 'lower_priority_pays'."""

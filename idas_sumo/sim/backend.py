@@ -1,0 +1,284 @@
+"""One SUMO run in this process through libsumo: start, insert a scenario, command speeds, report events.
+
+libsumo holds one simulation per process and a second ``start`` silently replaces the first, so this
+module owns a process-wide guard: a second open ``SumoBackend`` is refused with a clear error.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from idas_sumo.env.scenario import Scenario
+from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.sim.netgen import MergeNet
+
+STEP_LENGTH_S = 0.2
+CONTROLLED_SPEED_MODE = 32  # every check off, right of way inside the junction ignored too (bit 5 inverted)
+SUMO_DEFAULT_SPEED_MODE = 31
+CONTROLLED_TYPE = "agent"
+ROBOT_TYPE = "robot"
+# Controlled cars must not be clipped by their vType: the paper's hard brake is -4 m/s².
+CONTROLLED_MAX_SPEED_MPS = 40.0
+CONTROLLED_DECEL_MPS2 = 4.5
+ROBOT_ACCEL_MPS2 = 2.0
+ROBOT_DECEL_MPS2 = 2.0  # comfortable; a robot braking harder than HARD_BRAKE_DETECT counts as hard braking
+VEHICLE_LENGTH_M = 5.0
+
+_active: SumoBackend | None = None
+
+
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[list[str]]:
+    """Collect what libsumo prints on the C++ stderr (its only place for many error reasons)."""
+    lines: list[str] = []
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines.extend(sink.read().decode(errors="replace").splitlines())
+
+
+def _sumo_message(err: BaseException, stderr_lines: Sequence[str]) -> str:
+    errors = [ln.strip() for ln in stderr_lines if ln.strip().startswith("Error")]
+    text = str(err).strip()
+    if errors:
+        return "; ".join(errors[-2:]) if not text or text == "Process Error" else f"{text} ({errors[-1]})"
+    return text or type(err).__name__
+
+
+def _route_xml(scenario: Scenario, net: MergeNet) -> str:
+    edge = {"main": net.main.edge_id, "merge": net.merge.edge_id}
+    lines = [
+        "<routes>",
+        f'  <vType id="{CONTROLLED_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="2" '
+        f'decel="{CONTROLLED_DECEL_MPS2}" emergencyDecel="9" maxSpeed="{CONTROLLED_MAX_SPEED_MPS}" sigma="0" '
+        'speedFactor="1" speedDev="0" color="1,0,0"/>',
+        f'  <vType id="{ROBOT_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="{ROBOT_ACCEL_MPS2}" '
+        f'decel="{ROBOT_DECEL_MPS2}" emergencyDecel="9" sigma="0" tau="1.0" speedFactor="1" speedDev="0" '
+        'color="0.6,0.6,0.6"/>',
+        f'  <route id="main_route" edges="{edge["main"]} {net.out.edge_id}"/>',
+        f'  <route id="merge_route" edges="{edge["merge"]} {net.out.edge_id}"/>',
+    ]
+    for v in sorted(scenario.vehicles, key=lambda v: (v.depart_s, v.id)):
+        vtype = CONTROLLED_TYPE if v.controlled else ROBOT_TYPE
+        lines.append(
+            f'  <vehicle id="{v.id}" type="{vtype}" route="{v.road}_route" depart="{v.depart_s:.2f}" '
+            f'departPos="{v.start_pos_m:.3f}" departSpeed="{v.speed_mps:.3f}" insertionChecks="none"/>'
+        )
+    lines.append("</routes>")
+    return "\n".join(lines) + "\n"
+
+
+@dataclass
+class StepEvents:
+    """What happened in one simulation step."""
+
+    collided: set[str] = field(default_factory=set)
+    collision_pairs: list[tuple[str, str]] = field(default_factory=list)
+    departed: list[str] = field(default_factory=list)
+    arrived: list[str] = field(default_factory=list)
+    """Left the network at the end of the outgoing road (removed-by-collision vehicles excluded)."""
+    teleported: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class VehicleStates:
+    """Raw per-vehicle state read from SUMO (arrays align with ids)."""
+
+    ids: tuple[str, ...]
+    edge: tuple[str, ...]
+    lane_pos_m: np.ndarray
+    speed_mps: np.ndarray
+    accel_mps2: np.ndarray
+
+
+class SumoBackend:
+    """The one SUMO simulation of this process."""
+
+    def __init__(self, net: MergeNet, seed: int = 0, gui: bool = False, extra_args: Sequence[str] = ()) -> None:
+        self.net = net
+        self.seed = seed
+        self.gui = gui
+        self.extra_args = list(extra_args)
+        self._workdir: Path | None = None
+        self._running = False
+        self._controlled: set[str] = set()
+        self._released: set[str] = set()
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def _args(self, route_file: Path) -> list[str]:
+        binary = "sumo-gui" if self.gui else "sumo"
+        return [
+            binary,
+            "--net-file", str(self.net.path),
+            "--route-files", str(route_file),
+            "--step-length", str(STEP_LENGTH_S),
+            "--seed", str(self.seed),
+            "--collision.check-junctions", "true",
+            "--collision.mingap-factor", "0",
+            "--collision.action", "remove",
+            "--time-to-teleport", "-1",
+            "--no-step-log", "true",
+            "--no-warnings", "true",
+            "--default.speeddev", "0",
+            "--begin", "0",
+            *self.extra_args,
+        ]
+
+    def reset(self, scenario: Scenario) -> None:
+        """(Re)load the network with this scenario's vehicles and run the insertion step."""
+        global _active
+        if _active is not None and _active is not self:
+            raise SimulationError(
+                "another SUMO simulation is already open in this process (libsumo allows one); "
+                "close the other environment first or use a separate process"
+            )
+        import libsumo
+
+        if self.gui and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+            raise InputError("--gui needs a display (DISPLAY is not set); run without --gui")
+        if self._workdir is None:
+            self._workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_"))
+        route_file = self._workdir / "scenario.rou.xml"
+        route_file.write_text(_route_xml(scenario, self.net))
+        args = self._args(route_file)
+        if self.gui:
+            binary = "sumo-gui"
+            from idas_sumo.sim.netgen import sumo_binary
+
+            args[0] = str(sumo_binary(binary))
+        with _captured_stderr() as stderr_lines:
+            try:
+                if self._running:
+                    libsumo.load(args[1:])
+                else:
+                    libsumo.start(args)
+            except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
+                self._running = False
+                _active = None
+                raise SimulationError(f"SUMO could not load {self.net.path}: {_sumo_message(err, stderr_lines)}") from None
+        self._running = True
+        _active = self
+        self._controlled = set(scenario.controlled_ids)
+        self._released = set()
+
+    def close(self) -> None:
+        global _active
+        if self._running:
+            import libsumo
+
+            with contextlib.suppress(Exception):
+                libsumo.close()
+            self._running = False
+        if _active is self:
+            _active = None
+        if self._workdir is not None:
+            shutil.rmtree(self._workdir, ignore_errors=True)
+            self._workdir = None
+
+    @property
+    def running(self) -> bool:
+        return self._running
+
+    # -- stepping --------------------------------------------------------------------------------
+    def time_s(self) -> float:
+        import libsumo
+
+        return float(libsumo.simulation.getTime())
+
+    def set_speeds(self, speeds_mps: dict[str, float]) -> None:
+        """Command the next step's speed of controlled vehicles (validated: finite, >= 0)."""
+        import libsumo
+
+        for vid, speed in speeds_mps.items():
+            if not math.isfinite(speed) or speed < 0:
+                raise SimulationError(f"invalid speed command {speed!r} for vehicle {vid!r} (a bug, not an input)")
+            libsumo.vehicle.setSpeed(vid, speed)
+
+    def release(self, vehicle_id: str) -> None:
+        """Hand a controlled vehicle back to SUMO's own driver model (after it finished)."""
+        import libsumo
+
+        if vehicle_id in self._controlled and vehicle_id not in self._released:
+            libsumo.vehicle.setSpeedMode(vehicle_id, SUMO_DEFAULT_SPEED_MODE)
+            libsumo.vehicle.setSpeed(vehicle_id, -1)
+            self._released.add(vehicle_id)
+
+    def step(self) -> StepEvents:
+        import libsumo
+
+        try:
+            libsumo.simulationStep()
+        except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
+            raise SimulationError(f"SUMO failed during a step: {err}") from None
+        events = StepEvents()
+        for collision in libsumo.simulation.getCollisions():
+            events.collision_pairs.append((collision.collider, collision.victim))
+            events.collided.update((collision.collider, collision.victim))
+        events.departed = list(libsumo.simulation.getDepartedIDList())
+        events.arrived = [v for v in libsumo.simulation.getArrivedIDList() if v not in events.collided]
+        events.teleported = list(libsumo.simulation.getStartingTeleportIDList())
+        for vid in events.departed:
+            if vid in self._controlled:
+                libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
+        return events
+
+    def vehicle_states(self) -> VehicleStates:
+        import libsumo
+
+        vehicle = libsumo.vehicle
+        ids = tuple(vehicle.getIDList())
+        n = len(ids)
+        lane_pos = np.empty(n)
+        speed = np.empty(n)
+        accel = np.empty(n)
+        edges = []
+        for i, vid in enumerate(ids):
+            edges.append(vehicle.getRoadID(vid))
+            lane_pos[i] = vehicle.getLanePosition(vid)
+            speed[i] = vehicle.getSpeed(vid)
+            accel[i] = vehicle.getAcceleration(vid)
+        return VehicleStates(ids, tuple(edges), lane_pos, speed, accel)
+
+    def internal_lane_lengths(self) -> dict[str, float]:
+        """Length of each junction-internal edge, keyed by edge id (to measure distance past the merge)."""
+        import libsumo
+
+        lengths: dict[str, float] = {}
+        for lane in libsumo.lane.getIDList():
+            if lane.startswith(":"):
+                lengths[libsumo.lane.getEdgeID(lane)] = float(libsumo.lane.getLength(lane))
+        return lengths
+
+    def pending_count(self) -> int:
+        import libsumo
+
+        return len(libsumo.simulation.getPendingVehicles())
+
+    def raw_call(self, domain: str, method: str, *args: Any) -> Any:
+        """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args)."""
+        import libsumo
+
+        return getattr(getattr(libsumo, domain), method)(*args)
+
+
+@atexit.register
+def _close_on_exit() -> None:
+    if _active is not None:
+        _active.close()

@@ -1,0 +1,210 @@
+"""Generate the two-road merge network with netconvert, and read a merge network back with sumolib.
+
+Layout: the main road runs straight into the merge junction; the merge road joins it at ``angle_deg``;
+one outgoing road leaves the junction. Every edge carries an explicit ``length`` so the roads measure
+exactly what was asked to the merge point (netconvert would otherwise trim them at the junction).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from idas_sumo.errors import InputError, SimulationError
+
+MAIN_EDGE = "main"
+MERGE_EDGE = "merge"
+OUT_EDGE = "out"
+MERGE_JUNCTION = "merge_point"
+MAIN_EDGE_PRIORITY = 2  # SUMO road priority: the main road has right of way at the junction
+MERGE_EDGE_PRIORITY = 1
+
+
+@dataclass(frozen=True)
+class NetParams:
+    """Geometry and limits of the generated merge (defaults: the paper, outgoing road ours)."""
+
+    main_length_m: float = 250.0
+    merge_length_m: float = 250.0
+    out_length_m: float = 150.0
+    main_speed_mps: float = 20.0
+    merge_speed_mps: float = 15.0
+    out_speed_mps: float = 20.0
+    angle_deg: float = 30.0
+    """Angle between the merge road and the main road."""
+
+    def __post_init__(self) -> None:
+        for name in ("main_length_m", "merge_length_m", "out_length_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 20.0 <= value <= 10_000.0):
+                raise InputError(f"--{_flag(name)}: {value} m is outside [20, 10000] m")
+        for name in ("main_speed_mps", "merge_speed_mps", "out_speed_mps"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 1.0 <= value <= 70.0):
+                raise InputError(f"--{_flag(name)}: {value} m/s is outside [1, 70] m/s")
+        if not (math.isfinite(self.angle_deg) and 5.0 <= self.angle_deg <= 90.0):
+            raise InputError(f"--angle: {self.angle_deg} degrees is outside [5, 90]")
+
+
+def _flag(field_name: str) -> str:
+    return field_name.rsplit("_", 1)[0].replace("_", "-")
+
+
+def sumo_binary(name: str) -> Path:
+    """Path to a SUMO tool (netconvert, sumo-gui) shipped with the eclipse-sumo wheel."""
+    import sumo  # the eclipse-sumo wheel
+
+    return Path(sumo.SUMO_HOME) / "bin" / name
+
+
+def _plain_xml(params: NetParams) -> tuple[str, str]:
+    a = math.radians(params.angle_deg)
+    nodes = [
+        ("main_start", -params.main_length_m, 0.0, "priority"),
+        ("merge_start", -params.merge_length_m * math.cos(a), -params.merge_length_m * math.sin(a), "priority"),
+        (MERGE_JUNCTION, 0.0, 0.0, "priority"),
+        ("out_end", params.out_length_m, 0.0, "priority"),
+    ]
+    node_xml = "<nodes>\n" + "".join(
+        f'  <node id="{n}" x="{x:.3f}" y="{y:.3f}" type="{t}"/>\n' for n, x, y, t in nodes
+    ) + "</nodes>\n"
+    edges = [
+        (MAIN_EDGE, "main_start", MERGE_JUNCTION, params.main_length_m, params.main_speed_mps, MAIN_EDGE_PRIORITY),
+        (MERGE_EDGE, "merge_start", MERGE_JUNCTION, params.merge_length_m, params.merge_speed_mps,
+         MERGE_EDGE_PRIORITY),
+        (OUT_EDGE, MERGE_JUNCTION, "out_end", params.out_length_m, params.out_speed_mps, MAIN_EDGE_PRIORITY),
+    ]
+    edge_xml = "<edges>\n" + "".join(
+        f'  <edge id="{e}" from="{f}" to="{t}" numLanes="1" speed="{v}" priority="{p}" length="{length}"/>\n'
+        for e, f, t, length, v, p in edges
+    ) + "</edges>\n"
+    return node_xml, edge_xml
+
+
+def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
+    """Write the merge network to ``out_path`` (atomically) and keep its plain XML beside it."""
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    node_xml, edge_xml = _plain_xml(params)
+    stem = out.name.removesuffix(".net.xml")
+    nod = out.with_name(f"{stem}.nod.xml")
+    edg = out.with_name(f"{stem}.edg.xml")
+    nod.write_text(node_xml)
+    edg.write_text(edge_xml)
+    fd, tmp_name = tempfile.mkstemp(dir=out.parent, prefix=f".{stem}.", suffix=".net.xml")
+    os.close(fd)
+    tmp = Path(tmp_name)
+    cmd = [
+        str(sumo_binary("netconvert")),
+        "--node-files", str(nod),
+        "--edge-files", str(edg),
+        "--output-file", str(tmp),
+        "--no-turnarounds", "true",
+        "--junctions.corner-detail", "5",
+        "--no-warnings", "true",
+    ]
+    try:
+        result = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        if result.returncode != 0:
+            raise SimulationError(f"netconvert failed: {result.stderr.strip().splitlines()[-1:]}")
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out
+
+
+@dataclass(frozen=True)
+class RoadInfo:
+    """An edge of the merge network as read back by sumolib."""
+
+    edge_id: str
+    length_m: float
+    speed_limit_mps: float
+    priority: int
+    via_length_m: float = 0.0
+    """Length of the junction-internal lane from this road onto the outgoing road (0 for that road)."""
+
+
+@dataclass(frozen=True)
+class MergeNet:
+    """A validated two-road merge: two incoming roads, one outgoing road, one merge junction."""
+
+    path: Path
+    main: RoadInfo
+    merge: RoadInfo
+    out: RoadInfo
+    junction_id: str
+
+
+def read_merge_net(path: str | Path) -> MergeNet:
+    """Read and validate a merge network; every problem is one InputError naming the file."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: net file not found")
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, expected a .net.xml file")
+    if not os.access(p, os.R_OK):
+        raise InputError(f"{p}: net file not readable (permission denied)")
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(p).getroot()
+    except ET.ParseError as err:
+        raise InputError(f"{p}: not valid XML ({err})") from None
+    if root.tag != "net":
+        raise InputError(f"{p}: not a SUMO network (root element <{root.tag}>, expected <net>)")
+    import sumolib
+
+    try:
+        net = sumolib.net.readNet(str(p), withInternal=True)
+    except Exception as err:  # sumolib raises many types on broken nets
+        raise InputError(f"{p}: sumolib cannot read the network ({err})") from None
+    junctions = [
+        n for n in net.getNodes() if len([e for e in n.getIncoming() if e.getFunction() != "internal"]) >= 2
+    ]
+    if not junctions:
+        raise InputError(f"{p}: no merge junction (a node with two incoming roads) in the network")
+    if len(junctions) > 1:
+        raise InputError(f"{p}: {len(junctions)} junctions with several incoming roads; expected exactly one merge")
+    junction = junctions[0]
+    incoming = [e for e in junction.getIncoming() if e.getFunction() != "internal"]
+    outgoing = [e for e in junction.getOutgoing() if e.getFunction() != "internal"]
+    if len(incoming) != 2:
+        raise InputError(f"{p}: the merge junction has {len(incoming)} incoming roads, expected 2")
+    if len(outgoing) != 1:
+        raise InputError(f"{p}: the merge junction has {len(outgoing)} outgoing roads, expected 1")
+    for edge in [*incoming, *outgoing]:
+        if edge.getLaneNumber() != 1:
+            raise InputError(f"{p}: edge {edge.getID()!r} has {edge.getLaneNumber()} lanes, expected 1")
+    out_edge = outgoing[0]
+    for edge in incoming:
+        if not edge.getConnections(out_edge):
+            raise InputError(f"{p}: no connection from {edge.getID()!r} to {out_edge.getID()!r}: route not drivable")
+    # Main = the road with right of way: higher SUMO priority, then the higher speed limit.
+    main_edge, merge_edge = sorted(incoming, key=lambda e: (e.getPriority(), e.getSpeed()), reverse=True)
+
+    def info(edge: sumolib.net.edge.Edge) -> RoadInfo:
+        via_length = 0.0
+        connections = edge.getConnections(out_edge) if edge is not out_edge else []
+        if connections and connections[0].getViaLaneID():
+            via_length = float(net.getLane(connections[0].getViaLaneID()).getLength())
+        return RoadInfo(
+            edge.getID(), float(edge.getLength()), float(edge.getSpeed()), int(edge.getPriority()), via_length
+        )
+
+    return MergeNet(p, info(main_edge), info(merge_edge), info(out_edge), junction.getID())
+
+
+def describe(net: MergeNet) -> str:
+    return (
+        f"{net.path}: main {net.main.edge_id} {net.main.length_m:.1f} m @ {net.main.speed_limit_mps:g} m/s, "
+        f"merge {net.merge.edge_id} {net.merge.length_m:.1f} m @ {net.merge.speed_limit_mps:g} m/s, "
+        f"out {net.out.edge_id} {net.out.length_m:.1f} m @ {net.out.speed_limit_mps:g} m/s"
+    )
+
+
+__all__ = ["MergeNet", "NetParams", "RoadInfo", "describe", "generate_net", "read_merge_net"]
