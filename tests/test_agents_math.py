@@ -1,0 +1,124 @@
+"""Returns, TD targets, COMA baseline/advantage and the combined loss against hand-worked numbers."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from idas_sumo.agents.coma import ALPHA, coma_advantage, coma_baseline, combined_policy_loss
+from idas_sumo.agents.returns import GAMMA, discounted_returns, td_advantages, td_targets
+
+
+def t(*values: float) -> torch.Tensor:
+    return torch.tensor(values, dtype=torch.float64)
+
+
+def test_paper_constants() -> None:
+    assert GAMMA == 0.9
+    assert ALPHA == 0.7
+
+
+def test_discounted_returns_with_bootstrap() -> None:
+    # G2 = 3 + 0.9·10 = 12; G1 = 2 + 0.9·12 = 12.8; G0 = 1 + 0.9·12.8 = 12.52
+    out = discounted_returns(t(1, 2, 3), t(0, 0, 0), 0.9, bootstrap=10.0)
+    torch.testing.assert_close(out, t(12.52, 12.8, 12.0))
+
+
+def test_discounted_returns_done_cuts_the_sum() -> None:
+    # done at t=1: G2 = 3 + 0.9·10 = 12 (next episode); G1 = 2; G0 = 1 + 0.9·2 = 2.8
+    out = discounted_returns(t(1, 2, 3), t(0, 1, 0), 0.9, bootstrap=10.0)
+    torch.testing.assert_close(out, t(2.8, 2.0, 12.0))
+
+
+def test_discounted_returns_carries_agent_axis() -> None:
+    # two agents side by side, no bootstrap: agent 0 [1, 1] -> [1.9, 1]; agent 1 [0, 5] -> [4.5, 5]
+    rewards = torch.tensor([[1.0, 0.0], [1.0, 5.0]], dtype=torch.float64)
+    out = discounted_returns(rewards, torch.zeros_like(rewards), 0.9)
+    torch.testing.assert_close(out, torch.tensor([[1.9, 4.5], [1.0, 5.0]], dtype=torch.float64))
+
+
+def test_discounted_returns_rejects_shape_mismatch() -> None:
+    with pytest.raises(ValueError):
+        discounted_returns(t(1, 2), t(0, 0, 0))
+
+
+def test_td_targets_and_advantages() -> None:
+    # sample 0: 1 + 0.9·2 = 2.8; sample 1 finished (done): -5, no bootstrap
+    rewards, next_values, dones = t(1, -5), t(2, 3), t(0, 1)
+    torch.testing.assert_close(td_targets(rewards, next_values, dones, 0.9), t(2.8, -5.0))
+    # advantages: 2.8 - 2 = 0.8; -5 - 1 = -6
+    torch.testing.assert_close(td_advantages(rewards, t(2, 1), next_values, dones, 0.9), t(0.8, -6.0))
+
+
+def test_td_default_gamma_is_paper_value() -> None:
+    # 0 + 0.9·1 = 0.9
+    torch.testing.assert_close(td_targets(t(0), t(1), t(0)), t(0.9))
+
+
+def test_coma_baseline_and_advantage() -> None:
+    q = torch.tensor(
+        [
+            [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0],
+            [3.0, 0.0, 0.0, 0.0, 0.0, -1.0, 6.0],
+        ],
+        dtype=torch.float64,
+    )
+    probs = torch.tensor(
+        [
+            [0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0],
+            # action 6 is masked (p = 0): its large Q of 6 must not enter the baseline
+            [0.2, 0.0, 0.0, 0.0, 0.0, 0.8, 0.0],
+        ],
+        dtype=torch.float64,
+    )
+    # row 0: 0.5·1 + 0.5·2 = 1.5; row 1: 0.2·3 + 0.8·(-1) = -0.2
+    torch.testing.assert_close(coma_baseline(q, probs), t(1.5, -0.2))
+    # row 0 took action 1: 2 - 1.5 = 0.5; row 1 took action 5: -1 - (-0.2) = -0.8
+    torch.testing.assert_close(coma_advantage(q, probs, torch.tensor([1, 5])), t(0.5, -0.8))
+
+
+def test_coma_advantage_is_zero_in_expectation() -> None:
+    # Σ_a π(a) (Q(a) - Σ_a' π(a') Q(a')) = 0 for any Q
+    q = torch.randn(4, 7, dtype=torch.float64)
+    probs = torch.softmax(torch.randn(4, 7, dtype=torch.float64), dim=1)
+    expected = sum(probs[:, a] * coma_advantage(q, probs, torch.full((4,), a)) for a in range(7))
+    torch.testing.assert_close(expected, torch.zeros(4, dtype=torch.float64))
+
+
+def test_combined_policy_loss_alpha_07() -> None:
+    log_probs = t(-1, -2).requires_grad_()
+    adv_v, adv_q = t(2, -1), t(1, 3)
+    # weights: 0.7·2 + 0.3·1 = 1.7 and 0.7·(-1) + 0.3·3 = 0.2
+    # terms: 1.7·(-1) = -1.7 and 0.2·(-2) = -0.4; loss = -mean = 1.05
+    loss = combined_policy_loss(log_probs, adv_v, adv_q, 0.7)
+    torch.testing.assert_close(loss, torch.tensor(1.05, dtype=torch.float64))
+    loss.backward()
+    # d loss / d log π = -weight / B = [-0.85, -0.1]
+    assert log_probs.grad is not None
+    torch.testing.assert_close(log_probs.grad, t(-0.85, -0.1))
+
+
+def test_combined_policy_loss_entropy_bonus() -> None:
+    # 1.05 - 0.1·mean(1.0, 0.5) = 1.05 - 0.075 = 0.975
+    loss = combined_policy_loss(t(-1, -2), t(2, -1), t(1, 3), 0.7, entropy=t(1.0, 0.5), entropy_coef=0.1)
+    torch.testing.assert_close(loss, torch.tensor(0.975, dtype=torch.float64))
+
+
+def test_combined_policy_loss_alpha_one_is_j1_only() -> None:
+    # terms 2·(-1) = -2 and (-1)·(-2) = 2: loss 0, whatever adv_q is
+    assert float(combined_policy_loss(t(-1, -2), t(2, -1), None, 1.0)) == pytest.approx(0.0)
+    assert float(combined_policy_loss(t(-1, -2), t(2, -1), t(100, 100), 1.0)) == pytest.approx(0.0)
+
+
+def test_combined_policy_loss_needs_adv_q_below_alpha_one() -> None:
+    with pytest.raises(ValueError):
+        combined_policy_loss(t(-1), t(1), None, 0.7)
+    with pytest.raises(ValueError):
+        combined_policy_loss(t(-1), t(1), t(1), 1.5)
+
+
+def test_combined_policy_loss_does_not_backprop_into_advantages() -> None:
+    adv_v = t(1.0).requires_grad_()
+    adv_q = t(2.0).requires_grad_()
+    combined_policy_loss(t(-1.0).requires_grad_(), adv_v, adv_q, 0.7).backward()
+    assert adv_v.grad is None and adv_q.grad is None

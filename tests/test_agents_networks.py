@@ -1,0 +1,232 @@
+"""Network shapes, masking, the learner's update, target updates and checkpoint round trips."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+
+import numpy as np
+import pytest
+import torch
+
+from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
+from idas_sumo.agents.networks import (
+    CENTRAL_INPUT_DIM,
+    STATE_DIM,
+    Actor,
+    CentralCritic,
+    GridEncoder,
+    ValueCritic,
+)
+from idas_sumo.agents.state_layout import OTHERS_ACTIONS_DIM, STATE_SLOTS, others_actions_onehot
+from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
+from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
+from idas_sumo.errors import InputError
+
+B = 16
+
+
+def random_batch(seed: int = 0, n: int = B) -> Batch:
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.rand(n, N_ACTIONS, generator=g) < 0.6
+    mask[:, HARD_BRAKE] = True  # never masked, as in env/actions.py
+    action = torch.multinomial(mask.float(), 1, generator=g).squeeze(1)
+    next_mask = torch.rand(n, N_ACTIONS, generator=g) < 0.6
+    next_mask[:, HARD_BRAKE] = True
+    return Batch(
+        obs=torch.rand(n, OBS_DIM, generator=g),
+        mask=mask,
+        action=action,
+        reward=torch.randn(n, generator=g),
+        next_obs=torch.rand(n, OBS_DIM, generator=g),
+        done=(torch.rand(n, generator=g) < 0.2).float(),
+        state=torch.rand(n, STATE_DIM, generator=g),
+        others_actions=(torch.rand(n, OTHERS_ACTIONS_DIM, generator=g) < 0.1).float(),
+        slot=torch.randint(0, STATE_SLOTS, (n,), generator=g),
+        joint_reward=torch.randn(n, generator=g),
+        next_state=torch.rand(n, STATE_DIM, generator=g),
+        next_others_actions=(torch.rand(n, OTHERS_ACTIONS_DIM, generator=g) < 0.1).float(),
+        next_slot=torch.randint(0, STATE_SLOTS, (n,), generator=g),
+        next_action=torch.multinomial(next_mask.float(), 1, generator=g).squeeze(1),
+        next_valid=(torch.rand(n, generator=g) < 0.8).float(),
+    )
+
+
+def params(module: torch.nn.Module) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in module.parameters()]
+
+
+def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
+    return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_output_shapes() -> None:
+    torch.manual_seed(0)
+    obs = torch.rand(3, OBS_DIM)
+    mask = torch.ones(3, N_ACTIONS, dtype=torch.bool)
+    enc = GridEncoder()
+    assert enc(obs).shape == (3, 64)
+    grid = obs[:, N_SCALARS:].reshape(3, 2, 2, GRID_CELLS).transpose(1, 2)
+    assert enc.conv(grid).shape == (3, 2, 2, 371)  # 2 filters, 2 lane rows after padding, 400 - 30 + 1
+    assert Actor()(obs).shape == (3, N_ACTIONS)
+    assert Actor().distribution(obs, mask).probs.shape == (3, N_ACTIONS)
+    assert ValueCritic()(obs).shape == (3,)
+    slots = torch.tensor([0, 5, 15])
+    q = CentralCritic()(torch.rand(3, STATE_DIM), torch.zeros(3, OTHERS_ACTIONS_DIM), slots)
+    assert q.shape == (3, N_ACTIONS)
+    assert CENTRAL_INPUT_DIM == STATE_DIM + STATE_SLOTS * N_ACTIONS + STATE_SLOTS == 288
+
+
+def test_encoder_sees_each_lane_and_the_scalars() -> None:
+    torch.manual_seed(0)
+    enc = GridEncoder()
+    base = torch.zeros(1, OBS_DIM)
+    out = enc(base)
+    for start in (0, N_SCALARS, N_SCALARS + 2 * GRID_CELLS):  # scalars, obs_cl occupancy, obs_ol occupancy
+        changed = base.clone()
+        changed[0, start : start + 50] = 1.0
+        assert not torch.allclose(enc(changed), out)
+
+
+def test_masked_probabilities_are_exactly_zero() -> None:
+    torch.manual_seed(0)
+    mask = torch.tensor([[0, 0, 0, 0, 0, 1, 0], [1, 0, 0, 0, 0, 1, 1]], dtype=torch.int8)
+    probs = Actor().distribution(torch.rand(2, OBS_DIM), mask).probs
+    assert torch.all(probs[mask == 0] == 0.0)
+    torch.testing.assert_close(probs.sum(dim=1), torch.ones(2))
+
+
+@pytest.mark.parametrize("allowed", [(HARD_BRAKE,), (0, RELEASE_BRAKE), (HARD_BRAKE, RELEASE_BRAKE)])
+def test_act_never_samples_a_masked_action(allowed: tuple[int, ...]) -> None:
+    learner = Learner(LearnerConfig())
+    # Push the policy hard towards a masked action so masking, not chance, keeps it out.
+    with torch.no_grad():
+        learner.actor.head.bias.zero_()
+        learner.actor.head.bias[2] = 50.0
+    n = 10_000
+    mask = np.zeros((n, N_ACTIONS), dtype=np.int8)
+    mask[:, list(allowed)] = 1
+    obs = np.random.default_rng(0).random((n, OBS_DIM), dtype=np.float32)
+    actions = learner.act(obs, mask, torch.Generator().manual_seed(1))
+    assert actions.dtype == np.int64 and actions.shape == (n,)
+    assert set(np.unique(actions).tolist()) <= set(allowed)
+    if len(allowed) == 2:
+        assert set(np.unique(actions).tolist()) == set(allowed)  # both allowed ones do come out
+
+
+def test_act_deterministic_is_masked_argmax() -> None:
+    learner = Learner(LearnerConfig())
+    with torch.no_grad():
+        learner.actor.head.bias.copy_(torch.arange(N_ACTIONS, dtype=torch.float32) * 10.0)
+    mask = np.array([[1, 1, 1, 1, 1, 1, 1], [1, 1, 0, 0, 0, 1, 0]], dtype=np.int8)
+    obs = np.zeros((2, OBS_DIM), dtype=np.float32)
+    actions = learner.act(obs, mask, torch.Generator(), deterministic=True)
+    assert actions.tolist() == [6, 5]
+
+
+def test_act_rejects_rows_without_allowed_actions() -> None:
+    learner = Learner(LearnerConfig())
+    with pytest.raises(ValueError):
+        learner.act(np.zeros((1, OBS_DIM), np.float32), np.zeros((1, N_ACTIONS), np.int8), torch.Generator())
+
+
+def test_update_stage2_finite_metrics_and_changes_all_nets() -> None:
+    learner = Learner(LearnerConfig(use_central_critic=True))
+    before = {n: params(m) for n, m in (("a", learner.actor), ("v", learner.value), ("q", learner.central))}
+    metrics = learner.update(random_batch())
+    for key in ("actor_loss", "v_loss", "q_loss", "entropy", "adv_v_mean", "adv_q_mean"):
+        assert np.isfinite(metrics[key]), key
+    assert metrics["q_loss"] > 0.0
+    assert not same(before["a"], params(learner.actor))
+    assert not same(before["v"], params(learner.value))
+    assert not same(before["q"], params(learner.central))
+
+
+def test_update_stage1_leaves_central_critic_alone() -> None:
+    learner = Learner(LearnerConfig(use_central_critic=False))
+    q_before, qt_before = params(learner.central), params(learner.central_target)
+    batch = dataclasses.replace(
+        random_batch(), state=None, others_actions=None, slot=None, joint_reward=None, next_state=None
+    )
+    metrics = learner.update(batch)
+    assert all(np.isfinite(v) for v in metrics.values())
+    assert metrics["q_loss"] == 0.0
+    assert same(q_before, params(learner.central))
+    assert same(qt_before, params(learner.central_target))
+
+
+def test_targets_move_by_tau() -> None:
+    tau = 0.25
+    learner = Learner(LearnerConfig(use_central_critic=True, target_tau=tau))
+    vt_old, qt_old = params(learner.value_target), params(learner.central_target)
+    learner.update(random_batch())
+    for target_old, target_new, online in (
+        (vt_old, params(learner.value_target), params(learner.value)),
+        (qt_old, params(learner.central_target), params(learner.central)),
+    ):
+        assert not same(target_old, target_new)
+        for old, new, on in zip(target_old, target_new, online, strict=True):
+            torch.testing.assert_close(new, (1 - tau) * old + tau * on)
+
+
+def test_update_rejects_an_action_its_mask_forbids() -> None:
+    batch = random_batch()
+    batch.mask[0] = False
+    batch.mask[0, HARD_BRAKE] = True
+    batch.action[0] = 0
+    with pytest.raises(ValueError):
+        Learner(LearnerConfig()).update(batch)
+
+
+def test_state_dict_round_trip() -> None:
+    config = LearnerConfig(use_central_critic=True)
+    learner = Learner(config, seed=1)
+    learner.update(random_batch(0))
+    buffer = io.BytesIO()
+    torch.save(learner.state_dict(), buffer)
+    buffer.seek(0)
+    restored = Learner(config, seed=2)
+    restored.load_state_dict(torch.load(buffer, weights_only=True))
+
+    batch = random_batch(1)
+    with torch.no_grad():
+        torch.testing.assert_close(restored.actor(batch.obs), learner.actor(batch.obs), rtol=0, atol=0)
+        torch.testing.assert_close(restored.value_target(batch.obs), learner.value_target(batch.obs))
+        assert batch.state is not None and batch.others_actions is not None and batch.slot is not None
+        args = (batch.state, batch.others_actions, batch.slot)
+        torch.testing.assert_close(restored.central(*args), learner.central(*args))
+    # The optimiser state came along too: the next update is identical.
+    learner.update(batch)
+    restored.update(batch)
+    for a, b in ((learner.actor, restored.actor), (learner.central, restored.central)):
+        assert same(params(a), params(b))
+
+
+def test_load_refuses_another_layout() -> None:
+    learner = Learner(LearnerConfig())
+    state = learner.state_dict()
+    state["obs_layout_id"] = "something-else"
+    with pytest.raises(InputError):
+        learner.load_state_dict(state)
+
+
+def test_config_is_validated() -> None:
+    with pytest.raises(InputError):
+        LearnerConfig(alpha=1.5)
+    with pytest.raises(InputError):
+        LearnerConfig(target_tau=0.0)
+    assert LearnerConfig().effective_alpha == 1.0
+    assert LearnerConfig(use_central_critic=True).effective_alpha == 0.7
+
+
+def test_others_actions_onehot() -> None:
+    actions = np.zeros(STATE_SLOTS, dtype=np.int64)
+    acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
+    actions[[0, 3]] = [HARD_BRAKE, 2]
+    acting[[0, 3]] = True
+    rows = others_actions_onehot(actions, acting)
+    assert rows.shape == (STATE_SLOTS, OTHERS_ACTIONS_DIM)
+    # slot 0 sees only slot 3's action 2; slot 3 sees only slot 0's hard brake; slot 5 sees both
+    assert np.flatnonzero(rows[0]).tolist() == [3 * N_ACTIONS + 2]
+    assert np.flatnonzero(rows[3]).tolist() == [HARD_BRAKE]
+    assert np.flatnonzero(rows[5]).tolist() == [HARD_BRAKE, 3 * N_ACTIONS + 2]
