@@ -137,10 +137,13 @@ class Learner:
     def __init__(self, config: LearnerConfig, seed: int = 0) -> None:
         self.config = config
         self.device = torch.device(config.device)
-        torch.manual_seed(seed)  # network initialisation only; sampling uses the caller's generator
-        self.actor = Actor().to(self.device)
-        self.value = ValueCritic().to(self.device)
-        self.central = CentralCritic().to(self.device)
+        # Seed only the initialisation, without touching the caller's global RNG; sampling in `act`
+        # uses the caller's generator.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.actor = Actor().to(self.device)
+            self.value = ValueCritic().to(self.device)
+            self.central = CentralCritic().to(self.device)
         self.value_target = _frozen_copy(self.value)
         self.central_target = _frozen_copy(self.central)
         self.opt_actor = torch.optim.Adam(self.actor.parameters(), lr=config.lr_actor)
@@ -178,7 +181,12 @@ class Learner:
         return out
 
     def update(self, batch: Batch) -> dict[str, float]:
-        """One gradient step on V, (Q), and the actor from B agent-steps; returns scalar metrics."""
+        """One gradient step on V, (Q), and the actor from B agent-steps; returns scalar metrics.
+
+        Losses are means over the batch (the paper writes sums; a mean keeps the step size
+        independent of B). Critics step before the actor, but both advantages are computed from the
+        critics as they were before their step.
+        """
         cfg = self.config
         b = batch.to(self.device)
         mask = b.mask.bool()
