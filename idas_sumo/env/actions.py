@@ -41,7 +41,7 @@ def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> Floa
     act = np.asarray(actions, dtype=np.int64)
     if np.any((act < 0) | (act >= N_ACTIONS)):
         raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
-    deltas = np.asarray(DELTA_ACCEL_MPS2 + (0.0, 0.0))[act]
+    deltas = np.asarray((*DELTA_ACCEL_MPS2, 0.0, 0.0))[act]
     accel = np.round(prev + deltas, 6)  # keep the 0.1 grid exact over long episodes
     accel = np.where(act == HARD_BRAKE, HARD_BRAKE_MPS2, accel)
     return np.asarray(np.where(act == RELEASE_BRAKE, RELEASE_BRAKE_MPS2, accel), dtype=np.float64)
@@ -76,7 +76,9 @@ def effective_speed_limit(
     return np.asarray(np.where(exempt, np.maximum(road, exemption_limit_mps), road), dtype=np.float64)
 
 
-def rule_mask(prev_accel: npt.ArrayLike, speed_mps: npt.ArrayLike, speed_limit_mps: npt.ArrayLike) -> BoolArray:
+def rule_mask(
+    prev_accel: npt.ArrayLike, speed_mps: npt.ArrayLike, speed_limit_mps: npt.ArrayLike
+) -> BoolArray:
     """Actions whose next speed v + a·dt stays within the (effective) speed limit."""
     cand = candidate_accelerations(prev_accel)
     v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))[:, None]

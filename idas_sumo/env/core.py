@@ -40,10 +40,10 @@ from idas_sumo.env.rewards import (
     finish_reward,
     flow_penalty,
 )
-from idas_sumo.env.scenario import Scenario, VehicleSpec
+from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT, ROAD_NAMES, TrafficSnapshot, lane_relations, leaders
 from idas_sumo.errors import SimulationError
-from idas_sumo.sim.backend import SumoBackend, VehicleStates
+from idas_sumo.sim.backend import Backend, VehicleStates, make_backend
 from idas_sumo.sim.netgen import MergeNet, read_merge_net
 
 FloatArray = npt.NDArray[np.float64]
@@ -95,10 +95,23 @@ class MergeSimulation:
     ) -> None:
         self.net = net if isinstance(net, MergeNet) else read_merge_net(net)
         self.config = config or EnvConfig()
-        self.backend = SumoBackend(self.net, seed=seed, gui=gui)
-        self.speed_limits_mps = {"main": self.net.main.speed_limit_mps, "merge": self.net.merge.speed_limit_mps}
-        self.road_lengths_m = {"main": self.net.main.length_m, "merge": self.net.merge.length_m}
-        self._edge_road = {self.net.main.edge_id: MAIN, self.net.merge.edge_id: MERGE, self.net.out.edge_id: OUT}
+        self._seed = seed
+        self._gui = gui
+        self._backend: Backend | None = None  # chosen at first reset: in-process, or a subprocess if taken
+        self._time_s = 0.0
+        self.speed_limits_mps: dict[Road, float] = {
+            "main": self.net.main.speed_limit_mps,
+            "merge": self.net.merge.speed_limit_mps,
+        }
+        self.road_lengths_m: dict[Road, float] = {
+            "main": self.net.main.length_m,
+            "merge": self.net.merge.length_m,
+        }
+        self._edge_road = {
+            self.net.main.edge_id: MAIN,
+            self.net.merge.edge_id: MERGE,
+            self.net.out.edge_id: OUT,
+        }
         self._via_length = {MAIN: self.net.main.via_length_m, MERGE: self.net.merge.via_length_m}
         self._road_length = {MAIN: self.net.main.length_m, MERGE: self.net.merge.length_m}
         self._road_limit = {
@@ -127,14 +140,24 @@ class MergeSimulation:
         self._active = []
         self._done = {}
         self._last_obs = {}
+        if self._backend is None:
+            self._backend = make_backend(self.net, seed=self._seed, gui=self._gui)
         self.backend.reset(scenario)
         events = self.backend.step()  # insertion step: vehicles appear where the scenario puts them
+        self._time_s = events.time_s
         self._read_snapshot()
         self._admit(events.departed)
 
     @property
+    def backend(self) -> Backend:
+        if self._backend is None:
+            raise SimulationError("step() before reset()")
+        return self._backend
+
+    @property
     def time_s(self) -> float:
-        return self.backend.time_s()
+        """Simulated seconds since the scenario started (the insertion step ends at 0.2 s)."""
+        return self._time_s
 
     @property
     def active_agents(self) -> list[str]:
@@ -146,12 +169,15 @@ class MergeSimulation:
         """Agents whose episode ended, with the reason."""
         return dict(self._done)
 
+    def _waiting_agents(self) -> list[str]:
+        """Controlled vehicles that have not entered yet."""
+        assert self.scenario is not None
+        return [a for a in self.scenario.controlled_ids if a not in self._done and a not in self._active]
+
     @property
     def episode_over(self) -> bool:
-        assert self.scenario is not None
-        controlled = [v for v in self.scenario.vehicles if v.controlled]
-        all_done = all(v.id in self._done for v in controlled)
-        return all_done or (not self._active and self.backend.pending_count() == 0)
+        """Every controlled vehicle finished, collided or left, or time ran out."""
+        return self.timed_out() or (not self._active and not self._waiting_agents())
 
     def _admit(self, departed: list[str]) -> None:
         for vid in departed:
@@ -204,7 +230,9 @@ class MergeSimulation:
         return np.asarray(table[road], dtype=np.float64)
 
     # -- observation ---------------------------------------------------------------------------
-    def observe(self, agent_ids: list[str] | None = None) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int8]]:
+    def observe(
+        self, agent_ids: list[str] | None = None
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int8]]:
         """(observations, action masks) for the given active agents (default: all), in that order."""
         ids = self._active if agent_ids is None else agent_ids
         if not ids:
@@ -212,7 +240,9 @@ class MergeSimulation:
         egos = self.snapshot.index(ids)
         prev_accel = np.array([self._accel[a] for a in ids])
         b_type = np.array([self._spec[a].b_type for a in ids])
-        obs = build_observations(self.snapshot, egos, prev_accel, self.b_prio(self.snapshot.road[egos]), b_type)
+        obs = build_observations(
+            self.snapshot, egos, prev_accel, self.b_prio(self.snapshot.road[egos]), b_type
+        )
         masks = self.masks(ids)
         for i, a in enumerate(ids):
             self._last_obs[a] = obs[i]
@@ -278,10 +308,17 @@ class MergeSimulation:
                 "dist_to_merge_m": float(self.snapshot.dist_to_merge_m[i]),
                 "road": ROAD_NAMES[int(self.snapshot.road[i])],
             }
-        return {"speed_mps": float("nan"), "accel_mps2": float("nan"), "dist_to_merge_m": float("nan"), "road": "gone"}
+        return {
+            "speed_mps": float("nan"),
+            "accel_mps2": float("nan"),
+            "dist_to_merge_m": float("nan"),
+            "road": "gone",
+        }
 
     # -- stepping ------------------------------------------------------------------------------
     def step(self, actions: dict[str, int]) -> StepOutcome:
+        if self._closed:
+            raise SimulationError("step() after close(); create a new environment")
         if self.scenario is None:
             raise SimulationError("step() before reset()")
         acting = list(self._active)
@@ -307,13 +344,18 @@ class MergeSimulation:
                 if act == HARD_BRAKE:
                     hard_brakers.append(a)
         events = self.backend.step()
+        self._time_s = events.time_s
         self._read_snapshot()
         after = self.snapshot
 
         # SUMO-driven cars (robots, finished agents handed back) brake hard on their own.
         present_before = set(before.ids)
         for i, vid in enumerate(after.ids):
-            if vid not in self._active and vid in present_before and after.accel_mps2[i] <= HARD_BRAKE_DETECT_MPS2:
+            if (
+                vid not in self._active
+                and vid in present_before
+                and after.accel_mps2[i] <= HARD_BRAKE_DETECT_MPS2
+            ):
                 hard_brakers.append(vid)
         brake_idx = [int(before.index([v])[0]) for v in hard_brakers]
         merge_zone_brakes = before.dist_to_merge_m[brake_idx] if brake_idx else np.zeros(0)
@@ -353,6 +395,11 @@ class MergeSimulation:
             if reason == "finished":
                 self.backend.release(a)
         self._admit(events.departed)
+        while not self._active and self._waiting_agents() and not self.timed_out():
+            idle = self.backend.step()  # nobody to act yet: let time run to the next entry
+            self._time_s = idle.time_s
+            self._admit(idle.departed)
+            self._read_snapshot()
         return StepOutcome(
             rewards=rewards,
             reward_parts=parts,
@@ -370,7 +417,8 @@ class MergeSimulation:
         return self.time_s >= self.config.max_episode_s - 1e-9
 
     def close(self) -> None:
-        self.backend.close()
+        if self._backend is not None:
+            self._backend.close()
         self._closed = True
 
 

@@ -42,10 +42,12 @@ def build_grids(snapshot: TrafficSnapshot, egos: IntArray) -> npt.NDArray[np.flo
     # Paint each body with a difference array: +x at its first cell, -x after its last, then a cumsum.
     diff = np.zeros((n_egos, 2, 2, GRID_CELLS + 1), dtype=np.float64)
     for lane, related in enumerate((same, other)):
-        e, v = np.nonzero(related & visible)
+        e_idx, v_idx = np.nonzero(related & visible)
+        e = e_idx.astype(np.int64)
+        v = v_idx.astype(np.int64)
         for channel, value in enumerate((np.ones(len(e)), rel_speed[e, v])):
-            np.add.at(diff, (e, lane, channel, first[e, v]), value)
-            np.add.at(diff, (e, lane, channel, last[e, v] + 1), -value)
+            np.add.at(diff, (e, np.full_like(e, lane), np.full_like(e, channel), first[e, v]), value)
+            np.add.at(diff, (e, np.full_like(e, lane), np.full_like(e, channel), last[e, v] + 1), -value)
     painted = np.cumsum(diff, axis=-1)[..., :GRID_CELLS]
     grids[:, :, 0, :] = painted[:, :, 0, :] > 0.5
     grids[:, :, 1, :] = np.where(grids[:, :, 0, :] > 0, painted[:, :, 1, :], 0.0)

@@ -7,6 +7,7 @@ the merge point lies at the end of each incoming road.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -77,9 +78,10 @@ class Scenario:
             raise ValueError("a scenario needs at least one vehicle")
         for road in ROADS:
             on_road = sorted(
-                (v for v in self.vehicles if v.road == road and v.depart_s == 0.0), key=lambda v: v.start_pos_m
+                (v for v in self.vehicles if v.road == road and v.depart_s == 0.0),
+                key=lambda v: v.start_pos_m,
             )
-            for back, front in zip(on_road, on_road[1:], strict=False):
+            for back, front in itertools.pairwise(on_road):
                 if front.start_pos_m - back.start_pos_m < VEHICLE_LENGTH_M:
                     raise ValueError(f"vehicles {back.id!r} and {front.id!r} overlap on the {road} road")
 

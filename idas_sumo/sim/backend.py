@@ -12,6 +12,7 @@ import math
 import os
 import shutil
 import tempfile
+import typing
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -95,6 +96,8 @@ class StepEvents:
     arrived: list[str] = field(default_factory=list)
     """Left the network at the end of the outgoing road (removed-by-collision vehicles excluded)."""
     teleported: list[str] = field(default_factory=list)
+    time_s: float = 0.0
+    """Simulated time after the step."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +114,9 @@ class VehicleStates:
 class SumoBackend:
     """The one SUMO simulation of this process."""
 
-    def __init__(self, net: MergeNet, seed: int = 0, gui: bool = False, extra_args: Sequence[str] = ()) -> None:
+    def __init__(
+        self, net: MergeNet, seed: int = 0, gui: bool = False, extra_args: Sequence[str] = ()
+    ) -> None:
         self.net = net
         self.seed = seed
         self.gui = gui
@@ -126,28 +131,40 @@ class SumoBackend:
         binary = "sumo-gui" if self.gui else "sumo"
         return [
             binary,
-            "--net-file", str(self.net.path),
-            "--route-files", str(route_file),
-            "--step-length", str(STEP_LENGTH_S),
-            "--seed", str(self.seed),
-            "--collision.check-junctions", "true",
-            "--collision.mingap-factor", "0",
-            "--collision.action", "remove",
-            "--time-to-teleport", "-1",
-            "--no-step-log", "true",
-            "--no-warnings", "true",
-            "--default.speeddev", "0",
-            "--begin", "0",
+            "--net-file",
+            str(self.net.path),
+            "--route-files",
+            str(route_file),
+            "--step-length",
+            str(STEP_LENGTH_S),
+            "--seed",
+            str(self.seed),
+            "--collision.check-junctions",
+            "true",
+            "--collision.mingap-factor",
+            "0",
+            "--collision.action",
+            "remove",
+            "--time-to-teleport",
+            "-1",
+            "--no-step-log",
+            "true",
+            "--no-warnings",
+            "true",
+            "--default.speeddev",
+            "0",
+            "--begin",
+            "0",
             *self.extra_args,
         ]
 
     def reset(self, scenario: Scenario) -> None:
-        """(Re)load the network with this scenario's vehicles and run the insertion step."""
+        """(Re)load the network with this scenario's vehicles (the insertion step is ``step``'s job)."""
         global _active
         if _active is not None and _active is not self:
             raise SimulationError(
                 "another SUMO simulation is already open in this process (libsumo allows one); "
-                "close the other environment first or use a separate process"
+                "close the other environment first, or create it with make_backend() to run it in a subprocess"
             )
         import libsumo
 
@@ -172,7 +189,9 @@ class SumoBackend:
             except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
                 self._running = False
                 _active = None
-                raise SimulationError(f"SUMO could not load {self.net.path}: {_sumo_message(err, stderr_lines)}") from None
+                raise SimulationError(
+                    f"SUMO could not load {self.net.path}: {_sumo_message(err, stderr_lines)}"
+                ) from None
         self._running = True
         _active = self
         self._controlled = set(scenario.controlled_ids)
@@ -208,7 +227,9 @@ class SumoBackend:
 
         for vid, speed in speeds_mps.items():
             if not math.isfinite(speed) or speed < 0:
-                raise SimulationError(f"invalid speed command {speed!r} for vehicle {vid!r} (a bug, not an input)")
+                raise SimulationError(
+                    f"invalid speed command {speed!r} for vehicle {vid!r} (a bug, not an input)"
+                )
             libsumo.vehicle.setSpeed(vid, speed)
 
     def release(self, vehicle_id: str) -> None:
@@ -237,6 +258,7 @@ class SumoBackend:
         for vid in events.departed:
             if vid in self._controlled:
                 libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
+        events.time_s = float(libsumo.simulation.getTime())
         return events
 
     def vehicle_states(self) -> VehicleStates:
@@ -266,11 +288,6 @@ class SumoBackend:
                 lengths[libsumo.lane.getEdgeID(lane)] = float(libsumo.lane.getLength(lane))
         return lengths
 
-    def pending_count(self) -> int:
-        import libsumo
-
-        return len(libsumo.simulation.getPendingVehicles())
-
     def raw_call(self, domain: str, method: str, *args: Any) -> Any:
         """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args)."""
         import libsumo
@@ -282,3 +299,98 @@ class SumoBackend:
 def _close_on_exit() -> None:
     if _active is not None:
         _active.close()
+
+
+def slot_taken() -> bool:
+    """True while an in-process SUMO simulation is open."""
+    return _active is not None
+
+
+def _serve(conn: Any, net: MergeNet, seed: int, gui: bool) -> None:
+    """Subprocess side of ``SubprocessBackend``: run calls on a local backend until told to close."""
+    backend = SumoBackend(net, seed=seed, gui=gui)
+    try:
+        while True:
+            method, args = conn.recv()
+            if method == "close":
+                backend.close()
+                conn.send(("ok", None))
+                return
+            try:
+                conn.send(("ok", getattr(backend, method)(*args)))
+            except Exception as err:  # sent back and re-raised in the parent
+                conn.send(("error", err))
+    except (EOFError, KeyboardInterrupt):
+        backend.close()
+
+
+class SubprocessBackend:
+    """The same interface as ``SumoBackend``, with SUMO in a child process (for a second simulation)."""
+
+    def __init__(self, net: MergeNet, seed: int = 0, gui: bool = False) -> None:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child, net, seed, gui), daemon=True)
+        self._proc.start()
+        child.close()
+        self.net = net
+        self._closed = False
+
+    def _call(self, method: str, *args: Any) -> Any:
+        if self._closed:
+            raise SimulationError("this SUMO simulation is closed")
+        try:
+            self._conn.send((method, args))
+            while not self._conn.poll(1.0):
+                if not self._proc.is_alive():
+                    raise SimulationError(f"the SUMO subprocess died (exit code {self._proc.exitcode})")
+            status, value = self._conn.recv()
+        except (EOFError, BrokenPipeError, ConnectionResetError):
+            raise SimulationError(f"the SUMO subprocess died (exit code {self._proc.exitcode})") from None
+        if status == "error":
+            raise value
+        return value
+
+    def reset(self, scenario: Scenario) -> None:
+        self._call("reset", scenario)
+
+    def step(self) -> StepEvents:
+        return typing.cast(StepEvents, self._call("step"))
+
+    def set_speeds(self, speeds_mps: dict[str, float]) -> None:
+        self._call("set_speeds", speeds_mps)
+
+    def release(self, vehicle_id: str) -> None:
+        self._call("release", vehicle_id)
+
+    def vehicle_states(self) -> VehicleStates:
+        return typing.cast(VehicleStates, self._call("vehicle_states"))
+
+    def time_s(self) -> float:
+        return typing.cast(float, self._call("time_s"))
+
+    def raw_call(self, domain: str, method: str, *args: Any) -> Any:
+        return self._call("raw_call", domain, method, *args)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        with contextlib.suppress(Exception):
+            self._conn.send(("close", ()))
+            self._conn.poll(5.0)
+        self._closed = True
+        self._proc.join(timeout=5.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+
+
+Backend = SumoBackend | SubprocessBackend
+
+
+def make_backend(net: MergeNet, seed: int = 0, gui: bool = False) -> Backend:
+    """In-process SUMO when this process has none open yet, else SUMO in a subprocess."""
+    if slot_taken():
+        return SubprocessBackend(net, seed=seed, gui=gui)
+    return SumoBackend(net, seed=seed, gui=gui)

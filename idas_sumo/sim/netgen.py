@@ -65,23 +65,47 @@ def _plain_xml(params: NetParams) -> tuple[str, str]:
     a = math.radians(params.angle_deg)
     nodes = [
         ("main_start", -params.main_length_m, 0.0, "priority"),
-        ("merge_start", -params.merge_length_m * math.cos(a), -params.merge_length_m * math.sin(a), "priority"),
+        (
+            "merge_start",
+            -params.merge_length_m * math.cos(a),
+            -params.merge_length_m * math.sin(a),
+            "priority",
+        ),
         (MERGE_JUNCTION, 0.0, 0.0, "priority"),
         ("out_end", params.out_length_m, 0.0, "priority"),
     ]
-    node_xml = "<nodes>\n" + "".join(
-        f'  <node id="{n}" x="{x:.3f}" y="{y:.3f}" type="{t}"/>\n' for n, x, y, t in nodes
-    ) + "</nodes>\n"
+    node_xml = (
+        "<nodes>\n"
+        + "".join(f'  <node id="{n}" x="{x:.3f}" y="{y:.3f}" type="{t}"/>\n' for n, x, y, t in nodes)
+        + "</nodes>\n"
+    )
     edges = [
-        (MAIN_EDGE, "main_start", MERGE_JUNCTION, params.main_length_m, params.main_speed_mps, MAIN_EDGE_PRIORITY),
-        (MERGE_EDGE, "merge_start", MERGE_JUNCTION, params.merge_length_m, params.merge_speed_mps,
-         MERGE_EDGE_PRIORITY),
+        (
+            MAIN_EDGE,
+            "main_start",
+            MERGE_JUNCTION,
+            params.main_length_m,
+            params.main_speed_mps,
+            MAIN_EDGE_PRIORITY,
+        ),
+        (
+            MERGE_EDGE,
+            "merge_start",
+            MERGE_JUNCTION,
+            params.merge_length_m,
+            params.merge_speed_mps,
+            MERGE_EDGE_PRIORITY,
+        ),
         (OUT_EDGE, MERGE_JUNCTION, "out_end", params.out_length_m, params.out_speed_mps, MAIN_EDGE_PRIORITY),
     ]
-    edge_xml = "<edges>\n" + "".join(
-        f'  <edge id="{e}" from="{f}" to="{t}" numLanes="1" speed="{v}" priority="{p}" length="{length}"/>\n'
-        for e, f, t, length, v, p in edges
-    ) + "</edges>\n"
+    edge_xml = (
+        "<edges>\n"
+        + "".join(
+            f'  <edge id="{e}" from="{f}" to="{t}" numLanes="1" speed="{v}" priority="{p}" length="{length}"/>\n'
+            for e, f, t, length, v, p in edges
+        )
+        + "</edges>\n"
+    )
     return node_xml, edge_xml
 
 
@@ -100,12 +124,18 @@ def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
     tmp = Path(tmp_name)
     cmd = [
         str(sumo_binary("netconvert")),
-        "--node-files", str(nod),
-        "--edge-files", str(edg),
-        "--output-file", str(tmp),
-        "--no-turnarounds", "true",
-        "--junctions.corner-detail", "5",
-        "--no-warnings", "true",
+        "--node-files",
+        str(nod),
+        "--edge-files",
+        str(edg),
+        "--output-file",
+        str(tmp),
+        "--no-turnarounds",
+        "true",
+        "--junctions.corner-detail",
+        "5",
+        "--no-warnings",
+        "true",
     ]
     try:
         result = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -169,7 +199,9 @@ def read_merge_net(path: str | Path) -> MergeNet:
     if not junctions:
         raise InputError(f"{p}: no merge junction (a node with two incoming roads) in the network")
     if len(junctions) > 1:
-        raise InputError(f"{p}: {len(junctions)} junctions with several incoming roads; expected exactly one merge")
+        raise InputError(
+            f"{p}: {len(junctions)} junctions with several incoming roads; expected exactly one merge"
+        )
     junction = junctions[0]
     incoming = [e for e in junction.getIncoming() if e.getFunction() != "internal"]
     outgoing = [e for e in junction.getOutgoing() if e.getFunction() != "internal"]
@@ -183,7 +215,9 @@ def read_merge_net(path: str | Path) -> MergeNet:
     out_edge = outgoing[0]
     for edge in incoming:
         if not edge.getConnections(out_edge):
-            raise InputError(f"{p}: no connection from {edge.getID()!r} to {out_edge.getID()!r}: route not drivable")
+            raise InputError(
+                f"{p}: no connection from {edge.getID()!r} to {out_edge.getID()!r}: route not drivable"
+            )
     # Main = the road with right of way: higher SUMO priority, then the higher speed limit.
     main_edge, merge_edge = sorted(incoming, key=lambda e: (e.getPriority(), e.getSpeed()), reverse=True)
 

@@ -1,0 +1,122 @@
+"""Gymnasium single-agent view: one ego; the others are SUMO's robot cars or run a given policy."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from gymnasium import Env, spaces
+
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.core import EnvConfig, MergeSimulation
+from idas_sumo.env.layout import OBS_DIM
+from idas_sumo.env.parallel import DEFAULT_NET
+from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, check_against_net, generate_scenario
+from idas_sumo.sim.netgen import MergeNet
+
+OthersPolicy = Callable[[npt.NDArray[np.float32], npt.NDArray[np.int8]], npt.NDArray[np.int64]]
+"""Maps (observations (n, OBS_DIM), action masks (n, 7)) of the other agents to their actions."""
+
+
+def with_controlled(scenario: Scenario, controlled: set[str]) -> Scenario:
+    """The same scenario with exactly ``controlled`` driven by the adapter, the rest by SUMO."""
+    vehicles = tuple(
+        VehicleSpec(v.id, v.road, v.start_pos_m, v.speed_mps, v.b_type, v.id in controlled, v.depart_s)
+        for v in scenario.vehicles
+    )
+    return Scenario(scenario.name, vehicles, scenario.main_prio, scenario.merge_prio)
+
+
+class MergeEnv(Env[npt.NDArray[np.float32], int]):
+    """One ego vehicle learns; the others are robot cars (``others=None``) or follow ``others``.
+
+    ``info["action_mask"]`` carries the ego's mask each step (also the raw physical values and the
+    named reward parts). The reward is the ego's own (finish + collide + impede).
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}  # sumo-gui: pass gui=True
+
+    def __init__(
+        self,
+        net: MergeNet | str | Path = DEFAULT_NET,
+        scenario: Scenario | None = None,
+        ego: str | None = None,
+        others: OthersPolicy | None = None,
+        traffic: TrafficConfig | None = None,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        gui: bool = False,
+    ) -> None:
+        self.render_mode = render_mode
+        self.sim = MergeSimulation(net, config=config, gui=gui)
+        if scenario is not None:
+            check_against_net(scenario, self.sim.speed_limits_mps, self.sim.road_lengths_m, scenario.name)
+            if ego is not None and ego not in {v.id for v in scenario.vehicles}:
+                raise ValueError(f"ego {ego!r} is not a vehicle of scenario {scenario.name!r}")
+        self.fixed_scenario = scenario
+        self.fixed_ego = ego
+        self.others = others
+        self.traffic = traffic or TrafficConfig()
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32)
+        self.action_space: spaces.Space[Any] = spaces.Discrete(N_ACTIONS)
+        self.ego = ""
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[npt.NDArray[np.float32], dict[str, Any]]:
+        super().reset(seed=seed)
+        scenario = (options or {}).get("scenario") or self.fixed_scenario
+        if scenario is None:
+            scenario = generate_scenario(self.np_random, self.traffic, self.sim.speed_limits_mps)
+        ego = self.fixed_ego or str(self.np_random.choice([v.id for v in scenario.vehicles]))
+        controlled = {v.id for v in scenario.vehicles} if self.others is not None else {ego}
+        self.ego = ego
+        self.sim.reset(with_controlled(scenario, controlled))
+        self._advance_until_ego()
+        obs, mask = self.sim.observe([self.ego])
+        return obs[0], self._info(mask[0])
+
+    def _advance_until_ego(self) -> None:
+        while self.ego not in self.sim.active_agents and not self.sim.episode_over:
+            self.sim.step(self._others_actions())
+
+    def _others_actions(self) -> dict[str, int]:
+        others = [a for a in self.sim.active_agents if a != self.ego]
+        if not others:
+            return {}
+        assert self.others is not None
+        obs, masks = self.sim.observe(others)
+        actions = self.others(obs, masks)
+        return {a: int(act) for a, act in zip(others, actions, strict=True)}
+
+    def _info(self, mask: npt.NDArray[np.int8], **extra: Any) -> dict[str, Any]:
+        return {"action_mask": mask, "ego": self.ego, **self.sim.agent_info(self.ego), **extra}
+
+    def step(self, action: int) -> tuple[npt.NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        actions = self._others_actions()
+        actions[self.ego] = int(action)
+        outcome = self.sim.step(actions)
+        reward = outcome.rewards[self.ego]
+        terminated = outcome.terminated[self.ego]
+        truncated = outcome.truncated[self.ego]
+        extra: dict[str, Any] = {"reward_parts": outcome.reward_parts[self.ego]}
+        if self.ego in outcome.end_reason:
+            extra["end_reason"] = outcome.end_reason[self.ego]
+        if terminated or truncated:
+            mask = np.zeros(N_ACTIONS, dtype=np.int8)
+            mask[0] = 1
+            return (
+                self.sim.last_observation(self.ego),
+                reward,
+                terminated,
+                truncated,
+                self._info(mask, **extra),
+            )
+        obs, masks = self.sim.observe([self.ego])
+        return obs[0], reward, False, False, self._info(masks[0], **extra)
+
+    def close(self) -> None:
+        self.sim.close()

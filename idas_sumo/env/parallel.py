@@ -1,0 +1,153 @@
+"""PettingZoo ``ParallelEnv`` over the merge: every controlled vehicle is an agent; agents come and go."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from idas_sumo.agents.state_layout import STATE_DIM
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.core import EnvConfig, MergeSimulation, StepOutcome
+from idas_sumo.env.layout import OBS_DIM
+from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
+from idas_sumo.sim.netgen import MergeNet
+
+DEFAULT_NET = Path(__file__).resolve().parents[2] / "sumo_nets" / "tjunction.net.xml"
+
+
+def observation_space() -> spaces.Dict:
+    return spaces.Dict(
+        {
+            "observation": spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32),
+            "action_mask": spaces.Box(0, 1, shape=(N_ACTIONS,), dtype=np.int8),
+        }
+    )
+
+
+class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
+    """The merge as a PettingZoo parallel environment.
+
+    Each reset draws a random scenario from the env's seed (or uses ``scenario``, or
+    ``options={"scenario": ...}``). Observations are ``{"observation", "action_mask"}``; ``infos`` carry
+    the raw physical values (``speed_mps``, ``accel_mps2``, ``dist_to_merge_m``, ``road``) and the named
+    ``reward_parts``; ``state()`` is the centralised critic's input. The shared flow penalty is not in
+    ``rewards`` (the paper counts it only in the joint reward): read it from ``reward_parts["flow"]``
+    or ``infos[agent]["joint_reward"]``.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {
+        "name": "idas_sumo_merge_v0",
+        "render_modes": [],
+        "is_parallelizable": True,
+    }  # gui=True: sumo-gui
+
+    def __init__(
+        self,
+        net: MergeNet | str | Path = DEFAULT_NET,
+        scenario: Scenario | None = None,
+        traffic: TrafficConfig | None = None,
+        config: EnvConfig | None = None,
+        seed: int | None = None,
+        render_mode: str | None = None,
+        gui: bool = False,
+    ) -> None:
+        self.render_mode = render_mode
+        self.sim = MergeSimulation(net, seed=seed or 0, config=config, gui=gui)
+        self.fixed_scenario = scenario
+        self.traffic = traffic or TrafficConfig()
+        if scenario is not None:
+            check_against_net(scenario, self.sim.speed_limits_mps, self.sim.road_lengths_m, scenario.name)
+            self.possible_agents = list(scenario.controlled_ids)
+        else:
+            self.possible_agents = [
+                f"{r}{i}" for r in ROADS for i in range(self.traffic.max_vehicles_per_road)
+            ]
+        self.agents: list[str] = []
+        self._rng = np.random.default_rng(seed)
+        self._obs_space = observation_space()
+        self._act_space = spaces.Discrete(N_ACTIONS)
+        self.state_space = spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np.float32)
+        self.last_outcome: StepOutcome | None = None
+
+    def observation_space(self, agent: str) -> spaces.Space[Any]:
+        return self._obs_space
+
+    def action_space(self, agent: str) -> spaces.Space[Any]:
+        return self._act_space
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, dict[str, Any]]]:
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        scenario = (options or {}).get("scenario") or self.fixed_scenario
+        if scenario is None:
+            scenario = generate_scenario(self._rng, self.traffic, self.sim.speed_limits_mps)
+        self.sim.reset(scenario)
+        self.agents = self.sim.active_agents
+        observations = self._observations()
+        infos = {a: self._info(a) for a in self.agents}
+        return observations, infos
+
+    def _observations(self) -> dict[str, dict[str, np.ndarray]]:
+        obs, masks = self.sim.observe(self.agents)
+        return {a: {"observation": obs[i], "action_mask": masks[i]} for i, a in enumerate(self.agents)}
+
+    def _info(self, agent: str, outcome: StepOutcome | None = None) -> dict[str, Any]:
+        info: dict[str, Any] = self.sim.agent_info(agent)
+        if outcome is not None:
+            info["reward_parts"] = outcome.reward_parts[agent]
+            info["joint_reward"] = outcome.joint_reward
+            if agent in outcome.end_reason:
+                info["end_reason"] = outcome.end_reason[agent]
+            if agent in outcome.replaced_actions:
+                info["replaced_action"] = outcome.replaced_actions[agent]
+        return info
+
+    def step(
+        self, actions: dict[str, int]
+    ) -> tuple[
+        dict[str, dict[str, np.ndarray]],
+        dict[str, float],
+        dict[str, bool],
+        dict[str, bool],
+        dict[str, dict[str, Any]],
+    ]:
+        acting = list(self.agents)
+        outcome = self.sim.step({a: int(actions[a]) for a in acting})
+        self.last_outcome = outcome
+        infos = {a: self._info(a, outcome) for a in acting}
+        self.agents = self.sim.active_agents
+        observations = self._observations()
+        for a in acting:
+            if a not in observations:  # ended this step: hand back its last observation
+                observations[a] = {
+                    "observation": self.sim.last_observation(a),
+                    "action_mask": np.zeros(N_ACTIONS, dtype=np.int8),
+                }
+                observations[a]["action_mask"][0] = 1  # any one action, never used
+        new_agents = [a for a in self.agents if a not in acting]
+        for a in new_agents:
+            infos[a] = self._info(a)
+        if self.sim.timed_out():
+            self.agents = []
+        return (
+            observations,
+            {a: outcome.rewards.get(a, 0.0) for a in observations},
+            {a: outcome.terminated.get(a, False) for a in observations},
+            {a: outcome.truncated.get(a, False) for a in observations},
+            infos,
+        )
+
+    def state(self) -> np.ndarray:
+        return self.sim.state()
+
+    def render(self) -> None:
+        """sumo-gui shows the run when the env was made with render_mode='human'."""
+
+    def close(self) -> None:
+        self.sim.close()
