@@ -1,0 +1,185 @@
+"""The three action masks against hand-worked numbers, and a masked action is never applied."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from idas_sumo.env.actions import (
+    HARD_BRAKE,
+    N_ACTIONS,
+    RELEASE_BRAKE,
+    MaskInputs,
+    action_masks,
+    candidate_accelerations,
+    effective_speed_limit,
+    kinematic_mask,
+    next_acceleration,
+    rule_mask,
+    safety_bound,
+    safety_mask,
+)
+
+INF = np.inf
+
+
+def masks_for(prev: float, v: float, limit: float, gap: float = INF, leader_v: float = 0.0) -> list[int]:
+    m = action_masks(
+        MaskInputs(
+            prev_accel_mps2=np.array([prev]),
+            speed_mps=np.array([v]),
+            speed_limit_mps=np.array([limit]),
+            gap_m=np.array([gap]),
+            leader_speed_mps=np.array([leader_v]),
+        )
+    )
+    assert m.dtype == np.int8 and m.shape == (1, N_ACTIONS)
+    return m[0].tolist()
+
+
+def test_action_accelerations() -> None:
+    # Δa = -0.2, -0.1, 0, +0.1, +0.2 on top of a_prev = 0.5; hard brake -4; release 0.
+    np.testing.assert_allclose(candidate_accelerations([0.5])[0], [0.3, 0.4, 0.5, 0.6, 0.7, -4.0, 0.0])
+    # The 0.1 grid stays exact after many small steps.
+    a = np.zeros(1)
+    for _ in range(30):
+        a = next_acceleration(a, [3])
+    assert a[0] == 3.0
+    with pytest.raises(ValueError):
+        next_acceleration([0.0], [N_ACTIONS])
+
+
+def test_speed_limit_hand_worked() -> None:
+    # v = 14.9 m/s on the 15 m/s road, a_prev = 0.5: next speed v + a·0.2 for
+    #   Δa -0.2 -> a 0.3 -> 14.96 ok;  -0.1 -> 0.4 -> 14.98 ok;  0 -> 0.5 -> 15.00 ok (at the limit)
+    #   +0.1 -> 0.6 -> 15.02 too fast;  +0.2 -> 0.7 -> 15.04 too fast;  hard brake never masked.
+    assert rule_mask([0.5], [14.9], [15.0])[0].tolist() == [True, True, True, False, False, True, True]
+    # Release brake is only allowed right after a hard brake (kinematic mask), so the full mask drops it.
+    assert masks_for(0.5, 14.9, 15.0) == [1, 1, 1, 0, 0, 1, 0]
+
+
+def test_merge_exemption_within_100_m() -> None:
+    # The merge car (15 m/s road) may go up to the outgoing road's 20 m/s within 100 m of the merge point.
+    limits = effective_speed_limit([15.0, 15.0, 15.0, 15.0, 20.0], [250.0, 100.1, 100.0, 0.0, 50.0], 20.0)
+    np.testing.assert_allclose(limits, [15.0, 15.0, 20.0, 20.0, 20.0])
+    # So at 14.9 m/s, 80 m from the merge point, accelerating is no longer masked by the rule.
+    limit = float(effective_speed_limit(15.0, 80.0, 20.0))
+    assert masks_for(0.5, 14.9, limit) == [1, 1, 1, 1, 1, 1, 0]
+    # Already above 20 m/s inside the exemption: only slowing enough helps (v + a·dt <= 20 needs a <= -1).
+    assert masks_for(-1.0, 20.2, limit)[:5] == [1, 1, 1, 0, 0]
+
+
+def test_idm_safety_bound_hand_worked() -> None:
+    # v = 10, gap = 12, leader at 10 m/s (dv = 0): s* = s0 + v·T = 2 + 10·1 = 12 m,
+    # bound = a_max·(1 - (s*/s)²) = 2·(1 - 1) = 0 m/s².
+    np.testing.assert_allclose(safety_bound([10.0], [12.0], [10.0]), [0.0], atol=1e-12)
+    # From a_prev = 0: Δa ≤ 0 allowed, Δa > 0 masked; hard brake allowed.
+    assert safety_mask([0.0], [10.0], [12.0], [10.0])[0].tolist() == [
+        True,
+        True,
+        True,
+        False,
+        False,
+        True,
+        True,
+    ]
+    # Closing in: v = 10, leader 5 m/s, gap 20: s* = 2 + 10 + 10·5/(2·√(2·2)) = 24.5,
+    # bound = 2·(1 - (24.5/20)²) = -1.00125 m/s².
+    np.testing.assert_allclose(safety_bound([10.0], [20.0], [5.0]), [-1.00125])
+    # No leader: no bound.
+    assert safety_bound([10.0], [INF], [0.0])[0] == INF
+
+
+def test_hard_brake_is_never_masked() -> None:
+    # The closing-in case from a_prev = 0: every Δa action (a ∈ [-0.2, 0.2]) exceeds -1.00125, release
+    # is not allowed (no hard brake before): hard brake is the only action left.
+    assert masks_for(0.0, 10.0, 20.0, gap=20.0, leader_v=5.0) == [0, 0, 0, 0, 0, 1, 0]
+    # Over the limit, touching the leader, at the kinematic edge: still hard brake.
+    assert masks_for(2.0, 30.0, 15.0, gap=0.0, leader_v=0.0)[HARD_BRAKE] == 1
+    rng = np.random.default_rng(0)
+    n = 500
+    m = action_masks(
+        MaskInputs(
+            prev_accel_mps2=rng.choice([-4.0, -2.0, -1.0, 0.0, 1.5, 2.0], n),
+            speed_mps=rng.uniform(0, 30, n),
+            speed_limit_mps=rng.choice([15.0, 20.0], n),
+            gap_m=np.where(rng.random(n) < 0.3, INF, rng.uniform(0, 50, n)),
+            leader_speed_mps=rng.uniform(0, 25, n),
+        )
+    )
+    assert (m[:, HARD_BRAKE] == 1).all()
+
+
+def test_release_only_right_after_hard_brake() -> None:
+    k = kinematic_mask([-4.0, -3.9, 0.0, -2.0])
+    assert k[:, RELEASE_BRAKE].tolist() == [True, False, False, False]
+    # Right after a hard brake (a = -4) every Δa leaves [-2, 2]: hard brake again or release.
+    assert masks_for(-4.0, 10.0, 20.0) == [0, 0, 0, 0, 0, 1, 1]
+
+
+def test_kinematic_range_outside_hard_braking() -> None:
+    assert kinematic_mask([1.9])[0, :5].tolist() == [True, True, True, True, False]  # 2.1 > 2
+    assert kinematic_mask([2.0])[0, :5].tolist() == [True, True, True, False, False]
+    assert kinematic_mask([-1.9])[0, :5].tolist() == [False, True, True, True, True]  # -2.1 < -2
+    assert kinematic_mask([-2.0])[0, :5].tolist() == [False, False, True, True, True]
+    # Random walks over allowed Δa actions never leave [-2, 2].
+    rng = np.random.default_rng(1)
+    a = np.zeros(64)
+    for _ in range(200):
+        allowed = kinematic_mask(a)[:, :5]
+        choice = np.array([rng.choice(np.flatnonzero(row)) for row in allowed])
+        a = next_acceleration(a, choice)
+        assert (a >= -2.0 - 1e-9).all() and (a <= 2.0 + 1e-9).all()
+
+
+@pytest.mark.sumo
+def test_masked_actions_are_never_sampled_or_applied(small_budget) -> None:  # type: ignore[no-untyped-def]
+    from idas_sumo.env import MergeParallelEnv
+    from idas_sumo.env.core import EnvConfig
+    from idas_sumo.env.scenario import TrafficConfig
+
+    env = MergeParallelEnv(
+        seed=3,
+        traffic=TrafficConfig(max_vehicles_per_road=small_budget.max_vehicles_per_road),
+        config=EnvConfig(max_episode_s=small_budget.max_episode_s),
+    )
+    rng = np.random.default_rng(3)
+    try:
+        steps = 0
+        for episode in range(2):
+            obs, _ = env.reset(seed=episode)
+            while env.agents:
+                actions = {}
+                for a in env.agents:
+                    mask = obs[a]["action_mask"]
+                    assert mask[HARD_BRAKE] == 1
+                    actions[a] = int(rng.choice(np.flatnonzero(mask)))
+                prev = {a: env.sim.prev_accel(a) for a in actions}
+                obs, _, _, _, infos = env.step(actions)
+                outcome = env.last_outcome
+                assert outcome is not None
+                assert outcome.replaced_actions == {}
+                assert not any("replaced_action" in infos[a] for a in actions)
+                for a, act in actions.items():  # the acceleration driven is the sampled action's
+                    if infos[a]["road"] == "gone":  # collided and removed
+                        continue
+                    assert infos[a]["accel_mps2"] == pytest.approx(
+                        float(next_acceleration([prev[a]], [act])[0])
+                    )
+                steps += 1
+        assert steps > 20
+
+        # A requested masked action is replaced by an allowed one and reported.
+        obs, _ = env.reset(seed=0)
+        agent = env.agents[0]
+        mask = obs[agent]["action_mask"]
+        assert mask[RELEASE_BRAKE] == 0  # a_prev = 0: no hard brake before
+        actions = {a: HARD_BRAKE for a in env.agents}
+        actions[agent] = RELEASE_BRAKE
+        _, _, _, _, infos = env.step(actions)
+        assert "replaced_action" in infos[agent]
+        replaced = infos[agent]["replaced_action"]
+        assert mask[replaced] == 1
+        assert env.last_outcome is not None and env.last_outcome.replaced_actions == {agent: replaced}
+    finally:
+        env.close()
