@@ -1,0 +1,144 @@
+"""The paper's four reward parts against hand-worked numbers, and how a step assigns them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from idas_sumo.env.actions import HARD_BRAKE
+from idas_sumo.env.core import EnvConfig, MergeSimulation, _impeding_vehicles
+from idas_sumo.env.rewards import RewardConfig, collide_reward, finish_reward, flow_penalty
+from idas_sumo.env.scenario import Scenario, VehicleSpec
+from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot
+
+
+@pytest.mark.parametrize(("b_type", "expected"), [(-2.0, 5.0), (0.0, 12.5), (2.0, 20.0)])
+def test_finish(b_type: float, expected: float) -> None:
+    # (15·b_type + 50)/4: (-30 + 50)/4 = 5, 50/4 = 12.5, (30 + 50)/4 = 20.
+    assert float(finish_reward(b_type)) == expected
+
+
+@pytest.mark.parametrize(
+    ("prio", "sign", "expected"),
+    [
+        (0, "paper", -5.0),
+        (1, "paper", -10.0),
+        (0, "lower_priority_pays", -10.0),
+        (1, "lower_priority_pays", -5.0),
+    ],
+)
+def test_collide(prio: int, sign: str, expected: float) -> None:
+    # paper: -5·b_prio - 5; lower_priority_pays: -5·(1 - b_prio) - 5.
+    assert float(collide_reward(prio, sign)) == expected  # type: ignore[arg-type]
+
+
+def test_flow_counts_hard_brakes_within_50_m() -> None:
+    # Hard brakes at these distances to the merge point; |d| <= 50 counts: 10, -30, 50, -50 -> -4.
+    assert flow_penalty([10.0, -30.0, 50.0, -50.0, 50.1, -60.0, 200.0]) == -4.0
+    assert flow_penalty([]) == 0.0
+
+
+def _snapshot(rows: list[tuple[str, int, float]]) -> TrafficSnapshot:
+    n = len(rows)
+    return TrafficSnapshot(
+        ids=tuple(r[0] for r in rows),
+        road=np.array([r[1] for r in rows], dtype=np.int64),
+        dist_to_merge_m=np.array([r[2] for r in rows]),
+        speed_mps=np.full(n, 10.0),
+        accel_mps2=np.zeros(n),
+        length_m=np.full(n, 5.0),
+        speed_limit_mps=np.full(n, 20.0),
+    )
+
+
+def test_impede_goes_to_the_vehicle_directly_ahead() -> None:
+    snap = _snapshot(
+        [
+            ("braker", MAIN, 60.0),
+            ("ahead_far", MAIN, 20.0),
+            ("ahead_near", MAIN, 48.0),
+            ("behind", MAIN, 80.0),
+            ("out_ahead", OUT, -10.0),
+            ("merge_far", MERGE, 40.0),
+        ]
+    )
+    assert _impeding_vehicles(snap, [0]) == ["ahead_near"]
+    # A car on the other road that is projected closer ahead (the merging car cutting in) is blamed.
+    snap2 = _snapshot([("braker", MAIN, 60.0), ("ahead", MAIN, 40.0), ("cutter", MERGE, 55.0)])
+    assert _impeding_vehicles(snap2, [0]) == ["cutter"]
+    # Nobody ahead within sight (100 m): nobody is blamed; no brakes, no culprits.
+    snap3 = _snapshot([("braker", MAIN, 200.0), ("far", MAIN, 99.0), ("behind", MAIN, 230.0)])
+    assert _impeding_vehicles(snap3, [0]) == []
+    assert _impeding_vehicles(snap, []) == []
+    # Two brakers, each blames its own leader; the first car of the queue is blamed by the second.
+    assert _impeding_vehicles(snap, [3, 2]) == ["braker", "out_ahead"]
+
+
+def _two_on_main(back_pos: float, gap_m: float = 20.0) -> Scenario:
+    return Scenario(
+        "impede",
+        (
+            VehicleSpec("back", "main", back_pos, 10.0, b_type=0.0),
+            VehicleSpec("front", "main", back_pos + gap_m, 10.0, b_type=0.0),
+        ),
+    )
+
+
+@pytest.mark.sumo
+def test_step_assigns_impede_and_flow(net_path) -> None:  # type: ignore[no-untyped-def]
+    sim = MergeSimulation(net_path, config=EnvConfig(max_episode_s=10.0))
+    try:
+        # Far from the merge point (back at 150 m from the start -> 100 m before the merge): impede, no flow.
+        sim.reset(_two_on_main(150.0))
+        out = sim.step({"back": HARD_BRAKE, "front": 2})
+        assert out.hard_brakes == ["back"]
+        assert out.reward_parts["front"]["impede"] == -5.0
+        assert out.reward_parts["back"]["impede"] == 0.0
+        assert out.reward_parts["back"]["flow"] == out.reward_parts["front"]["flow"] == 0.0
+        assert out.rewards == {"back": 0.0, "front": -5.0}
+        assert out.hard_brakes_merge_zone == 0
+        assert out.joint_reward == -5.0
+
+        # Inside the merging zone (back 30 m before the merge point): the shared flow penalty too.
+        sim.reset(_two_on_main(220.0, gap_m=15.0))
+        out = sim.step({"back": HARD_BRAKE, "front": 2})
+        assert out.reward_parts["front"]["impede"] == -5.0
+        assert out.reward_parts["back"]["flow"] == out.reward_parts["front"]["flow"] == -1.0
+        assert out.hard_brakes_merge_zone == 1
+        # flow is shared: it is not in an agent's own reward, once in the joint reward.
+        assert out.rewards == {"back": 0.0, "front": -5.0}
+        assert out.joint_reward == -6.0
+
+        # No hard brake: no impede, no flow.
+        sim.reset(_two_on_main(150.0))
+        out = sim.step({"back": 2, "front": 2})
+        assert out.hard_brakes == []
+        assert all(p["impede"] == 0.0 and p["flow"] == 0.0 for p in out.reward_parts.values())
+    finally:
+        sim.close()
+
+
+@pytest.mark.sumo
+def test_collision_sign_config_is_used(net_path) -> None:  # type: ignore[no-untyped-def]
+    # A fast car runs into a stopped one on the main road (prio 1): paper -10, other sign -5.
+    scenario = Scenario(
+        "crash",
+        (VehicleSpec("fast", "main", 100.0, 20.0), VehicleSpec("stopped", "main", 112.0, 0.0)),
+        main_prio=1,
+        merge_prio=0,
+    )
+    for sign, expected in (("paper", -10.0), ("lower_priority_pays", -5.0)):
+        sim = MergeSimulation(net_path, config=EnvConfig(reward=RewardConfig(collision_sign=sign)))  # type: ignore[arg-type]
+        try:
+            sim.reset(scenario)
+            collided = {}
+            for _ in range(10):
+                if not sim.active_agents:
+                    break
+                # Keep 'stopped' braking; drive 'fast' straight on (actions replaced by the safety mask
+                # cannot stop a 20 m/s car in 7 m anyway).
+                out = sim.step({a: HARD_BRAKE if a == "stopped" else 2 for a in sim.active_agents})
+                collided.update({a: p["collide"] for a, p in out.reward_parts.items() if p["collide"]})
+            assert collided == {"fast": expected, "stopped": expected}
+        finally:
+            sim.close()
