@@ -70,8 +70,9 @@ def test_impede_goes_to_the_vehicle_directly_ahead() -> None:
     snap3 = _snapshot([("braker", MAIN, 200.0), ("far", MAIN, 99.0), ("behind", MAIN, 230.0)])
     assert _impeding_vehicles(snap3, [0]) == []
     assert _impeding_vehicles(snap, []) == []
-    # Two brakers, each blames its own leader; the first car of the queue is blamed by the second.
-    assert _impeding_vehicles(snap, [3, 2]) == ["braker", "out_ahead"]
+    # Two brakers, each blames its nearest car ahead on either road: "behind" (80 m) blames "braker";
+    # "ahead_near" (48 m) blames "merge_far" (other road, 8 m ahead), not "out_ahead" (58 m ahead).
+    assert _impeding_vehicles(snap, [3, 2]) == ["braker", "merge_far"]
 
 
 def _two_on_main(back_pos: float, gap_m: float = 20.0) -> Scenario:
