@@ -135,5 +135,5 @@ def test_syntax_error_names_file_and_line(tmp_path: Path) -> None:
 
 def test_missing_file(tmp_path: Path) -> None:
     p = tmp_path / "missing.toml"
-    with pytest.raises(InputError, match="missing.toml"):
+    with pytest.raises(InputError, match=r"missing\.toml"):
         load_scenario(p)
