@@ -7,6 +7,7 @@ parts. Both environments (PettingZoo and Gymnasium) are thin wrappers around it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -130,7 +131,7 @@ class MergeSimulation:
         self._closed = False
 
     # -- episode -------------------------------------------------------------------------------
-    def reset(self, scenario: Scenario) -> None:
+    def reset(self, scenario: Scenario, sumo_args: Sequence[str] = ()) -> None:
         if self._closed:
             raise SimulationError("this environment is closed; create a new one")
         self.scenario = scenario
@@ -142,7 +143,7 @@ class MergeSimulation:
         self._last_obs = {}
         if self._backend is None:
             self._backend = make_backend(self.net, seed=self._seed, gui=self._gui)
-        self.backend.reset(scenario)
+        self.backend.reset(scenario, sumo_args)
         events = self.backend.step()  # insertion step: vehicles appear where the scenario puts them
         self._time_s = events.time_s
         self._read_snapshot()

@@ -158,8 +158,11 @@ class SumoBackend:
             *self.extra_args,
         ]
 
-    def reset(self, scenario: Scenario) -> None:
-        """(Re)load the network with this scenario's vehicles (the insertion step is ``step``'s job)."""
+    def reset(self, scenario: Scenario, extra_args: Sequence[str] = ()) -> None:
+        """(Re)load the network with this scenario's vehicles (the insertion step is ``step``'s job).
+
+        ``extra_args`` are SUMO options for this run only (e.g. ``--tripinfo-output FILE``).
+        """
         global _active
         if _active is not None and _active is not self:
             raise SimulationError(
@@ -174,7 +177,7 @@ class SumoBackend:
             self._workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_"))
         route_file = self._workdir / "scenario.rou.xml"
         route_file.write_text(_route_xml(scenario, self.net))
-        args = self._args(route_file)
+        args = [*self._args(route_file), *extra_args]
         if self.gui:
             binary = "sumo-gui"
             from idas_sumo.sim.netgen import sumo_binary
@@ -353,8 +356,8 @@ class SubprocessBackend:
             raise value
         return value
 
-    def reset(self, scenario: Scenario) -> None:
-        self._call("reset", scenario)
+    def reset(self, scenario: Scenario, extra_args: Sequence[str] = ()) -> None:
+        self._call("reset", scenario, list(extra_args))
 
     def step(self) -> StepEvents:
         return typing.cast(StepEvents, self._call("step"))

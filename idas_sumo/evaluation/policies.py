@@ -1,0 +1,80 @@
+"""Methods an evaluation can run, behind one interface: given the simulation and some agents, pick
+their actions. Baselines read the traffic snapshot; learned policies read observations."""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.baselines.policies import BASELINES
+from idas_sumo.env.core import MergeSimulation
+from idas_sumo.errors import InputError
+
+PolicyFn = Callable[
+    [MergeSimulation, list[str], npt.NDArray[np.float32], npt.NDArray[np.int8]], npt.NDArray[np.int64]
+]
+"""(sim, agent ids, observations (n, 1605), masks (n, 7)) -> actions (n,)."""
+
+POLICY_DIR = Path(__file__).resolve().parents[2] / "policies"
+LEARNED_METHODS: dict[str, str] = {"idas": "idas.pt", "idas_v": "idas_v.pt", "idas_direct": "idas_direct.pt"}
+METHODS: tuple[str, ...] = (*LEARNED_METHODS, *BASELINES)
+METHOD_LABELS: dict[str, str] = {
+    "idas": "IDAS",
+    "idas_v": "IDAS-V",
+    "idas_direct": "IDAS-direct",
+    "idm": "IDM",
+    "fsm_idm": "FSM+IDM",
+}
+
+
+def check_method(name: str, flag: str = "--baseline") -> str:
+    if name not in METHODS:
+        close = difflib.get_close_matches(name, METHODS, n=1, cutoff=0.4)
+        hint = f' (did you mean "{close[0]}"?)' if close else ""
+        raise InputError(f"{flag}: unknown method {name!r}{hint}; choose from {', '.join(METHODS)}")
+    return name
+
+
+def baseline_policy(name: str) -> PolicyFn:
+    act = BASELINES[name]
+
+    def policy(
+        sim: MergeSimulation, agents: list[str], obs: npt.NDArray[np.float32], masks: npt.NDArray[np.int8]
+    ) -> npt.NDArray[np.int64]:
+        egos = sim.snapshot.index(agents)
+        prev = np.array([sim.prev_accel(a) for a in agents])
+        return act(sim.snapshot, egos, prev, masks)
+
+    return policy
+
+
+def learned_policy(path: Path, seed: int = 0) -> PolicyFn:
+    """A shipped or trained actor, acting greedily (the most probable allowed action)."""
+    from idas_sumo.training.checkpoint import load_actor
+
+    actor = load_actor(path)
+    import torch
+
+    generator = torch.Generator().manual_seed(seed)
+
+    def policy(
+        sim: MergeSimulation, agents: list[str], obs: npt.NDArray[np.float32], masks: npt.NDArray[np.int8]
+    ) -> npt.NDArray[np.int64]:
+        return actor.act(obs, masks, generator, deterministic=True)
+
+    return policy
+
+
+def resolve_policy(name: str, policy_path: Path | None = None, seed: int = 0) -> PolicyFn:
+    """The policy for a method name; learned methods load ``policy_path`` or the shipped file."""
+    check_method(name)
+    if name in BASELINES:
+        return baseline_policy(name)
+    path = policy_path or POLICY_DIR / LEARNED_METHODS[name]
+    if not path.exists():
+        raise InputError(f"{path}: policy file not found (train it with `idas-sumo train` or pass --policy)")
+    return learned_policy(path, seed)

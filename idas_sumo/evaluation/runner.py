@@ -1,0 +1,124 @@
+"""``idas-sumo evaluate``: run a suite for one or more methods and write episodes, summary and flow CSV."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from idas_sumo.env.core import EnvConfig, MergeSimulation
+from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.evaluation.metrics import (
+    EPISODE_COLUMNS,
+    FLOW_COLUMNS,
+    SUMMARY_COLUMNS,
+    TRAJECTORY_COLUMNS,
+    summary_rows,
+)
+from idas_sumo.evaluation.policies import LEARNED_METHODS, POLICY_DIR, PolicyFn, resolve_policy
+from idas_sumo.evaluation.protocol import Suite, iterate_runs, suite_cases
+from idas_sumo.io_utils import prepare_output_dir, write_csv_atomic
+from idas_sumo.sim.netgen import read_merge_net
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class EvalRequest:
+    net: Path
+    methods: tuple[str, ...]
+    suite: Suite = "paper"
+    scenarios: int = 100
+    seed: int = 0
+    others: str | None = None
+    """Method for every non-ego vehicle; None: the shipped IDAS policy if present, else IDM."""
+    policy: Path | None = None
+    out: Path = Path("results")
+    force: bool = False
+    trajectories: bool = False
+    sumo_output: bool = False
+    progress: bool = True
+    gui: bool = False
+
+
+def default_others() -> str:
+    return "idas" if (POLICY_DIR / LEARNED_METHODS["idas"]).exists() else "idm"
+
+
+def run_evaluation(req: EvalRequest) -> pd.DataFrame:
+    """Run the suite; write CSVs into ``req.out`` (atomically, only once everything ran). Returns the summary."""
+    net = read_merge_net(req.net)
+    others_name = req.others or default_others()
+    policies: dict[str, PolicyFn] = {
+        m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
+    }
+    others_policy = resolve_policy(others_name, None, req.seed)
+    out = prepare_output_dir(req.out, req.force)
+    tripinfo_dir = None
+    if req.sumo_output:
+        tripinfo_dir = out / "sumo"
+        tripinfo_dir.mkdir(exist_ok=True)
+    sim = MergeSimulation(net, seed=req.seed, config=EnvConfig(), gui=req.gui)
+    cases = suite_cases(req.suite, req.scenarios, req.seed, sim.speed_limits_mps, TrafficConfig())
+    log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
+    episodes, flows, trajectories = [], [], []
+    total = len(cases) * len(policies)
+    try:
+        with _progress(req.progress, total, f"evaluate ({req.suite}, others: {others_name})") as advance:
+            for method, case, result in iterate_runs(sim, cases, policies, others_policy, tripinfo_dir):
+                episodes.append(result.episode)
+                flows.append(result.flow)
+                if req.trajectories:
+                    trajectories.append(
+                        result.trajectory.assign(scenario=case.scenario.name, run_method=method)
+                    )
+                advance()
+    finally:
+        sim.close()
+    episode_frame = pd.DataFrame(episodes, columns=list(EPISODE_COLUMNS))
+    summary = pd.DataFrame(summary_rows(episode_frame), columns=list(SUMMARY_COLUMNS))
+    write_csv_atomic(episode_frame, out / "episodes.csv")
+    write_csv_atomic(summary, out / "summary.csv")
+    write_csv_atomic(pd.DataFrame(flows, columns=list(FLOW_COLUMNS)), out / "flow.csv")
+    if req.trajectories:
+        columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
+        write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
+    return summary
+
+
+class _progress:
+    """A rich progress bar (or nothing) that yields an ``advance()`` callable."""
+
+    def __init__(self, enabled: bool, total: int, description: str) -> None:
+        self.enabled = enabled
+        self.total = total
+        self.description = description
+
+    def __enter__(self):  # type: ignore[no-untyped-def]
+        if not self.enabled:
+            return lambda: None
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self._bar = Progress(
+            "[progress.description]{task.description}",
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            transient=False,
+        )
+        self._bar.__enter__()
+        task = self._bar.add_task(self.description, total=self.total)
+        return lambda: self._bar.advance(task)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.enabled:
+            self._bar.__exit__(None, None, None)
