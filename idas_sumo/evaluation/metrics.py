@@ -152,7 +152,7 @@ def flow_row(trajectory: pd.DataFrame, facts: EpisodeFacts) -> dict[str, object]
 
 def summary_rows(episodes: pd.DataFrame) -> list[dict[str, object]]:
     """The paper's table: one row per method."""
-    rows = []
+    rows: list[dict[str, object]] = []
     for method, group in episodes.groupby("method", sort=False):
         perfect = group[group["perfect"] == 1]
         rows.append(
