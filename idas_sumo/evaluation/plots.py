@@ -1,0 +1,154 @@
+"""PNG plots of an evaluation directory, after the paper's Fig. 4 (bars), Fig. 5 (position-time and
+velocity profiles, merging zone shaded) and Fig. 6 (driver-type sweep)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
+from idas_sumo.errors import InputError
+from idas_sumo.evaluation.policies import METHOD_LABELS
+from idas_sumo.io_utils import atomic_open
+
+ZONE_COLOR = "#9ecae1"
+
+
+def _read(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
+        raise InputError(f"{path}: cannot read CSV ({err})") from None
+
+
+def _save(fig: object, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=120, bbox_inches="tight")  # type: ignore[attr-defined]
+    plt.close(fig)  # type: ignore[arg-type]
+    return path
+
+
+def plot_directory(directory: Path) -> list[Path]:
+    """Draw every plot the CSVs in ``directory`` support; returns the PNG paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    if not directory.is_dir():
+        raise InputError(f"{directory}: not a directory written by `idas-sumo evaluate`")
+    if not (directory / "episodes.csv").exists():
+        raise InputError(f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first)")
+    episodes = _read(directory / "episodes.csv")
+    written = [summary_bars(episodes, directory / "summary.png")]
+    names = episodes["scenario"].astype(str)
+    if names.isin(["s1", "s2", "s3", "s4"]).any():
+        written.append(representative_bars(episodes, directory / "representative.png"))
+    traj_path = directory / "trajectories.csv"
+    if traj_path.exists():
+        traj = _read(traj_path)
+        if names.isin(["s1", "s2", "s3", "s4"]).any():
+            written.append(profiles(traj, directory / "profiles.png"))
+        if names.str.startswith("s1-btype").any():
+            written.append(driver_type_sweep(episodes, traj, directory / "driver_types.png"))
+    return written
+
+
+def summary_bars(episodes: pd.DataFrame, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    grouped = episodes.groupby("method", sort=False)
+    methods = list(grouped.groups)
+    success = grouped["success"].mean().to_numpy() * 100
+    perfect = grouped["perfect"].mean().to_numpy() * 100
+    x = np.arange(len(methods))
+    fig, ax = plt.subplots(figsize=(1.6 * len(methods) + 2, 3.5))
+    ax.bar(x - 0.2, success, 0.4, label="success", color="#3182bd")
+    ax.bar(x + 0.2, perfect, 0.4, label="perfect success", color="#9ecae1")
+    ax.set_xticks(x, [METHOD_LABELS.get(m, m) for m in methods])
+    ax.set_ylabel("scenarios, %")
+    ax.set_ylim(0, 105)
+    ax.set_title(f"Overall performance ({len(episodes) // max(len(methods), 1)} scenarios per method)")
+    ax.legend(loc="lower right")
+    return _save(fig, path)
+
+
+def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
+    """Normalised reward and ego finish time per scenario and method; collisions in grey."""
+    import matplotlib.pyplot as plt
+
+    rep = episodes[episodes["scenario"].astype(str).isin(["s1", "s2", "s3", "s4"])]
+    methods = list(dict.fromkeys(rep["method"]))
+    scenarios = ["s1", "s2", "s3", "s4"]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    width = 0.8 / max(len(methods), 1)
+    for k, method in enumerate(methods):
+        rows = rep[rep["method"] == method].set_index("scenario").reindex(scenarios)
+        failed = rows["success"].fillna(0).to_numpy() == 0
+        x = np.arange(len(scenarios)) + (k - (len(methods) - 1) / 2) * width
+        for ax, col in zip(axes, ("normalized_reward", "ego_finish_time_s"), strict=True):
+            values = rows[col].fillna(0).to_numpy()
+            bars = ax.bar(x, values, width, label=METHOD_LABELS.get(method, method))
+            for bar, bad in zip(bars, failed, strict=True):
+                if bad:
+                    bar.set_color("0.6")
+    axes[0].set_ylabel("normalised reward of the merge car")
+    axes[1].set_ylabel("merge car finish time, s")
+    for ax in axes:
+        ax.set_xticks(range(len(scenarios)), scenarios)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Representative scenarios (grey: failure)")
+    return _save(fig, path)
+
+
+def profiles(traj: pd.DataFrame, path: Path) -> Path:
+    """Position-time and velocity profiles of s1-s4 for each method, merging zone shaded."""
+    import matplotlib.pyplot as plt
+
+    traj = traj[traj["scenario"].astype(str).isin(["s1", "s2", "s3", "s4"])]
+    methods = list(dict.fromkeys(traj["run_method"]))
+    fig, axes = plt.subplots(2 * len(methods), 4, figsize=(14, 4.2 * len(methods)), squeeze=False)
+    for m, method in enumerate(methods):
+        for s, name in enumerate(["s1", "s2", "s3", "s4"]):
+            run = traj[(traj["run_method"] == method) & (traj["scenario"] == name)]
+            pos_ax, vel_ax = axes[2 * m, s], axes[2 * m + 1, s]
+            pos_ax.axhspan(-MERGE_ZONE_RADIUS_M, MERGE_ZONE_RADIUS_M, color=ZONE_COLOR, alpha=0.5, lw=0)
+            for vehicle, rows in run.groupby("vehicle"):
+                label = f"{vehicle}"
+                pos_ax.plot(rows["time_s"], -rows["dist_to_merge_m"], label=label)
+                vel_ax.plot(rows["time_s"], rows["speed_mps"], label=label)
+            pos_ax.set_title(f"{METHOD_LABELS.get(method, method)}: {name}")
+            pos_ax.set_ylabel("position rel. to merge point, m")
+            vel_ax.set_ylabel("speed, m/s")
+            vel_ax.set_xlabel("time, s")
+            pos_ax.legend(fontsize=7)
+    fig.suptitle("Representative scenarios: position-time (merging zone shaded) and velocity profiles")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) -> Path:
+    """Merge car's merge time against its driver type, and its velocity profiles (paper Fig. 6)."""
+    import matplotlib.pyplot as plt
+
+    sweep = episodes[episodes["scenario"].astype(str).str.startswith("s1-btype")]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8))
+    for method, rows in sweep.groupby("method", sort=False):
+        left.plot(rows["ego_type"], rows["ego_finish_time_s"], "o-", label=METHOD_LABELS.get(method, method))
+    left.set_xlabel("merge car driver type $b_{type}$")
+    left.set_ylabel("merge car finish time, s")
+    left.legend(fontsize=8)
+    cmap = plt.get_cmap("viridis")
+    first_method = sweep["method"].iloc[0] if len(sweep) else None
+    for _, row in sweep[sweep["method"] == first_method].iterrows():
+        run = traj[(traj["scenario"] == row["scenario"]) & (traj["run_method"] == first_method)]
+        ego = run[run["vehicle"] == row["ego_id"]]
+        color = cmap((row["ego_type"] + 2.0) / 4.0)
+        right.plot(ego["time_s"], ego["speed_mps"], color=color, label=f"{row['ego_type']:+.1f}")
+    right.set_xlabel("time, s")
+    right.set_ylabel("merge car speed, m/s")
+    right.set_title(f"{METHOD_LABELS.get(str(first_method), str(first_method))}: velocity by driver type")
+    right.legend(fontsize=7, ncol=3, title="$b_{type}$")
+    return _save(fig, path)
