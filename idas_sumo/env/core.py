@@ -373,7 +373,10 @@ class MergeSimulation:
             parts[a]["impede"] = IMPEDE_PENALTY * culprits.count(a)
             spec = self._spec[a]
             if a in events.collided:
-                prio = self.b_prio(before.road[before.index([a])])[0]
+                # The priority of the road the car came from: collisions happen on the junction or
+                # after it, where the snapshot's road is the outgoing one (priority max of both).
+                assert self.scenario is not None
+                prio = float(self.scenario.prio(spec.road))
                 parts[a]["collide"] = float(collide_reward(prio, self.config.reward.collision_sign))
                 end_reason[a] = "collided"
             elif a not in in_sim:
