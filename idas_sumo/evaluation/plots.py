@@ -23,6 +23,10 @@ def _read(path: Path) -> pd.DataFrame:
         raise InputError(f"{path}: cannot read CSV ({err})") from None
 
 
+def _label(method: object) -> str:
+    return METHOD_LABELS.get(str(method), str(method))
+
+
 def _save(fig: object, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
@@ -67,7 +71,7 @@ def summary_bars(episodes: pd.DataFrame, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(1.6 * len(methods) + 2, 3.5))
     ax.bar(x - 0.2, success, 0.4, label="success", color="#3182bd")
     ax.bar(x + 0.2, perfect, 0.4, label="perfect success", color="#9ecae1")
-    ax.set_xticks(x, [METHOD_LABELS.get(m, m) for m in methods])
+    ax.set_xticks(x, [_label(m) for m in methods])
     ax.set_ylabel("scenarios, %")
     ax.set_ylim(0, 105)
     ax.set_title(f"Overall performance ({len(episodes) // max(len(methods), 1)} scenarios per method)")
@@ -90,7 +94,7 @@ def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
         x = np.arange(len(scenarios)) + (k - (len(methods) - 1) / 2) * width
         for ax, col in zip(axes, ("normalized_reward", "ego_finish_time_s"), strict=True):
             values = rows[col].fillna(0).to_numpy()
-            bars = ax.bar(x, values, width, label=METHOD_LABELS.get(method, method))
+            bars = ax.bar(x, values, width, label=_label(method))
             for bar, bad in zip(bars, failed, strict=True):
                 if bad:
                     bar.set_color("0.6")
@@ -119,7 +123,7 @@ def profiles(traj: pd.DataFrame, path: Path) -> Path:
                 label = f"{vehicle}"
                 pos_ax.plot(rows["time_s"], -rows["dist_to_merge_m"], label=label)
                 vel_ax.plot(rows["time_s"], rows["speed_mps"], label=label)
-            pos_ax.set_title(f"{METHOD_LABELS.get(method, method)}: {name}")
+            pos_ax.set_title(f"{_label(method)}: {name}")
             pos_ax.set_ylabel("position rel. to merge point, m")
             vel_ax.set_ylabel("speed, m/s")
             vel_ax.set_xlabel("time, s")
@@ -136,7 +140,7 @@ def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) ->
     sweep = episodes[episodes["scenario"].astype(str).str.startswith("s1-btype")]
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8))
     for method, rows in sweep.groupby("method", sort=False):
-        left.plot(rows["ego_type"], rows["ego_finish_time_s"], "o-", label=METHOD_LABELS.get(method, method))
+        left.plot(rows["ego_type"], rows["ego_finish_time_s"], "o-", label=_label(method))
     left.set_xlabel("merge car driver type $b_{type}$")
     left.set_ylabel("merge car finish time, s")
     left.legend(fontsize=8)
@@ -149,6 +153,6 @@ def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) ->
         right.plot(ego["time_s"], ego["speed_mps"], color=color, label=f"{row['ego_type']:+.1f}")
     right.set_xlabel("time, s")
     right.set_ylabel("merge car speed, m/s")
-    right.set_title(f"{METHOD_LABELS.get(str(first_method), str(first_method))}: velocity by driver type")
+    right.set_title(f"{_label(first_method)}: velocity by driver type")
     right.legend(fontsize=7, ncol=3, title="$b_{type}$")
     return _save(fig, path)
