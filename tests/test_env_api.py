@@ -1,0 +1,205 @@
+"""The two environments pass the official API checkers, are reproducible per seed, and expose the
+documented observation, info and state."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pytest
+
+import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
+from idas_sumo.agents.state_layout import STATE_DIM
+from idas_sumo.env import MergeEnv, MergeParallelEnv
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.core import EnvConfig
+from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
+from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec
+from idas_sumo.errors import SimulationError
+from idas_sumo.sim.backend import slot_taken
+
+pytestmark = pytest.mark.sumo
+
+INFO_KEYS = {"speed_mps", "accel_mps2", "dist_to_merge_m", "road"}
+
+
+def _small(budget: Any) -> dict[str, Any]:
+    return {
+        "traffic": TrafficConfig(max_vehicles_per_road=budget.max_vehicles_per_road),
+        "config": EnvConfig(max_episode_s=budget.max_episode_s),
+    }
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_simulation() -> Iterator[None]:
+    yield
+    assert not slot_taken(), "a test left a SUMO simulation open"
+
+
+def test_gymnasium_check_env(small_budget: Any) -> None:
+    from gymnasium.utils.env_checker import check_env
+
+    env = gymnasium.make("idas_sumo/Merge-v0", **_small(small_budget)).unwrapped
+    try:
+        assert isinstance(env, MergeEnv)
+        check_env(env, skip_render_check=True)
+        obs, info = env.reset(seed=1)
+        assert obs.shape == (OBS_DIM,) and obs.dtype == np.float32
+        assert INFO_KEYS <= info.keys() and info["action_mask"].shape == (N_ACTIONS,)
+        done = False
+        while not done:
+            action = int(np.flatnonzero(info["action_mask"])[0])
+            obs, reward, terminated, truncated, info = env.step(action)
+            assert INFO_KEYS | {"reward_parts", "action_mask"} <= info.keys()
+            done = terminated or truncated
+    finally:
+        env.close()
+
+
+def test_pettingzoo_parallel_api(small_budget: Any) -> None:
+    from pettingzoo.test import parallel_api_test
+
+    env = MergeParallelEnv(seed=0, **_small(small_budget))
+    try:
+        parallel_api_test(env, num_cycles=small_budget.api_cycles)
+    finally:
+        env.close()
+
+
+def test_pettingzoo_seed_test(small_budget: Any) -> None:
+    from pettingzoo.test import parallel_seed_test
+
+    made: list[MergeParallelEnv] = []
+
+    def make() -> MergeParallelEnv:
+        env = MergeParallelEnv(**_small(small_budget))
+        made.append(env)
+        return env
+
+    try:
+        parallel_seed_test(make, num_cycles=small_budget.api_cycles)
+    finally:
+        for env in made:
+            env.close()
+
+
+def _trajectory(seed: int, budget: Any) -> list[tuple[dict[str, np.ndarray], dict[str, float]]]:
+    env = MergeParallelEnv(seed=seed, **_small(budget))
+    rng = np.random.default_rng(seed)
+    trace = []
+    try:
+        obs, _ = env.reset(seed=seed)
+        trace.append(({a: o["observation"] for a, o in obs.items()}, {}))
+        while env.agents:
+            actions = {a: int(rng.choice(np.flatnonzero(obs[a]["action_mask"]))) for a in env.agents}
+            obs, rewards, _, _, _ = env.step(actions)
+            trace.append(({a: o["observation"] for a, o in obs.items()}, rewards))
+    finally:
+        env.close()
+    return trace
+
+
+def test_same_seed_same_trajectory(small_budget: Any) -> None:
+    a, b = _trajectory(5, small_budget), _trajectory(5, small_budget)
+    assert len(a) == len(b) > 5
+    for (obs_a, rew_a), (obs_b, rew_b) in zip(a, b, strict=True):
+        assert obs_a.keys() == obs_b.keys()
+        for agent in obs_a:
+            np.testing.assert_array_equal(obs_a[agent], obs_b[agent])
+        assert rew_a == rew_b
+    c = _trajectory(6, small_budget)
+    assert len(c) != len(a) or any(
+        x[0].keys() != y[0].keys() or any(not np.array_equal(x[0][k], y[0][k]) for k in x[0])
+        for x, y in zip(a, c, strict=False)
+    )
+
+
+def test_infos_and_state(small_budget: Any) -> None:
+    env = MergeParallelEnv(seed=2, **_small(small_budget))
+    try:
+        obs, infos = env.reset(seed=2)
+        assert env.agents and set(infos) == set(env.agents)
+        for a in env.agents:
+            assert INFO_KEYS <= infos[a].keys()
+            assert infos[a]["road"] in ("main", "merge")
+            assert 0.0 < infos[a]["dist_to_merge_m"] <= 250.0
+            assert obs[a]["observation"].shape == (OBS_DIM,) and obs[a]["observation"].dtype == np.float32
+            assert obs[a]["action_mask"].dtype == np.int8
+        state = env.state()
+        assert state.shape == (STATE_DIM,) and state.dtype == np.float32
+        assert env.state_space.contains(state)
+        obs, rewards, _, _, infos = env.step(dict.fromkeys(env.agents, 2))
+        for info in infos.values():
+            assert INFO_KEYS <= info.keys()
+            assert set(info["reward_parts"]) == {"finish", "collide", "impede", "flow"}
+            assert "joint_reward" in info
+        assert env.state().shape == (STATE_DIM,)
+    finally:
+        env.close()
+
+
+def test_observation_grids_place_neighbours() -> None:
+    # ego on main 150 m before the merge at 10 m/s; 'front' 10 m ahead on main at 14 m/s;
+    # 'side' on the merge road 10 m further from the merge point than ego, at 8 m/s.
+    scenario = Scenario(
+        "grid",
+        (
+            VehicleSpec("ego", "main", 100.0, 10.0, b_type=1.0),
+            VehicleSpec("front", "main", 110.0, 14.0, b_type=0.0),
+            VehicleSpec("side", "merge", 90.0, 8.0, b_type=0.0),
+        ),
+        main_prio=1,
+        merge_prio=0,
+    )
+    env = MergeParallelEnv(scenario=scenario)
+    try:
+        obs, infos = env.reset()
+        assert infos["ego"]["dist_to_merge_m"] == pytest.approx(150.0)
+        o = obs["ego"]["observation"]
+        scalars = o[:N_SCALARS]
+        np.testing.assert_allclose(scalars, [10.0 / 20.0, 0.0, 150.0 / 250.0, 1.0, 1.0 / 2.0], rtol=1e-6)
+        grids = o[N_SCALARS:].reshape(2, 2, GRID_CELLS)
+        cl_occ, cl_speed, ol_occ, ol_speed = grids[0, 0], grids[0, 1], grids[1, 0], grids[1, 1]
+        # Cell 200 starts at ego's front bumper, 0.5 m per cell. 'front': rear 5 m ahead, front 10 m
+        # ahead -> cells 210..220; relative speed (14 - 10)/20 = 0.2.
+        assert np.flatnonzero(cl_occ).tolist() == list(range(210, 221))
+        np.testing.assert_allclose(cl_speed[210:221], 0.2, rtol=1e-6)
+        assert np.count_nonzero(cl_speed) == 11
+        # 'side': front 10 m behind, rear 15 m behind -> cells 170..180; (8 - 10)/20 = -0.1.
+        assert np.flatnonzero(ol_occ).tolist() == list(range(170, 181))
+        np.testing.assert_allclose(ol_speed[170:181], -0.1, rtol=1e-6)
+        assert np.count_nonzero(ol_speed) == 11
+        # The ego itself is in neither grid.
+        assert cl_occ[190:210].sum() == 0
+        # From 'front''s point of view, ego is 10 m behind on its current lane.
+        f = obs["front"]["observation"][N_SCALARS:].reshape(2, 2, GRID_CELLS)
+        assert np.flatnonzero(f[0, 0]).tolist() == list(range(170, 181))
+        np.testing.assert_allclose(f[0, 1][170:181], -0.2, rtol=1e-6)
+    finally:
+        env.close()
+
+
+def test_close_twice_and_misuse() -> None:
+    env = MergeParallelEnv(seed=0)
+    with pytest.raises(SimulationError):
+        env.step({})  # before reset
+    env.reset(seed=0)
+    actions = dict.fromkeys(env.agents, 2)
+    env.step(actions)
+    env.close()
+    env.close()
+    with pytest.raises(SimulationError):
+        env.step(dict.fromkeys(env.agents, 2))
+    with pytest.raises(SimulationError):
+        env.reset(seed=0)
+
+    genv = MergeEnv()
+    with pytest.raises(SimulationError):
+        genv.step(2)  # before reset
+    genv.reset(seed=0)
+    genv.close()
+    genv.close()
+    with pytest.raises(SimulationError):
+        genv.step(2)
