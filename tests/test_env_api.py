@@ -203,3 +203,37 @@ def test_close_twice_and_misuse() -> None:
     genv.close()
     with pytest.raises(SimulationError):
         genv.step(2)
+
+
+def test_agents_come_and_go() -> None:
+    # 'late' enters 1 s into the episode; 'early' leaves when it finishes 50 m past the merge point.
+    scenario = Scenario(
+        "come-and-go",
+        (
+            VehicleSpec("early", "main", 230.0, 20.0),
+            VehicleSpec("late", "merge", 10.0, 10.0, depart_s=1.0),
+        ),
+    )
+    env = MergeParallelEnv(scenario=scenario, config=EnvConfig(max_episode_s=8.0))
+    try:
+        obs, infos = env.reset()
+        assert env.agents == ["early"] and set(obs) == set(infos) == {"early"}
+        seen: list[list[str]] = []
+        ended: dict[str, str] = {}
+        while env.agents:
+            acting = list(env.agents)
+            obs, _, terminated, truncated, infos = env.step(dict.fromkeys(acting, 2))
+            seen.append(list(env.agents))
+            for a in acting:  # every agent that acted gets its step's results
+                assert a in obs and a in infos and a in terminated and a in truncated
+                if "end_reason" in infos[a]:
+                    ended[a] = infos[a]["end_reason"]
+            for a in env.agents:  # every agent still in the game has an observation
+                assert a in obs and obs[a]["action_mask"].any()
+                assert infos[a]["road"] != "gone"
+        assert ["early", "late"] in seen  # both on the road at once
+        assert ended["early"] == "finished"
+        assert ended["late"] == "timeout"
+        assert env.sim.time_s == pytest.approx(8.0)
+    finally:
+        env.close()
