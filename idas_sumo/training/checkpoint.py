@@ -1,0 +1,128 @@
+"""Training checkpoints: written atomically, read with ``torch.load(weights_only=True)``, checked.
+
+A checkpoint is a dict of plain types and tensors::
+
+    kind, format, package_version, obs_layout_id, learner (Learner.state_dict()),
+    config (TrainConfig as a dict), stage, stage_index, episode (within the stage),
+    global_episode, numpy_rng (bit-generator state), torch_rng (uint8 tensor)
+
+Every problem reading one (missing, empty, truncated, not ours, other layout, non-finite weights)
+is one ``InputError`` line naming the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import pickle
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from idas_sumo import __version__
+from idas_sumo.agents.learner import Learner, LearnerConfig
+from idas_sumo.env.layout import OBS_LAYOUT_ID
+from idas_sumo.errors import InputError
+
+__all__ = ["CHECKPOINT_KIND", "TRAIN_CHECKPOINT_FORMAT", "load_actor", "load_checkpoint", "save_checkpoint"]
+
+CHECKPOINT_KIND = "idas-sumo-train"
+TRAIN_CHECKPOINT_FORMAT = 1
+NETWORK_KEYS = ("actor", "value", "central", "value_target", "central_target")
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    """Write ``payload`` to ``path`` atomically: temp file in the same directory, fsync, rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    full = {
+        "kind": CHECKPOINT_KIND,
+        "format": TRAIN_CHECKPOINT_FORMAT,
+        "package_version": __version__,
+        "obs_layout_id": OBS_LAYOUT_ID,
+        **payload,
+    }
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(full, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; a checkpoint is an ordinary output file
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    try:  # make the rename itself durable
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dir_fd)
+    except OSError:
+        pass
+    finally:
+        os.close(dir_fd)
+
+
+def load_checkpoint(path: Path | str) -> dict[str, Any]:
+    """Read and check a training checkpoint."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: checkpoint not found")
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, expected a checkpoint file")
+    if p.stat().st_size == 0:
+        raise InputError(f"{p}: empty file, not a checkpoint")
+    try:
+        data = torch.load(p, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError, OSError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(f"{p}: not a readable checkpoint (truncated or corrupt?): {first[:200]}") from None
+    if not isinstance(data, dict) or data.get("kind") != CHECKPOINT_KIND:
+        raise InputError(f"{p}: not an idas-sumo training checkpoint")
+    if data.get("format") != TRAIN_CHECKPOINT_FORMAT:
+        raise InputError(
+            f"{p}: checkpoint format {data.get('format')!r}, this build reads {TRAIN_CHECKPOINT_FORMAT}"
+        )
+    if data.get("obs_layout_id") != OBS_LAYOUT_ID:
+        raise InputError(
+            f"{p}: written for observation layout {data.get('obs_layout_id')!r}, "
+            f"this build uses {OBS_LAYOUT_ID!r}"
+        )
+    learner = data.get("learner")
+    if not isinstance(learner, dict) or any(not isinstance(learner.get(k), dict) for k in NETWORK_KEYS):
+        raise InputError(f"{p}: checkpoint has no complete learner weights")
+    for net in NETWORK_KEYS:
+        for name, tensor in learner[net].items():
+            if not isinstance(tensor, torch.Tensor):
+                raise InputError(f"{p}: {net}.{name} is not a tensor")
+            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+                raise InputError(f"{p}: non-finite weights in {net}.{name}")
+    for key in ("stage", "stage_index", "episode", "global_episode", "config"):
+        if key not in data:
+            raise InputError(f"{p}: checkpoint lacks {key!r}")
+    for key in ("episode", "global_episode", "stage_index"):
+        value = data[key]
+        if not isinstance(value, int) or value < 0 or (isinstance(value, float) and not math.isfinite(value)):
+            raise InputError(f"{p}: {key} must be a non-negative integer, got {value!r}")
+    return data
+
+
+def load_actor(path: Path | str) -> Learner:
+    """A checkpoint's networks in a ``Learner`` (use its ``act``); no optimiser state, for evaluation."""
+    data = load_checkpoint(path)
+    learner = Learner(LearnerConfig(), seed=0)
+    try:
+        learner.load_state_dict(data["learner"], load_optimisers=False)
+    except (RuntimeError, KeyError) as err:  # shapes or names that do not fit these networks
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(f"{path}: weights do not fit this build's networks: {first[:200]}") from None
+    except InputError as err:
+        raise InputError(f"{path}: {err}") from None
+    return learner

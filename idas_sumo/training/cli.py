@@ -1,0 +1,45 @@
+"""``idas-sumo train``: turn the parsed flags into a TrainConfig and call ``run_training``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from idas_sumo.training.config import TrainConfig, load_train_config
+from idas_sumo.training.loop import run_training
+
+__all__ = ["DEFAULT_TRAIN_CONFIG", "config_from_args", "train_from_args"]
+
+DEFAULT_TRAIN_CONFIG = Path(__file__).resolve().parents[2] / "scenarios" / "train_default.toml"
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The TOML (``--config``, else the shipped default, else built-in defaults) with the flags on top."""
+    path: Path | None = getattr(args, "config", None)
+    if path is not None:
+        base = load_train_config(path)
+    elif DEFAULT_TRAIN_CONFIG.is_file():
+        base = load_train_config(DEFAULT_TRAIN_CONFIG)
+    else:
+        base = TrainConfig()
+    return base.with_overrides(
+        stage=getattr(args, "stage", None),
+        episodes=getattr(args, "episodes", None),
+        workers=getattr(args, "workers", None),
+        seed=getattr(args, "seed", None),
+    )
+
+
+def train_from_args(args: argparse.Namespace) -> int:
+    config = config_from_args(args)
+    out = getattr(args, "out", None) or Path("runs") / config.stage
+    final = run_training(
+        Path(args.net),
+        config,
+        Path(out),
+        resume=bool(getattr(args, "resume", False)),
+        progress=not getattr(args, "no_progress", False),
+        gui=bool(getattr(args, "gui", False)),
+    )
+    print(f"wrote {final}")
+    return 0

@@ -1,0 +1,145 @@
+"""The one training configuration: a frozen dataclass loaded from TOML, then CLI flags override it.
+
+Defaults are the paper's (Section V): Robot World 20k episodes with J1 only, Intelligent World 50k
+episodes with J1 + J2 (α = 0.7), IDAS-direct 70k episodes in the Intelligent World from scratch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from idas_sumo.agents.learner import LearnerConfig
+from idas_sumo.agents.state_layout import STATE_SLOTS
+from idas_sumo.config import from_dict, load_toml
+from idas_sumo.env.rewards import RewardConfig
+from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.errors import InputError
+
+__all__ = ["STAGES", "Stage", "TrainConfig", "load_train_config", "train_config_from_dict"]
+
+Stage = Literal["robot", "intelligent", "direct", "curriculum"]
+STAGES: tuple[str, ...] = ("robot", "intelligent", "direct", "curriculum")
+
+ROBOT_EPISODES = 20_000  # paper: stage 1, Robot World
+INTELLIGENT_EPISODES = 50_000  # paper: stage 2, Intelligent World
+DIRECT_EPISODES = 70_000  # paper: IDAS-direct, no curriculum
+
+
+class ConfigValueError(InputError, ValueError):
+    """A value out of range; a ValueError too so ``from_dict`` prefixes the file name."""
+
+
+def _robot_traffic() -> TrafficConfig:
+    return TrafficConfig(max_controlled=1)
+
+
+def _intelligent_traffic() -> TrafficConfig:
+    return TrafficConfig(min_vehicles_per_road=4, max_vehicles_per_road=4, max_controlled=0)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs besides the network file and the output directory."""
+
+    stage: Stage = "curriculum"
+    """What to train: 'robot' (stage 1 only, gives IDAS-V), 'intelligent' (stage 2 only; from
+    ``init_from`` when given, else from scratch), 'direct' (IDAS-direct: stage 2 from scratch for
+    ``direct_episodes``) or 'curriculum' (robot, then intelligent from the robot weights: IDAS)."""
+    robot_episodes: int = ROBOT_EPISODES
+    """Episodes of the Robot World stage (paper: 20000)."""
+    intelligent_episodes: int = INTELLIGENT_EPISODES
+    """Episodes of the Intelligent World stage (paper: 50000)."""
+    direct_episodes: int = DIRECT_EPISODES
+    """Episodes of IDAS-direct (paper: 70000)."""
+    robot_traffic: TrafficConfig = field(default_factory=_robot_traffic)
+    """Scenario generator of the Robot World: one learning agent among SUMO's robot cars
+    (``max_controlled`` = 1)."""
+    intelligent_traffic: TrafficConfig = field(default_factory=_intelligent_traffic)
+    """Scenario generator of the Intelligent World: 8 learning agents, 4 per road, no robot cars (ours:
+    the paper says 8 agents, not how they are split)."""
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    """Learner hyper-parameters; ``use_central_critic`` is set per stage (off in 'robot', on otherwise)."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    """Reward variant (collision sign)."""
+    episodes_per_update: int = 8
+    """Episodes collected with one policy before one learner update on all their agent-steps (ours)."""
+    checkpoint_every: int = 1000
+    """Write ``checkpoint.pt`` every this many episodes (also at every stage end and on Ctrl-C)."""
+    workers: int = 1
+    """Rollout processes; 1 collects in the training process. Results do not depend on it."""
+    seed: int = 0
+    """Seeds network initialisation, scenarios and action sampling."""
+    max_episode_s: float = 60.0
+    """Simulated seconds before an episode is cut off (a timeout is not a success; ours)."""
+    init_from: str = ""
+    """Optional checkpoint whose weights start the first stage (e.g. a robot run for stage 'intelligent')."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "robot_episodes",
+            "intelligent_episodes",
+            "direct_episodes",
+            "episodes_per_update",
+            "checkpoint_every",
+            "workers",
+        ):
+            if getattr(self, name) < 1:
+                raise ConfigValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.seed < 0:
+            raise ConfigValueError(f"seed must be non-negative, got {self.seed}")
+        if not self.max_episode_s > 0.0:
+            raise ConfigValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+        if self.stage not in STAGES:
+            raise ConfigValueError(f"stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
+        if self.robot_traffic.max_controlled < 1:
+            raise ConfigValueError("robot_traffic.max_controlled must be at least 1 (the learning agents)")
+        for name in ("robot_traffic", "intelligent_traffic"):
+            traffic: TrafficConfig = getattr(self, name)
+            if 2 * traffic.max_vehicles_per_road > STATE_SLOTS:
+                raise ConfigValueError(
+                    f"{name}.max_vehicles_per_road must be at most {STATE_SLOTS // 2} "
+                    f"(the critic's state has {STATE_SLOTS} vehicle slots)"
+                )
+
+    def with_overrides(
+        self,
+        stage: str | None = None,
+        episodes: int | None = None,
+        workers: int | None = None,
+        seed: int | None = None,
+    ) -> TrainConfig:
+        """The command line's flags on top of the file: ``episodes`` sets every stage's count."""
+        changes: dict[str, Any] = {}
+        if stage is not None:
+            changes["stage"] = stage
+        if episodes is not None:
+            changes.update(robot_episodes=episodes, intelligent_episodes=episodes, direct_episodes=episodes)
+        if workers is not None:
+            changes["workers"] = workers
+        if seed is not None:
+            changes["seed"] = seed
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain nested dict (TOML/checkpoint friendly)."""
+        return dataclasses.asdict(self)
+
+
+def train_config_from_dict(data: Any, where: str) -> TrainConfig:
+    """Validate a plain dict (a TOML table or a checkpoint's config) into a TrainConfig."""
+    try:
+        return from_dict(TrainConfig, data, where)
+    except InputError as err:
+        msg = str(err)
+        if msg.startswith(where):
+            raise
+        raise InputError(f"{where}: {msg}") from None  # e.g. LearnerConfig's own range checks
+
+
+def load_train_config(path: str | Path) -> TrainConfig:
+    """Read a training TOML (see ``scenarios/train_default.toml``); errors name the file and key."""
+    p = Path(path)
+    return train_config_from_dict(load_toml(p), str(p))

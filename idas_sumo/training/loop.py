@@ -1,0 +1,248 @@
+"""The training loop, top to bottom: for each stage, collect episodes, update, log, checkpoint.
+
+``run_training`` is what ``idas-sumo train`` calls. One round = ``episodes_per_update`` episodes
+collected with the current actor (by 1 in-process worker or W processes), then one learner update
+on all their agent-steps, then one metrics row per episode. Randomness: one numpy generator draws
+the scenarios, one torch generator draws each episode's action-sampling seed; both are saved in
+every checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from idas_sumo.agents.learner import Learner
+from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
+from idas_sumo.env.core import EnvConfig
+from idas_sumo.env.scenario import Road, generate_scenario
+from idas_sumo.errors import InputError
+from idas_sumo.sim.netgen import read_merge_net
+from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
+from idas_sumo.training.config import TrainConfig, train_config_from_dict
+from idas_sumo.training.curriculum import StagePlan, plan_stages
+from idas_sumo.training.metrics import MetricsSink
+from idas_sumo.training.workers import EpisodeTask, make_workers
+
+__all__ = ["CHECKPOINT_NAME", "run_training"]
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "checkpoint.pt"
+"""The latest checkpoint of a run directory (what ``--resume`` reads)."""
+SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
+
+
+@dataclasses.dataclass
+class _Counters:
+    stage_index: int = 0
+    episode: int = 0  # within the current stage
+    global_episode: int = 0
+
+
+def _payload(
+    learner: Learner,
+    config: TrainConfig,
+    plan: StagePlan,
+    counters: _Counters,
+    np_rng_state: Mapping[str, Any],
+    torch_rng_state: torch.Tensor,
+) -> dict[str, Any]:
+    return {
+        "learner": learner.state_dict(),
+        "config": config.as_dict(),
+        "stage": plan.name,
+        "stage_index": counters.stage_index,
+        "episode": counters.episode,
+        "global_episode": counters.global_episode,
+        "numpy_rng": dict(np_rng_state),
+        "torch_rng": torch_rng_state.clone(),
+    }
+
+
+def _episode_row(plan: StagePlan, episode: int, global_episode: int, e: EpisodeData) -> dict[str, Any]:
+    s = e.stats
+    return {
+        "stage": plan.name,
+        "episode": episode,
+        "global_episode": global_episode,
+        "agents": s.agents,
+        "return_mean": s.return_mean,
+        **s.reward_parts,
+        "success": s.success,
+        "perfect": s.perfect,
+        "collisions": s.collisions,
+        "timed_out": s.timed_out,
+        "length_steps": s.steps,
+        "agent_steps": s.agent_steps,
+        "sim_time_s": s.sim_time_s,
+    }
+
+
+def _make_progress(enabled: bool) -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[eps]:.2f} ep/s"),
+        TextColumn("success {task.fields[success]:.0%}"),
+        TimeRemainingColumn(),
+        disable=not enabled,
+        transient=False,
+    )
+
+
+def run_training(
+    net_path: Path | str,
+    config: TrainConfig,
+    out_dir: Path | str,
+    resume: bool = False,
+    progress: bool = True,
+    gui: bool = False,
+) -> Path:
+    """Train as ``config`` says; write checkpoints and ``metrics.csv`` under ``out_dir``.
+
+    Returns the final checkpoint (``out_dir/<last stage>.pt``). ``resume`` continues the run in
+    ``out_dir`` from its ``checkpoint.pt`` with the saved config (only ``workers`` is taken from
+    ``config``). ``gui`` shows the rollouts in sumo-gui (one worker only). Ctrl-C saves a checkpoint of the completed rounds, then re-raises KeyboardInterrupt.
+    """
+    net_path = Path(net_path)
+    out_dir = Path(out_dir)
+    latest = out_dir / CHECKPOINT_NAME
+    if not net_path.is_file():
+        raise InputError(f"{net_path}: network file not found")
+    if gui and config.workers > 1:
+        raise InputError("--gui needs --workers 1")
+    resumed: dict[str, Any] | None = None
+    if resume:
+        if not latest.exists():
+            raise InputError(f"{latest}: no checkpoint to resume from")
+        resumed = load_checkpoint(latest)
+        saved = train_config_from_dict(resumed["config"], f"{latest}: config")
+        differs = [
+            f.name
+            for f in dataclasses.fields(TrainConfig)
+            if f.name != "workers" and getattr(saved, f.name) != getattr(config, f.name)
+        ]
+        if differs:
+            log.warning(
+                "resuming with the checkpoint's config; ignoring new values for %s", ", ".join(differs)
+            )
+        config = dataclasses.replace(saved, workers=config.workers)
+    elif latest.exists():
+        raise InputError(f"{out_dir}: already holds a training run; pass --resume or choose another --out")
+    if config.init_from and resumed is None:
+        init_state = load_checkpoint(config.init_from)["learner"]
+    else:
+        init_state = None
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    plans = plan_stages(config)
+    net = read_merge_net(net_path)
+    limits: dict[Road, float] = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
+    env_config = EnvConfig(max_episode_s=config.max_episode_s, reward=config.reward)
+
+    np_rng = np.random.default_rng(config.seed)
+    torch_rng = torch.Generator().manual_seed(config.seed)
+    counters = _Counters()
+    if resumed is not None:
+        if resumed["stage_index"] >= len(plans) or plans[resumed["stage_index"]].name != resumed["stage"]:
+            raise InputError(f"{latest}: stage {resumed['stage']!r} does not belong to this run's plan")
+        np_rng.bit_generator.state = resumed["numpy_rng"]
+        torch_rng.set_state(resumed["torch_rng"])
+        counters = _Counters(resumed["stage_index"], resumed["episode"], resumed["global_episode"])
+
+    show = progress and sys.stderr.isatty()
+    started = time.perf_counter()
+    final = latest
+    learner: Learner | None = None
+    with (
+        make_workers(net_path, env_config, config.seed, config.workers, gui=gui) as workers,
+        MetricsSink(out_dir, counters.global_episode if resumed else None) as sink,
+        _make_progress(show) as bar,
+    ):
+        for stage_index in range(counters.stage_index, len(plans)):
+            plan = plans[stage_index]
+            previous = learner
+            learner = Learner(plan.learner, seed=config.seed + stage_index)
+            if resumed is not None and stage_index == resumed["stage_index"]:
+                learner.load_state_dict(resumed["learner"])
+            elif plan.init_from_previous and previous is not None:
+                learner.load_state_dict(previous.state_dict(), load_optimisers=False)
+            elif init_state is not None and stage_index == 0:
+                learner.load_state_dict(init_state, load_optimisers=False)
+            if stage_index != counters.stage_index:
+                counters = _Counters(stage_index, 0, counters.global_episode)
+            task = bar.add_task(
+                plan.name, total=plan.episodes, completed=counters.episode, eps=0.0, success=0.0
+            )
+            recent: collections.deque[bool] = collections.deque(maxlen=SUCCESS_WINDOW)
+            stage_start, stage_start_episode = time.perf_counter(), counters.episode
+            round_rng = (np_rng.bit_generator.state, torch_rng.get_state())
+            try:
+                while counters.episode < plan.episodes:
+                    # The RNG state at the start of a round is what a checkpoint of complete work holds.
+                    round_rng = (np_rng.bit_generator.state, torch_rng.get_state())
+                    n = min(config.episodes_per_update, plan.episodes - counters.episode)
+                    tasks = [
+                        EpisodeTask(
+                            scenario=generate_scenario(
+                                np_rng, plan.traffic, limits, name=f"{plan.name}-{counters.episode + i}"
+                            ),
+                            action_seed=int(torch.randint(0, 2**62, (1,), generator=torch_rng).item()),
+                        )
+                        for i in range(n)
+                    ]
+                    episodes = workers.run(learner, tasks)
+                    losses = learner.update(batch_from_episodes(episodes, central=plan.central))
+
+                    wall = time.perf_counter() - started
+                    rows = []
+                    for i, e in enumerate(episodes):
+                        row = _episode_row(plan, counters.episode + i, counters.global_episode + i, e)
+                        rows.append({**row, **losses, "wall_time_s": wall})
+                        recent.append(e.stats.success)
+                    sink.write(rows)
+                    before = counters.global_episode
+                    counters.episode += n
+                    counters.global_episode += n
+                    rate = (counters.episode - stage_start_episode) / max(
+                        time.perf_counter() - stage_start, 1e-9
+                    )
+                    bar.update(task, completed=counters.episode, eps=rate, success=float(np.mean(recent)))
+                    if counters.global_episode // config.checkpoint_every > before // config.checkpoint_every:
+                        save_checkpoint(
+                            latest,
+                            _payload(
+                                learner,
+                                config,
+                                plan,
+                                counters,
+                                np_rng.bit_generator.state,
+                                torch_rng.get_state(),
+                            ),
+                        )
+                        log.info("checkpoint at episode %d (%s)", counters.global_episode, plan.name)
+            except KeyboardInterrupt:
+                # Save the completed rounds: the RNG as it was before the interrupted round's draws.
+                save_checkpoint(latest, _payload(learner, config, plan, counters, *round_rng))
+                log.warning("interrupted: saved %s at episode %d of %s", latest, counters.episode, plan.name)
+                raise
+            payload = _payload(
+                learner, config, plan, counters, np_rng.bit_generator.state, torch_rng.get_state()
+            )
+            final = out_dir / f"{plan.name}.pt"
+            save_checkpoint(final, payload)
+            save_checkpoint(latest, payload)
+            log.info("stage %s done: %d episodes, %s", plan.name, counters.episode, final)
+    return final

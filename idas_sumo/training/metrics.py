@@ -1,0 +1,103 @@
+"""The training metrics sink: one CSV row per episode, TensorBoard scalars when it is installed."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import tempfile
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+__all__ = ["METRIC_COLUMNS", "MetricsSink"]
+
+METRIC_COLUMNS: tuple[str, ...] = (
+    "stage",
+    "episode",
+    "global_episode",
+    "agents",
+    "return_mean",
+    "finish",
+    "collide",
+    "impede",
+    "flow",
+    "success",
+    "perfect",
+    "collisions",
+    "timed_out",
+    "length_steps",
+    "agent_steps",
+    "sim_time_s",
+    "actor_loss",
+    "v_loss",
+    "q_loss",
+    "entropy",
+    "wall_time_s",
+)
+
+
+class MetricsSink:
+    """Appends rows to ``metrics.csv``; on resume first drops rows past the checkpoint."""
+
+    def __init__(self, out_dir: Path, keep_up_to_global_episode: int | None = None) -> None:
+        self.path = out_dir / "metrics.csv"
+        if keep_up_to_global_episode is not None and self.path.exists():
+            self._truncate(keep_up_to_global_episode)
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        self._file = self.path.open("a", newline="", encoding="utf-8")
+        self._writer = csv.DictWriter(self._file, fieldnames=METRIC_COLUMNS)
+        if new:
+            self._writer.writeheader()
+            self._file.flush()
+        self._tb: Any = None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._tb = SummaryWriter(log_dir=str(out_dir / "tensorboard"))
+        except Exception:  # tensorboard not installed: CSV only
+            self._tb = None
+
+    def _truncate(self, keep: int) -> None:
+        with self.path.open(newline="", encoding="utf-8") as f:
+            rows = [r for r in csv.DictReader(f) if int(r["global_episode"]) <= keep]
+        fd, tmp = tempfile.mkstemp(prefix=".metrics.", suffix=".tmp", dir=self.path.parent)
+        with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
+            w = csv.DictWriter(f, fieldnames=METRIC_COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+
+    def write(self, rows: list[dict[str, Any]]) -> None:
+        for row in rows:
+            self._writer.writerow({k: _fmt(row[k]) for k in METRIC_COLUMNS})
+            if self._tb is not None:
+                step = int(row["global_episode"])
+                for key in ("return_mean", "success", "perfect", "actor_loss", "v_loss", "q_loss", "entropy"):
+                    self._tb.add_scalar(f"{row['stage']}/{key}", float(row[key]), step)
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+        if self._tb is not None:
+            self._tb.close()
+
+    def __enter__(self) -> MetricsSink:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def _fmt(value: Any) -> Any:
+    if isinstance(value, bool):
+        return int(value)
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return value
