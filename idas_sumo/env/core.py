@@ -120,6 +120,13 @@ class MergeSimulation:
             MERGE: self.net.merge.speed_limit_mps,
             OUT: self.net.out.speed_limit_mps,
         }
+        self._road_length_by_code = np.array([self.net.main.length_m, self.net.merge.length_m])
+        self._via_length_by_code = np.array([self.net.main.via_length_m, self.net.merge.via_length_m])
+        self._limit_by_code = np.array(
+            [self.net.main.speed_limit_mps, self.net.merge.speed_limit_mps, self.net.out.speed_limit_mps]
+        )
+        self._origin: dict[str, int] = {}
+        self._mask_cache: tuple[TrafficSnapshot, tuple[str, ...], npt.NDArray[np.int8]] | None = None
         self.scenario: Scenario | None = None
         self.snapshot = _empty_snapshot()
         self._spec: dict[str, VehicleSpec] = {}
@@ -136,6 +143,8 @@ class MergeSimulation:
             raise SimulationError("this environment is closed; create a new one")
         self.scenario = scenario
         self._spec = {v.id: v for v in scenario.vehicles}
+        self._origin = {v.id: MAIN if v.road == "main" else MERGE for v in scenario.vehicles}
+        self._mask_cache = None
         self._slot = {v.id: i for i, v in enumerate(scenario.vehicles) if i < STATE_SLOTS}
         self._accel = {}
         self._active = []
@@ -148,6 +157,15 @@ class MergeSimulation:
         self._time_s = events.time_s
         self._read_snapshot()
         self._admit(events.departed)
+        self._run_until_an_agent_enters()
+
+    def _run_until_an_agent_enters(self) -> None:
+        """Nobody to act yet but controlled cars still to come: let time run to the next entry."""
+        while not self._active and self._waiting_agents() and not self.timed_out():
+            idle = self.backend.step()
+            self._time_s = idle.time_s
+            self._admit(idle.departed)
+            self._read_snapshot()
 
     @property
     def backend(self) -> Backend:
@@ -194,29 +212,22 @@ class MergeSimulation:
 
     def _snapshot_from(self, states: VehicleStates) -> TrafficSnapshot:
         n = len(states.ids)
-        road = np.empty(n, dtype=np.int64)
-        dist = np.empty(n)
-        limit = np.empty(n)
-        for i, (vid, edge) in enumerate(zip(states.ids, states.edge, strict=True)):
-            origin = MAIN if self._spec[vid].road == "main" else MERGE
-            edge_road = self._edge_road.get(edge)
-            pos = float(states.lane_pos_m[i])
-            if edge_road in (MAIN, MERGE):
-                road[i] = edge_road
-                dist[i] = self._road_length[edge_road] - pos
-            elif edge_road == OUT:
-                road[i] = OUT
-                dist[i] = -(self._via_length[origin] + pos)
-            else:  # junction-internal lane: already past the merge point
-                road[i] = OUT
-                dist[i] = -pos
-            if road[i] == OUT:
-                limit[i] = self._road_limit[OUT]
-            else:
-                limit[i] = effective_speed_limit(self._road_limit[road[i]], dist[i], self._road_limit[OUT])
+        origin = np.fromiter((self._origin[vid] for vid in states.ids), dtype=np.int64, count=n)
+        edge_road = np.fromiter((self._edge_road.get(e, -1) for e in states.edge), dtype=np.int64, count=n)
+        pos = states.lane_pos_m
+        incoming = (edge_road == MAIN) | (edge_road == MERGE)
+        # Internal junction lanes (edge_road -1) lie past the merge point: they count as the outgoing road.
+        road = np.where(incoming, edge_road, OUT)
+        dist = np.where(
+            incoming,
+            self._road_length_by_code[np.where(incoming, edge_road, 0)] - pos,
+            np.where(edge_road == OUT, -(self._via_length_by_code[origin] + pos), -pos),
+        )
+        own_limit = effective_speed_limit(self._limit_by_code[road], dist, self._road_limit[OUT])
+        limit = np.where(road == OUT, self._road_limit[OUT], own_limit)
         return TrafficSnapshot(
             ids=states.ids,
-            road=road,
+            road=road.astype(np.int64),
             dist_to_merge_m=dist,
             speed_mps=states.speed_mps.copy(),
             accel_mps2=states.accel_mps2.copy(),
@@ -250,6 +261,15 @@ class MergeSimulation:
         return obs, masks
 
     def masks(self, agent_ids: list[str]) -> npt.NDArray[np.int8]:
+        """(n, 7) action masks of these agents in the current snapshot (cached until the next step)."""
+        key = tuple(agent_ids)
+        if self._mask_cache is not None and self._mask_cache[0] is self.snapshot and self._mask_cache[1] == key:
+            return self._mask_cache[2]
+        masks = self._compute_masks(agent_ids)
+        self._mask_cache = (self.snapshot, key, masks)
+        return masks
+
+    def _compute_masks(self, agent_ids: list[str]) -> npt.NDArray[np.int8]:
         egos = self.snapshot.index(agent_ids)
         leader, gap = leaders(self.snapshot, egos)
         leader_speed = np.where(leader >= 0, self.snapshot.speed_mps[np.maximum(leader, 0)], 0.0)
@@ -399,11 +419,7 @@ class MergeSimulation:
             if reason == "finished":
                 self.backend.release(a)
         self._admit(events.departed)
-        while not self._active and self._waiting_agents() and not self.timed_out():
-            idle = self.backend.step()  # nobody to act yet: let time run to the next entry
-            self._time_s = idle.time_s
-            self._admit(idle.departed)
-            self._read_snapshot()
+        self._run_until_an_agent_enters()
         return StepOutcome(
             rewards=rewards,
             reward_parts=parts,
