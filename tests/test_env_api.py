@@ -237,3 +237,17 @@ def test_agents_come_and_go() -> None:
         assert env.sim.time_s == pytest.approx(8.0)
     finally:
         env.close()
+
+
+def test_reset_waits_for_the_first_agent() -> None:
+    # Every controlled car enters late: reset runs the simulation until the first one is on the road,
+    # so the episode does not look over before it started.
+    scenario = Scenario("late", (VehicleSpec("late", "merge", 10.0, 10.0, depart_s=1.0),))
+    env = MergeParallelEnv(scenario=scenario)
+    try:
+        obs, infos = env.reset()
+        assert env.agents == ["late"] and set(obs) == set(infos) == {"late"}
+        assert env.sim.time_s == pytest.approx(1.2)  # departs in the step that ends at 1.2 s
+        assert not env.sim.episode_over
+    finally:
+        env.close()
