@@ -251,3 +251,24 @@ def test_reset_waits_for_the_first_agent() -> None:
         assert not env.sim.episode_over
     finally:
         env.close()
+
+
+def test_gym_env_with_policy_driven_others(small_budget: Any) -> None:
+    # The others follow a given policy (always the first allowed action); they act only within masks.
+    def first_allowed(obs: np.ndarray, masks: np.ndarray) -> np.ndarray:
+        assert obs.shape[1:] == (OBS_DIM,) and masks.shape[1:] == (N_ACTIONS,)
+        return np.argmax(masks, axis=1)
+
+    env = MergeEnv(others=first_allowed, **_small(small_budget))
+    try:
+        for seed in range(small_budget.episodes):
+            _, info = env.reset(seed=seed)
+            assert set(env.sim.active_agents) >= {env.ego}
+            assert len(env.sim.scenario.controlled_ids) == len(env.sim.scenario.vehicles)  # type: ignore[union-attr]
+            done = False
+            while not done:
+                _, _, terminated, truncated, info = env.step(2 if info["action_mask"][2] else 5)
+                done = terminated or truncated
+            assert info["end_reason"] in ("finished", "collided", "timeout", "removed")
+    finally:
+        env.close()
