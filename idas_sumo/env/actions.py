@@ -33,6 +33,7 @@ MIN_ACCEL_MPS2 = -2.0  # kinematic range outside hard braking
 MAX_ACCEL_MPS2 = 2.0
 MERGE_EXEMPTION_M = 100.0  # the merge car may exceed its road's limit this close to the merge point
 _TOLERANCE = 1e-6
+_DELTAS = np.asarray(DELTA_ACCEL_MPS2)
 
 
 def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> FloatArray:
@@ -48,15 +49,19 @@ def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> Floa
 
 
 def candidate_accelerations(prev_accel: npt.ArrayLike) -> FloatArray:
-    """(n_agents, 7) acceleration each action would produce."""
+    """(n_agents, 7) acceleration each action would produce (same values as ``next_acceleration``)."""
     prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
-    return np.stack([next_acceleration(prev, np.full(prev.shape, a)) for a in range(N_ACTIONS)], axis=-1)
+    cand = np.empty((prev.shape[0], N_ACTIONS))
+    cand[:, :N_DELTA_ACTIONS] = np.round(prev[:, None] + _DELTAS, 6)
+    cand[:, HARD_BRAKE] = HARD_BRAKE_MPS2
+    cand[:, RELEASE_BRAKE] = RELEASE_BRAKE_MPS2
+    return cand
 
 
-def kinematic_mask(prev_accel: npt.ArrayLike) -> BoolArray:
+def kinematic_mask(prev_accel: npt.ArrayLike, cand: FloatArray | None = None) -> BoolArray:
     """Δa actions keep a in [-2, 2] m/s²; release brake only directly after a hard brake."""
     prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
-    cand = candidate_accelerations(prev)
+    cand = candidate_accelerations(prev) if cand is None else cand
     allowed = (cand >= MIN_ACCEL_MPS2 - _TOLERANCE) & (cand <= MAX_ACCEL_MPS2 + _TOLERANCE)
     allowed[:, HARD_BRAKE] = True
     allowed[:, RELEASE_BRAKE] = np.isclose(prev, HARD_BRAKE_MPS2)
@@ -77,10 +82,13 @@ def effective_speed_limit(
 
 
 def rule_mask(
-    prev_accel: npt.ArrayLike, speed_mps: npt.ArrayLike, speed_limit_mps: npt.ArrayLike
+    prev_accel: npt.ArrayLike,
+    speed_mps: npt.ArrayLike,
+    speed_limit_mps: npt.ArrayLike,
+    cand: FloatArray | None = None,
 ) -> BoolArray:
     """Actions whose next speed v + a·dt stays within the (effective) speed limit."""
-    cand = candidate_accelerations(prev_accel)
+    cand = candidate_accelerations(prev_accel) if cand is None else cand
     v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))[:, None]
     limit = np.atleast_1d(np.asarray(speed_limit_mps, dtype=np.float64))[:, None]
     allowed = v + cand * STEP_LENGTH_S <= limit + _TOLERANCE
@@ -111,9 +119,10 @@ def safety_mask(
     gap_m: npt.ArrayLike,
     leader_speed_mps: npt.ArrayLike,
     params: IDMParams = DEFAULT_IDM,
+    cand: FloatArray | None = None,
 ) -> BoolArray:
     """Actions whose acceleration does not exceed IDM's to the car in front (gap = inf: no leader)."""
-    cand = candidate_accelerations(prev_accel)
+    cand = candidate_accelerations(prev_accel) if cand is None else cand
     bound = safety_bound(speed_mps, gap_m, leader_speed_mps, params)
     allowed = cand <= bound[:, None] + _TOLERANCE
     allowed[:, HARD_BRAKE] = True
@@ -133,15 +142,17 @@ class MaskInputs:
 
 def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDArray[np.int8]:
     """(n_agents, 7) int8 mask: kinematic ∩ rule ∩ safety."""
+    cand = candidate_accelerations(inputs.prev_accel_mps2)
     allowed = (
-        kinematic_mask(inputs.prev_accel_mps2)
-        & rule_mask(inputs.prev_accel_mps2, inputs.speed_mps, inputs.speed_limit_mps)
+        kinematic_mask(inputs.prev_accel_mps2, cand)
+        & rule_mask(inputs.prev_accel_mps2, inputs.speed_mps, inputs.speed_limit_mps, cand)
         & safety_mask(
             inputs.prev_accel_mps2,
             inputs.speed_mps,
             inputs.gap_m,
             inputs.leader_speed_mps,
             params,
+            cand,
         )
     )
     return allowed.astype(np.int8)

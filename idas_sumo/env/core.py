@@ -113,8 +113,6 @@ class MergeSimulation:
             self.net.merge.edge_id: MERGE,
             self.net.out.edge_id: OUT,
         }
-        self._via_length = {MAIN: self.net.main.via_length_m, MERGE: self.net.merge.via_length_m}
-        self._road_length = {MAIN: self.net.main.length_m, MERGE: self.net.merge.length_m}
         self._road_limit = {
             MAIN: self.net.main.speed_limit_mps,
             MERGE: self.net.merge.speed_limit_mps,
@@ -263,7 +261,11 @@ class MergeSimulation:
     def masks(self, agent_ids: list[str]) -> npt.NDArray[np.int8]:
         """(n, 7) action masks of these agents in the current snapshot (cached until the next step)."""
         key = tuple(agent_ids)
-        if self._mask_cache is not None and self._mask_cache[0] is self.snapshot and self._mask_cache[1] == key:
+        if (
+            self._mask_cache is not None
+            and self._mask_cache[0] is self.snapshot
+            and self._mask_cache[1] == key
+        ):
             return self._mask_cache[2]
         masks = self._compute_masks(agent_ids)
         self._mask_cache = (self.snapshot, key, masks)

@@ -39,18 +39,18 @@ def build_grids(snapshot: TrafficSnapshot, egos: IntArray) -> npt.NDArray[np.flo
     first = np.clip(first, 0, GRID_CELLS - 1)
     last = np.clip(last, 0, GRID_CELLS - 1)
     rel_speed = (snapshot.speed_mps[None, :] - snapshot.speed_mps[egos][:, None]) / RELATIVE_SPEED_SCALE_MPS
-    # Paint each body with a difference array: +x at its first cell, -x after its last, then a cumsum.
-    diff = np.zeros((n_egos, 2, 2, GRID_CELLS + 1), dtype=np.float64)
+    max_cells = int(np.ceil(float(snapshot.length_m.max()) / CELL_M)) + 1 if len(snapshot) else 1
+    offsets = np.arange(max_cells)
     for lane, related in enumerate((same, other)):
-        e_idx, v_idx = np.nonzero(related & visible)
-        e = e_idx.astype(np.int64)
-        v = v_idx.astype(np.int64)
-        for channel, value in enumerate((np.ones(len(e)), rel_speed[e, v])):
-            np.add.at(diff, (e, np.full_like(e, lane), np.full_like(e, channel), first[e, v]), value)
-            np.add.at(diff, (e, np.full_like(e, lane), np.full_like(e, channel), last[e, v] + 1), -value)
-    painted = np.cumsum(diff, axis=-1)[..., :GRID_CELLS]
-    grids[:, :, 0, :] = painted[:, :, 0, :] > 0.5
-    grids[:, :, 1, :] = np.where(grids[:, :, 0, :] > 0, painted[:, :, 1, :], 0.0)
+        e, v = np.nonzero(related & visible)
+        if len(e) == 0:
+            continue
+        cells = first[e, v][:, None] + offsets[None, :]  # every cell a body may touch
+        valid = cells <= last[e, v][:, None]
+        rows = np.broadcast_to(e[:, None], cells.shape)[valid]
+        speeds = np.broadcast_to(rel_speed[e, v][:, None], cells.shape)[valid]
+        grids[rows, lane, 0, cells[valid]] = 1.0
+        grids[rows, lane, 1, cells[valid]] = speeds
     return grids
 
 

@@ -8,6 +8,7 @@ outgoing road as current lane and both incoming roads as other lane.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,9 +41,16 @@ class TrafficSnapshot:
     def __len__(self) -> int:
         return len(self.ids)
 
+    @functools.cached_property
+    def _lookup(self) -> dict[str, int]:
+        return {vid: i for i, vid in enumerate(self.ids)}
+
     def index(self, vehicle_ids: list[str] | tuple[str, ...]) -> IntArray:
-        lookup = {vid: i for i, vid in enumerate(self.ids)}
+        lookup = self._lookup
         return np.array([lookup[v] for v in vehicle_ids], dtype=np.int64)
+
+    def __contains__(self, vehicle_id: str) -> bool:
+        return vehicle_id in self._lookup
 
 
 def lane_relations(road: IntArray, egos: IntArray) -> tuple[BoolArray, BoolArray]:
