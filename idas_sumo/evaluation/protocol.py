@@ -192,6 +192,8 @@ def iterate_runs(
                 args = (
                     "--tripinfo-output",
                     str(tripinfo_dir / f"{method}-{case.scenario.name}.tripinfo.xml"),
+                    # The episode ends before every car has left the net; report those cars too.
+                    "--tripinfo-output.write-unfinished",
                 )
             if method == "fsm_idm":  # FSM+IDM has no driver type: the paper runs it on one car only
                 case = replace(case, method_vehicles=(case.ego,))
