@@ -181,10 +181,10 @@ def collect_episode(
             slots.append(slot)
             joints.append(outcome.joint_reward)
             next_row.append(-1)
-            if reason is None:
-                pending[a] = row
-            else:
+            if reason is not None:
                 end_reasons[a] = reason
+            if reason not in DONE_REASONS:  # still driving, or cut off: needs a next observation
+                pending[a] = row
         parts["flow"] += next(iter(outcome.reward_parts.values()))["flow"] if outcome.reward_parts else 0.0
         collisions += len(outcome.collisions)
         steps += 1

@@ -1,0 +1,280 @@
+"""Training: config validation, checkpoints (atomic, checked), rollouts, the curriculum loop, resume."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from idas_sumo.agents.learner import Learner, LearnerConfig
+from idas_sumo.env.layout import OBS_LAYOUT_ID
+from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.errors import InputError
+from idas_sumo.training.checkpoint import load_actor, load_checkpoint, save_checkpoint
+from idas_sumo.training.config import TrainConfig, load_train_config
+from idas_sumo.training.curriculum import plan_stages
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def tiny_config(**changes: Any) -> TrainConfig:
+    """Two episodes per stage, short episodes, few cars: the whole curriculum in a few seconds."""
+    base = TrainConfig(
+        robot_episodes=2,
+        intelligent_episodes=2,
+        direct_episodes=2,
+        robot_traffic=TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=3, max_controlled=1),
+        intelligent_traffic=TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=2),
+        episodes_per_update=1,
+        checkpoint_every=1,
+        max_episode_s=12.0,
+    )
+    return dataclasses.replace(base, **changes)
+
+
+def read_metrics(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _payload(learner: Learner, **extra: Any) -> dict[str, Any]:
+    return {
+        "learner": learner.state_dict(),
+        "config": TrainConfig().as_dict(),
+        "stage": "robot",
+        "stage_index": 0,
+        "episode": 7,
+        "global_episode": 7,
+        "numpy_rng": np.random.default_rng(3).bit_generator.state,
+        "torch_rng": torch.Generator().manual_seed(3).get_state(),
+        **extra,
+    }
+
+
+# --- config --------------------------------------------------------------------------------------
+def test_defaults_are_the_papers_and_the_shipped_toml_matches() -> None:
+    c = TrainConfig()
+    assert (c.robot_episodes, c.intelligent_episodes, c.direct_episodes) == (20_000, 50_000, 70_000)
+    assert c.learner.alpha == 0.7 and c.learner.gamma == 0.9
+    assert c.robot_traffic.max_controlled == 1
+    assert load_train_config(REPO / "scenarios" / "train_default.toml") == c
+
+
+def test_bad_values_name_the_key(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="robot_episodes"):
+        TrainConfig(robot_episodes=0)
+    with pytest.raises(InputError, match="workers"):
+        TrainConfig().with_overrides(workers=0)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("episodes_per_updat = 3\n")
+    with pytest.raises(InputError, match=r"bad\.toml.*episodes_per_updat.*did you mean"):
+        load_train_config(bad)
+    bad.write_text("[learner]\nalpha = 1.5\n")
+    with pytest.raises(InputError, match=r"bad\.toml.*alpha"):
+        load_train_config(bad)
+    bad.write_text("intelligent_episodes = -1\n")
+    with pytest.raises(InputError, match=r"bad\.toml.*intelligent_episodes"):
+        load_train_config(bad)
+
+
+def test_episodes_override_sets_every_stage_and_stages_plan() -> None:
+    c = TrainConfig().with_overrides(episodes=5, stage="curriculum")
+    plans = plan_stages(c)
+    assert [(p.name, p.episodes, p.central, p.init_from_previous) for p in plans] == [
+        ("robot", 5, False, False),
+        ("intelligent", 5, True, True),
+    ]
+    assert [p.name for p in plan_stages(c.with_overrides(stage="direct"))] == ["direct"]
+    assert plan_stages(c.with_overrides(stage="robot"))[0].traffic.max_controlled == 1
+
+
+# --- checkpoints ---------------------------------------------------------------------------------
+def test_checkpoint_round_trip(tmp_path: Path) -> None:
+    learner = Learner(LearnerConfig(), seed=1)
+    path = tmp_path / "c.pt"
+    save_checkpoint(path, _payload(learner))
+    data = load_checkpoint(path)
+    assert data["episode"] == 7 and data["obs_layout_id"] == OBS_LAYOUT_ID
+    rng = np.random.default_rng(0)
+    rng.bit_generator.state = data["numpy_rng"]
+    assert rng.random() == np.random.default_rng(3).random()
+    gen = torch.Generator()
+    gen.set_state(data["torch_rng"])
+    assert torch.equal(
+        torch.rand(3, generator=gen), torch.rand(3, generator=torch.Generator().manual_seed(3))
+    )
+    actor = load_actor(path).actor.state_dict()
+    for k, v in learner.actor.state_dict().items():
+        assert torch.equal(actor[k], v)
+    assert [p.name for p in tmp_path.iterdir()] == ["c.pt"]  # no temp files left
+
+
+@pytest.mark.parametrize("damage", ["missing", "empty", "truncated", "text", "foreign", "layout", "nan"])
+def test_bad_checkpoints_are_one_line_input_errors(tmp_path: Path, damage: str) -> None:
+    path = tmp_path / "c.pt"
+    learner = Learner(LearnerConfig(), seed=1)
+    if damage != "missing":
+        save_checkpoint(path, _payload(learner))
+    if damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "truncated":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif damage == "text":
+        path.write_text("hello\n")
+    elif damage == "foreign":
+        torch.save({"weights": torch.zeros(3)}, path)
+    elif damage == "layout":
+        save_checkpoint(path, _payload(learner, obs_layout_id="scalars5-other"))
+    elif damage == "nan":
+        state = learner.state_dict()
+        name = next(iter(state["actor"]))
+        state["actor"][name] = torch.full_like(state["actor"][name], float("nan"))
+        save_checkpoint(path, {**_payload(learner), "learner": state})
+    with pytest.raises(InputError) as err:
+        load_checkpoint(path)
+    message = str(err.value)
+    assert str(path) in message and "\n" not in message
+
+
+def test_crash_while_saving_keeps_the_previous_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "c.pt"
+    learner = Learner(LearnerConfig(), seed=1)
+    save_checkpoint(path, _payload(learner))
+
+    def crash(src: str, dst: str) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", crash)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(path, _payload(learner, episode=99))
+    monkeypatch.undo()
+    assert load_checkpoint(path)["episode"] == 7
+    assert [p.name for p in tmp_path.iterdir()] == ["c.pt"]
+
+
+# --- rollouts and the loop (SUMO) ----------------------------------------------------------------
+@pytest.mark.sumo
+def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
+    from idas_sumo.agents.rollout import batch_from_episodes, collect_episode
+    from idas_sumo.env.core import EnvConfig, MergeSimulation
+    from idas_sumo.env.scenario import generate_scenario
+
+    sim = MergeSimulation(net_path, config=EnvConfig(max_episode_s=15.0))
+    learner = Learner(LearnerConfig(use_central_critic=True), seed=0)
+    rng = np.random.default_rng(4)
+    traffic = TrafficConfig(min_vehicles_per_road=3, max_vehicles_per_road=3)
+    try:
+        episodes = [
+            collect_episode(
+                sim,
+                learner,
+                generate_scenario(rng, traffic, sim.speed_limits_mps),
+                torch.Generator().manual_seed(i),
+            )
+            for i in range(2)
+        ]
+    finally:
+        sim.close()
+    for e in episodes:
+        n = len(e)
+        assert n == e.stats.agent_steps > 0 and e.stats.agents == 6
+        assert e.mask[np.arange(n), e.action].all()  # a masked action never reaches the batch
+        valid = e.next_valid.astype(bool)
+        # the next step of a row is the same agent: same slot; no successor after done
+        assert not (valid & (e.done == 1)).any()
+        assert (e.slot[valid] == e.next_slot[valid]).all()
+        assert np.isfinite(e.obs).all() and np.isfinite(e.next_obs).all()
+        no_next = ~valid & (e.done == 0)  # cut off by the timeout: bootstraps from its last observation
+        assert (np.abs(e.next_obs[no_next]).sum(axis=1) > 0).all()
+        assert e.stats.success == (e.stats.collisions == 0 and not e.stats.timed_out)
+    batch = batch_from_episodes(episodes)
+    assert batch.obs.shape[0] == sum(len(e) for e in episodes)
+    assert learner.update(batch)["q_loss"] > 0.0
+
+
+@pytest.mark.sumo
+def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
+    from idas_sumo.training.loop import run_training
+
+    run = tmp_path / "run"
+    final = run_training(net_path, tiny_config(), run, progress=False)
+    assert final == run / "intelligent.pt"
+    for name in ("robot.pt", "intelligent.pt", "checkpoint.pt", "metrics.csv"):
+        assert (run / name).is_file()
+    rows = read_metrics(run)
+    assert [(r["stage"], r["episode"], r["global_episode"]) for r in rows] == [
+        ("robot", "0", "0"),
+        ("robot", "1", "1"),
+        ("intelligent", "0", "2"),
+        ("intelligent", "1", "3"),
+    ]
+    assert {r["agents"] for r in rows if r["stage"] == "robot"} == {"1"}
+    assert float(rows[-1]["q_loss"]) > 0.0 and float(rows[0]["q_loss"]) == 0.0
+    ckpt = load_checkpoint(final)
+    assert (ckpt["stage"], ckpt["episode"], ckpt["global_episode"]) == ("intelligent", 2, 4)
+    with pytest.raises(InputError, match="already holds"):
+        run_training(net_path, tiny_config(), run, progress=False)
+
+
+@pytest.mark.sumo
+def test_interrupt_then_resume_continues_exactly(
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from idas_sumo.training.loop import run_training
+
+    config = tiny_config(stage="robot", robot_episodes=3)
+    straight = tmp_path / "straight"
+    run_training(net_path, config, straight, progress=False)
+
+    real_update = Learner.update
+    calls = {"n": 0}
+
+    def update_then_interrupt(self: Learner, batch: Any) -> dict[str, float]:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real_update(self, batch)
+
+    monkeypatch.setattr(Learner, "update", update_then_interrupt)
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_training(net_path, config, run, progress=False)
+    monkeypatch.undo()
+    assert load_checkpoint(run / "checkpoint.pt")["episode"] == 1  # only the completed round
+    run_training(net_path, config.with_overrides(workers=1), run, resume=True, progress=False)
+
+    def strip(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+        return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]
+
+    assert strip(read_metrics(run)) == strip(read_metrics(straight))
+    a, b = load_checkpoint(run / "robot.pt"), load_checkpoint(straight / "robot.pt")
+    for k, v in a["learner"]["actor"].items():
+        assert torch.equal(v, b["learner"]["actor"][k])
+
+
+@pytest.mark.sumo
+def test_two_workers_collect_the_same_episodes(net_path: Path, tmp_path: Path) -> None:
+    from idas_sumo.training.loop import run_training
+
+    config = tiny_config(stage="direct", episodes_per_update=2)
+    run_training(net_path, config, tmp_path / "w1", progress=False)
+    run_training(net_path, config.with_overrides(workers=2), tmp_path / "w2", progress=False)
+    cols = ("stage", "episode", "return_mean", "agent_steps", "success", "actor_loss")
+    one = [[r[c] for c in cols] for r in read_metrics(tmp_path / "w1")]
+    two = [[r[c] for c in cols] for r in read_metrics(tmp_path / "w2")]
+    assert one == two and len(one) == 2
+
+
+def test_resume_without_checkpoint_is_input_error(net_path: Path, tmp_path: Path) -> None:
+    from idas_sumo.training.loop import run_training
+
+    with pytest.raises(InputError, match="no checkpoint"):
+        run_training(net_path, tiny_config(), tmp_path / "nothing", resume=True, progress=False)
