@@ -125,8 +125,6 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.others is not None:
         check_method(args.others, "--others")
     others = args.others or default_others()
-    if args.others is None and others == "idm":
-        print("note: no shipped IDAS policy found; the other vehicles run IDM", file=sys.stderr)
     summary = run_evaluation(
         EvalRequest(
             net=Path(args.net),
@@ -144,6 +142,9 @@ def _evaluate(args: argparse.Namespace) -> int:
             gui=args.gui,
         )
     )
+    if args.others is None and others == "idm":
+        # Only after the run: before it, a bad input must stay the one line on stderr.
+        print("note: no shipped IDAS policy found; the other vehicles run IDM", file=sys.stderr)
     from rich.console import Console
     from rich.table import Table
 
