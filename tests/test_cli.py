@@ -1,0 +1,240 @@
+"""The command line's contract (DESIGN.md section 4): exit 0 / 1 / 2 / 130; bad input is one line on stderr
+that names the flag or file, never a traceback; nothing is overwritten or half-written."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(*args: str, cwd: Path | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "idas_sumo.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd or REPO_ROOT,
+        timeout=timeout,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def assert_usage_error(result: subprocess.CompletedProcess[str], *needles: str) -> str:
+    """Exit 2 with exactly one stderr line, no traceback, containing every needle; returns the line."""
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, f"expected one stderr line, got {len(lines)}:\n{result.stderr}"
+    line = lines[0]
+    assert line.startswith("idas-sumo"), line
+    assert "error" in line, line
+    for needle in needles:
+        assert needle in line, f"{needle!r} not in {line!r}"
+    return line
+
+
+def evaluate_args(out: Path, net: Path, *extra: str) -> list[str]:
+    return ["evaluate", "--baseline", "idm", "--net", str(net), "--out", str(out), "--no-progress", *extra]
+
+
+# --- methods ----------------------------------------------------------------------------------------
+
+
+def test_unknown_baseline_suggests_the_close_name(tmp_path: Path, net_path: Path) -> None:
+    args = evaluate_args(tmp_path / "out", net_path)
+    args[args.index("idm")] = "fsm_idn"
+    line = assert_usage_error(run_cli(*args), "--baseline", "fsm_idn")
+    assert 'did you mean "fsm_idm"' in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_others_method(tmp_path: Path, net_path: Path) -> None:
+    result = run_cli(*evaluate_args(tmp_path / "out", net_path, "--others", "idmm"))
+    line = assert_usage_error(result, "--others", "idmm")
+    assert 'did you mean "idm"' in line
+
+
+def test_learned_method_without_policy_file(tmp_path: Path, net_path: Path) -> None:
+    missing = tmp_path / "nowhere.pt"
+    args = evaluate_args(tmp_path / "out", net_path, "--policy", str(missing))
+    args[args.index("idm")] = "idas"
+    assert_usage_error(run_cli(*args), str(missing))
+
+
+# --- the output directory ---------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_existing_out_is_not_overwritten_without_force(tmp_path: Path, net_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    keep = out / "episodes.csv"
+    keep.write_text("precious results\n")
+    result = run_cli(*evaluate_args(out, net_path, "--scenarios", "3"))
+    assert_usage_error(result, str(out), "--force")
+    assert keep.read_text() == "precious results\n"
+    assert sorted(p.name for p in out.iterdir()) == ["episodes.csv"]
+
+    forced = run_cli(*evaluate_args(out, net_path, "--scenarios", "3", "--force"))
+    assert forced.returncode == 0, forced.stderr
+    assert "Traceback" not in forced.stderr
+    assert keep.read_text().startswith("scenario,seed,method,")
+    assert {"episodes.csv", "summary.csv", "flow.csv"} <= {p.name for p in out.iterdir()}
+
+
+def test_out_that_is_a_file(tmp_path: Path, net_path: Path) -> None:
+    out = tmp_path / "out.txt"
+    out.write_text("not a directory\n")
+    assert_usage_error(run_cli(*evaluate_args(out, net_path)), str(out))
+    assert out.read_text() == "not a directory\n"
+
+
+# --- the net file -----------------------------------------------------------------------------------
+
+
+def _bad_nets(tmp_path: Path) -> dict[str, tuple[Path, str]]:
+    directory = tmp_path / "a_dir.net.xml"
+    directory.mkdir()
+    text = tmp_path / "text.net.xml"
+    text.write_text("this is not xml\n")
+    routes = tmp_path / "routes.net.xml"
+    routes.write_text('<?xml version="1.0"?>\n<routes><vType id="car"/></routes>\n')
+    return {
+        "missing": (tmp_path / "missing.net.xml", "not found"),
+        "directory": (directory, "directory"),
+        "not-xml": (text, "XML"),
+        "not-a-net": (routes, "not a SUMO network"),
+    }
+
+
+@pytest.mark.parametrize("kind", ["missing", "directory", "not-xml", "not-a-net"])
+def test_bad_net_file(tmp_path: Path, kind: str) -> None:
+    net, what = _bad_nets(tmp_path)[kind]
+    result = run_cli(*evaluate_args(tmp_path / "out", net, "--scenarios", "3"))
+    assert_usage_error(result, str(net), what)
+    # Nothing is written when the input is bad.
+    assert not any((tmp_path / "out").glob("*.csv"))
+
+
+def test_bad_net_file_for_train(tmp_path: Path) -> None:
+    net = tmp_path / "missing.net.xml"
+    result = run_cli("train", "--net", str(net), "--episodes", "1", "--out", str(tmp_path / "run"))
+    assert_usage_error(result, str(net))
+
+
+# --- netgen -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_netgen_main_length(tmp_path: Path) -> None:
+    import sumolib
+
+    from idas_sumo.sim.netgen import read_merge_net
+
+    result = run_cli("netgen", "--out", "tmp/x.net.xml", "--main-length", "400", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    path = tmp_path / "tmp" / "x.net.xml"
+    assert path.is_file()
+    merge = read_merge_net(path)
+    assert merge.main.length_m == pytest.approx(400.0, abs=0.5)
+    assert merge.merge.length_m == pytest.approx(250.0, abs=0.5)
+    net = sumolib.net.readNet(str(path))
+    assert net.getEdge(merge.main.edge_id).getLength() == pytest.approx(400.0, abs=0.5)
+    # The plain XML is kept beside the net on purpose; no temporary file is left.
+    assert sorted(p.name for p in path.parent.iterdir()) == ["x.edg.xml", "x.net.xml", "x.nod.xml"]
+
+
+@pytest.mark.parametrize(
+    ("flag", "value"),
+    [("--main-length", "-5"), ("--merge-length", "0"), ("--main-speed", "-1"), ("--angle", "180")],
+)
+def test_netgen_bad_values(tmp_path: Path, flag: str, value: str) -> None:
+    result = run_cli("netgen", "--out", "x.net.xml", flag, value, cwd=tmp_path)
+    assert_usage_error(result, flag)
+    assert not (tmp_path / "x.net.xml").exists()
+
+
+def test_netgen_bad_number(tmp_path: Path) -> None:
+    result = run_cli("netgen", "--out", "x.net.xml", "--main-length", "long", cwd=tmp_path)
+    assert_usage_error(result, "--main-length", "long")
+
+
+# --- flags ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--scenarios", "0"], "--scenarios"),
+        (["--scenarios", "-3"], "--scenarios"),
+        (["--scenarios", "abc"], "--scenarios"),
+        (["--seed", "x"], "--seed"),
+        (["--suite", "nope"], "--suite"),
+        (["--no-such-flag"], "--no-such-flag"),
+    ],
+)
+def test_bad_flags(tmp_path: Path, net_path: Path, extra: list[str], needle: str) -> None:
+    assert_usage_error(run_cli(*evaluate_args(tmp_path / "out", net_path, *extra)), needle)
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_baseline_and_subcommand() -> None:
+    assert_usage_error(run_cli("evaluate"), "--baseline")
+    assert_usage_error(run_cli(), "command")
+    assert_usage_error(run_cli("frobnicate"), "frobnicate")
+
+
+def test_help_exits_zero() -> None:
+    result = run_cli("--help")
+    assert result.returncode == 0
+    for command in ("netgen", "train", "evaluate", "plot"):
+        assert command in result.stdout
+
+
+def test_console_script_is_installed() -> None:
+    script = Path(sys.executable).parent / "idas-sumo"
+    if not script.exists():
+        pytest.skip("idas-sumo console script not installed in this environment")
+    result = subprocess.run(
+        [str(script), "evaluate", "--scenarios", "0", "--baseline", "idm"], capture_output=True, text=True
+    )
+    assert_usage_error(result, "--scenarios")
+
+
+# --- Ctrl-C -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_ctrl_c_exits_130_and_writes_nothing(tmp_path: Path, net_path: Path) -> None:
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "idas_sumo.cli", *evaluate_args(out, net_path, "--scenarios", "200")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO_ROOT,
+    )
+    try:
+        deadline = time.monotonic() + 30.0
+        while not out.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)  # the output directory appears once the inputs are checked
+        time.sleep(1.0)  # well into the episodes
+        assert proc.poll() is None, "evaluation finished before it could be interrupted"
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    assert "interrupted" in stderr
+    leftovers = sorted(p.name for p in out.rglob("*"))
+    assert not [n for n in leftovers if n.endswith(".csv") or n.endswith(".tmp")], leftovers
