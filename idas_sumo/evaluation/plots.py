@@ -10,17 +10,24 @@ import pandas as pd
 
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.errors import InputError
+from idas_sumo.evaluation.metrics import EPISODE_COLUMNS, TRAJECTORY_COLUMNS
 from idas_sumo.evaluation.policies import METHOD_LABELS
 from idas_sumo.io_utils import atomic_open
 
 ZONE_COLOR = "#9ecae1"
 
 
-def _read(path: Path) -> pd.DataFrame:
+def _read(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
     try:
-        return pd.read_csv(path)
+        frame = pd.read_csv(path)
     except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
         raise InputError(f"{path}: cannot read CSV ({err})") from None
+    missing = [c for c in columns if c not in frame.columns]
+    if missing:
+        raise InputError(
+            f"{path}: not written by `idas-sumo evaluate` (missing columns: {', '.join(missing)})"
+        )
+    return frame
 
 
 def _label(method: object) -> str:
@@ -45,14 +52,14 @@ def plot_directory(directory: Path) -> list[Path]:
         raise InputError(f"{directory}: not a directory written by `idas-sumo evaluate`")
     if not (directory / "episodes.csv").exists():
         raise InputError(f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first)")
-    episodes = _read(directory / "episodes.csv")
+    episodes = _read(directory / "episodes.csv", EPISODE_COLUMNS)
     written = [summary_bars(episodes, directory / "summary.png")]
     names = episodes["scenario"].astype(str)
     if names.isin(["s1", "s2", "s3", "s4"]).any():
         written.append(representative_bars(episodes, directory / "representative.png"))
     traj_path = directory / "trajectories.csv"
     if traj_path.exists():
-        traj = _read(traj_path)
+        traj = _read(traj_path, ("scenario", "run_method", *TRAJECTORY_COLUMNS))
         if names.isin(["s1", "s2", "s3", "s4"]).any():
             written.append(profiles(traj, directory / "profiles.png"))
         if names.str.startswith("s1-btype").any():
