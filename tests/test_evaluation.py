@@ -379,3 +379,17 @@ def test_summary_rows_hand_computed() -> None:
         "avg_speed_perfect_mps": 12.0,
     }
     assert fsm["success_pct"] == 0.0 and np.isnan(fsm["avg_speed_perfect_mps"])
+
+
+@pytest.mark.sumo
+def test_outputs_get_the_usual_file_permissions(tmp_path: Path, net_path: Path) -> None:
+    """Results are shared files: the atomic write must not leave them owner-only (mkstemp's 0600)."""
+    import os
+
+    umask = os.umask(0o022)
+    try:
+        evaluate(tmp_path / "p", net_path, "--baseline", "idm", "--scenarios", "3")
+    finally:
+        os.umask(umask)
+    for name in CSV_NAMES:
+        assert (tmp_path / "p" / name).stat().st_mode & 0o777 == 0o644, name
