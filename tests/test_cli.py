@@ -123,6 +123,29 @@ def test_bad_net_file(tmp_path: Path, kind: str) -> None:
     assert not any((tmp_path / "out").glob("*.csv"))
 
 
+@pytest.mark.sumo
+def test_net_that_is_not_a_merge(tmp_path: Path) -> None:
+    from idas_sumo.sim.netgen import sumo_binary
+
+    grid = tmp_path / "grid.net.xml"
+    subprocess.run(
+        [str(sumo_binary("netgenerate")), "--grid", "--grid.number", "3", "-o", str(grid)],
+        check=True,
+        capture_output=True,
+    )
+    result = run_cli(*evaluate_args(tmp_path / "out", grid, "--scenarios", "3"))
+    assert_usage_error(result, str(grid), "merge")
+
+
+def test_corrupt_policy_file(tmp_path: Path, net_path: Path) -> None:
+    policy = tmp_path / "broken.pt"
+    policy.write_bytes(b"not a torch checkpoint")
+    args = evaluate_args(tmp_path / "out", net_path, "--policy", str(policy), "--scenarios", "3")
+    args[args.index("idm")] = "idas"
+    assert_usage_error(run_cli(*args), str(policy))
+    assert not (tmp_path / "out").exists()
+
+
 def test_bad_net_file_for_train(tmp_path: Path) -> None:
     net = tmp_path / "missing.net.xml"
     result = run_cli("train", "--net", str(net), "--episodes", "1", "--out", str(tmp_path / "run"))
