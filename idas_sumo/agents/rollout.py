@@ -92,6 +92,7 @@ class EpisodeData:
     next_slot: npt.NDArray[np.int64]  # (N,)
     next_action: npt.NDArray[np.int64]  # (N,)
     next_valid: npt.NDArray[np.float32]  # (N,)
+    next_row: npt.NDArray[np.int64]  # (N,) row of the same agent's next step, -1 when none
     stats: EpisodeStats
 
     def __len__(self) -> int:
@@ -256,6 +257,7 @@ def collect_episode(
         next_slot=next_slot,
         next_action=next_action,
         next_valid=has_next.astype(np.float32),
+        next_row=nxt,
         stats=stats,
     )
 
