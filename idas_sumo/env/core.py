@@ -17,6 +17,7 @@ import numpy.typing as npt
 from idas_sumo.agents.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.env.actions import (
     HARD_BRAKE,
+    N_ACTIONS,
     STEP_LENGTH_S,
     MaskInputs,
     action_masks,
@@ -253,6 +254,12 @@ class MergeSimulation:
         obs = build_observations(
             self.snapshot, egos, prev_accel, self.b_prio(self.snapshot.road[egos]), b_type
         )
+        finite = np.isfinite(obs).all(axis=1)
+        if not finite.all():
+            bad = ids[int(np.argmin(finite))]
+            raise SimulationError(
+                f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
+            )
         masks = self.masks(ids)
         for i, a in enumerate(ids):
             self._last_obs[a] = obs[i]
@@ -352,7 +359,9 @@ class MergeSimulation:
         replaced: dict[str, int] = {}
         hard_brakers: list[str] = []
         if acting:
-            requested = np.array([int(actions[a]) for a in acting], dtype=np.int64)
+            requested = np.array(
+                [_checked_action(a, actions[a], self.time_s) for a in acting], dtype=np.int64
+            )
             masks = self.masks(acting)
             applied = _enforce_masks(requested, masks, np.array([self._accel[a] for a in acting]))
             for a, req, app in zip(acting, requested, applied, strict=True):
@@ -442,6 +451,16 @@ class MergeSimulation:
         if self._backend is not None:
             self._backend.close()
         self._closed = True
+
+
+def _checked_action(agent: str, action: object, time_s: float) -> int:
+    """An action index in [0, 7), or a ValueError naming the agent and the time."""
+    value = action.item() if isinstance(action, np.generic) else action
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < N_ACTIONS:
+        raise ValueError(
+            f"invalid action {action!r} for agent {agent!r} at t = {time_s:.1f} s: expected an int in [0, {N_ACTIONS})"
+        )
+    return value
 
 
 def _enforce_masks(
