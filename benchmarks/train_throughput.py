@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -65,7 +66,11 @@ def main() -> None:
             paper.robot_episodes / pace[("robot", w)] + paper.intelligent_episodes / pace[("intelligent", w)]
         ) / 3600
         table.add_row("curriculum (70k)", str(w), "", "", "70000", f"{hours:.1f}")
-    Console().print(table)
+    console = Console()
+    console.print(table)
+    console.print(
+        f"load average after (1 min): {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores (others' jobs skew it)"
+    )
 
 
 if __name__ == "__main__":
