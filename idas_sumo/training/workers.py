@@ -200,7 +200,10 @@ class ProcessWorkers(RolloutWorkers):
         busy = []
         for conn, idx in zip(self._conns, shares, strict=True):
             if idx:
-                conn.send(("run", weights, [tasks[i] for i in idx]))
+                try:
+                    conn.send(("run", weights, [tasks[i] for i in idx]))
+                except (BrokenPipeError, EOFError, OSError):
+                    raise SimulationError("a rollout worker died (see its error above)") from None
                 busy.append(conn)
         results: list[EpisodeData] = []
         errors: list[str] = []
