@@ -15,7 +15,9 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import pickle
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -78,8 +80,13 @@ def load_checkpoint(path: Path | str) -> dict[str, Any]:
     if p.stat().st_size == 0:
         raise InputError(f"{p}: empty file, not a checkpoint")
     try:
-        data = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as err:  # any file: torch raises RuntimeError, UnpicklingError, KeyError, EOFError, ...
+        with warnings.catch_warnings():
+            # torch warns on stderr about pickle protocols it did not write; the error below says it all.
+            warnings.simplefilter("ignore")
+            data = torch.load(p, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise InputError(f"{p}: {_refused_pickle_reason(err)}") from None
+    except Exception as err:  # any file: torch raises RuntimeError, KeyError, EOFError, ...
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise InputError(f"{p}: not a readable checkpoint (truncated or corrupt?): {first[:200]}") from None
     if not isinstance(data, dict) or data.get("kind") != CHECKPOINT_KIND:
@@ -110,6 +117,25 @@ def load_checkpoint(path: Path | str) -> dict[str, Any]:
         if not isinstance(value, int) or value < 0 or (isinstance(value, float) and not math.isfinite(value)):
             raise InputError(f"{p}: {key} must be a non-negative integer, got {value!r}")
     return data
+
+
+def _refused_pickle_reason(err: pickle.UnpicklingError) -> str:
+    """One line for a file ``weights_only`` refused: torch's own text advises ``weights_only=False``."""
+    text = str(err).strip()
+    if not text.startswith("Weights only load failed"):
+        first = text.splitlines()[0] if text else type(err).__name__
+        return f"not a readable checkpoint (truncated or corrupt?): {first[:200]}"
+    details = [
+        line.split("WeightsUnpickler error:")[-1].strip()
+        for line in text.splitlines()[1:]
+        if line.strip() and not line.startswith("Check the documentation")
+    ]
+    details = [d for d in details if d]
+    reason = f" ({details[0][:160]})" if details else ""
+    return (
+        "not a checkpoint: it holds Python objects other than tensors and plain data, "
+        f"which are never unpickled{reason}"
+    )
 
 
 def load_actor(path: Path | str) -> Learner:
