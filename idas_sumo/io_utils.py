@@ -50,6 +50,13 @@ def prepare_output_dir(out: Path, force: bool, flag: str = "--out") -> Path:
         raise InputError(
             f"{flag} {out}: directory exists and is not empty (use --force to overwrite its files)"
         )
+    return ensure_writable_dir(out, flag)
+
+
+def ensure_writable_dir(out: Path, flag: str = "--out") -> Path:
+    """Create ``out`` (and its parents) if needed; a file in the way or no write permission is an InputError."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{flag} {out}: exists and is not a directory")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:

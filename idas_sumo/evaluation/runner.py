@@ -21,6 +21,7 @@ from idas_sumo.evaluation.metrics import (
 from idas_sumo.evaluation.policies import LEARNED_METHODS, POLICY_DIR, PolicyFn, resolve_policy
 from idas_sumo.evaluation.protocol import Suite, iterate_runs, suite_cases
 from idas_sumo.io_utils import prepare_output_dir, write_csv_atomic
+from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import read_merge_net
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,7 @@ def run_evaluation(req: EvalRequest) -> pd.DataFrame:
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
     }
     others_policy = resolve_policy(others_name, None, req.seed)
+    require_display(req.gui)
     out = prepare_output_dir(req.out, req.force)
     tripinfo_dir = None
     if req.sumo_output:

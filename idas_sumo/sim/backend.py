@@ -39,6 +39,12 @@ VEHICLE_LENGTH_M = 5.0
 _active: SumoBackend | None = None
 
 
+def require_display(gui: bool) -> None:
+    """Refuse ``--gui`` without a display (sumo-gui would abort the whole process)."""
+    if gui and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        raise InputError("--gui needs a display (DISPLAY is not set); run without --gui")
+
+
 @contextlib.contextmanager
 def _captured_stderr() -> Iterator[list[str]]:
     """Collect what libsumo prints on the C++ stderr (its only place for many error reasons)."""
@@ -171,8 +177,7 @@ class SumoBackend:
             )
         import libsumo
 
-        if self.gui and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
-            raise InputError("--gui needs a display (DISPLAY is not set); run without --gui")
+        require_display(self.gui)
         if self._workdir is None:
             self._workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_"))
         route_file = self._workdir / "scenario.rou.xml"

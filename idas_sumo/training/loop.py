@@ -27,6 +27,8 @@ from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
 from idas_sumo.env.core import EnvConfig
 from idas_sumo.env.scenario import Road, generate_scenario
 from idas_sumo.errors import InputError
+from idas_sumo.io_utils import ensure_writable_dir
+from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import read_merge_net
 from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
 from idas_sumo.training.config import TrainConfig, train_config_from_dict
@@ -123,6 +125,9 @@ def run_training(
         raise InputError(f"{net_path}: network file not found")
     if gui and config.workers > 1:
         raise InputError("--gui needs --workers 1")
+    require_display(gui)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir}: exists and is not a directory")
     resumed: dict[str, Any] | None = None
     if resume:
         if not latest.exists():
@@ -145,7 +150,7 @@ def run_training(
         init_state = load_checkpoint(config.init_from)["learner"]
     else:
         init_state = None
-    out_dir.mkdir(parents=True, exist_ok=True)
+    ensure_writable_dir(out_dir)
 
     plans = plan_stages(config)
     net = read_merge_net(net_path)
