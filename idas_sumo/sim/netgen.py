@@ -112,7 +112,14 @@ def _plain_xml(params: NetParams) -> tuple[str, str]:
 def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
     """Write the merge network to ``out_path`` (atomically) and keep its plain XML beside it."""
     out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.is_dir():
+        raise InputError(f"--out {out}: is a directory, expected a .net.xml file name")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"--out {out}: cannot create directory {out.parent} ({err.strerror})") from None
+    if not os.access(out.parent, os.W_OK):
+        raise InputError(f"--out {out}: directory {out.parent} is not writable")
     node_xml, edge_xml = _plain_xml(params)
     stem = out.name.removesuffix(".net.xml")
     nod = out.with_name(f"{stem}.nod.xml")
