@@ -62,7 +62,7 @@ class MetricsSink:
 
     def _truncate(self, keep: int) -> None:
         with self.path.open(newline="", encoding="utf-8") as f:
-            rows = [r for r in csv.DictReader(f) if int(r["global_episode"]) <= keep]
+            rows = [r for r in csv.DictReader(f) if _episode_of(r) is not None and _episode_of(r) <= keep]
         fd, tmp = tempfile.mkstemp(prefix=".metrics.", suffix=".tmp", dir=self.path.parent)
         with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
             w = csv.DictWriter(f, fieldnames=METRIC_COLUMNS)
@@ -93,6 +93,16 @@ class MetricsSink:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+def _episode_of(row: dict[str, Any]) -> int | None:
+    """The row's global episode, or None for a row cut short (a crash or Ctrl-C mid-write)."""
+    if None in row or any(row.get(k) is None for k in METRIC_COLUMNS):
+        return None
+    try:
+        return int(row["global_episode"])
+    except ValueError:
+        return None
 
 
 def _fmt(value: Any) -> Any:
