@@ -91,9 +91,16 @@ def test_idm_safety_bound_hand_worked() -> None:
 
 
 def test_hard_brake_is_never_masked() -> None:
-    # The closing-in case from a_prev = 0: every Δa action (a ∈ [-0.2, 0.2]) exceeds -1.00125, release
-    # is not allowed (no hard brake before): hard brake is the only action left.
-    assert masks_for(0.0, 10.0, 20.0, gap=20.0, leader_v=5.0) == [0, 0, 0, 0, 0, 1, 0]
+    # Emergency: v = 10, stopped leader 10 m ahead: s* = 2 + 10 + 10·10/(2·2) = 37,
+    # bound = 2·(1 - (37/10)²) = -25.38 m/s², beyond the comfortable -2: every Δa action (a ∈ [-0.2, 0.2])
+    # exceeds it, release is not allowed (no hard brake before): hard brake is the only action left.
+    assert masks_for(0.0, 10.0, 20.0, gap=10.0, leader_v=0.0) == [0, 0, 0, 0, 0, 1, 0]
+    # Closing in with a comfortable bound (-1.00125 >= -2): no Δa reaches it from a_prev = 0, but the
+    # strongest Δa step (-0.2) stays allowed so the agent brakes towards the bound at the jerk limit.
+    assert masks_for(0.0, 10.0, 20.0, gap=20.0, leader_v=5.0) == [1, 0, 0, 0, 0, 1, 0]
+    # Already at the kinematic edge (a_prev = -2): -2.2 and -2.1 would leave [-2, 2] (the relaxation never
+    # overrides the kinematic mask); -2.0, -1.9 and -1.8 all lie under the bound -1.00125.
+    assert masks_for(-2.0, 10.0, 20.0, gap=20.0, leader_v=5.0) == [0, 0, 1, 1, 1, 1, 0]
     # Over the limit, touching the leader, at the kinematic edge: still hard brake.
     assert masks_for(2.0, 30.0, 15.0, gap=0.0, leader_v=0.0)[HARD_BRAKE] == 1
     rng = np.random.default_rng(0)

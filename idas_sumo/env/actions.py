@@ -121,10 +121,19 @@ def safety_mask(
     params: IDMParams = DEFAULT_IDM,
     cand: FloatArray | None = None,
 ) -> BoolArray:
-    """Actions whose acceleration does not exceed IDM's to the car in front (gap = inf: no leader)."""
+    """Actions whose acceleration does not exceed IDM's to the car in front (gap = inf: no leader).
+
+    Ours: while IDM asks for no more than the comfortable deceleration (bound >= -b), the strongest
+    Δa step stays allowed even if it does not reach the bound yet, so the agent closes in on the bound at
+    the jerk limit. Without this, any bound between a - 0.2 and -2 m/s² left only the hard brake, and dense
+    traffic turned into hard-brake waves (every agent timed out in the intelligent world). When IDM asks
+    for more than -b, only actions under the bound (and the hard brake) remain.
+    """
     cand = candidate_accelerations(prev_accel) if cand is None else cand
     bound = safety_bound(speed_mps, gap_m, leader_speed_mps, params)
     allowed = cand <= bound[:, None] + _TOLERANCE
+    comfortable = bound >= -params.comfortable_decel_mps2 - _TOLERANCE
+    allowed[:, 0] |= comfortable & (cand[:, 0] >= MIN_ACCEL_MPS2 - _TOLERANCE)
     allowed[:, HARD_BRAKE] = True
     return np.asarray(allowed, dtype=np.bool_)
 
