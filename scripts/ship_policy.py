@@ -1,0 +1,82 @@
+"""Copy a training checkpoint into policies/ and write the metadata that says how it was made.
+
+    python scripts/ship_policy.py runs/idas/intelligent.pt idas --command "idas-sumo train ..."
+
+Writes policies/NAME.pt (the checkpoint, loadable by ``idas-sumo evaluate --baseline NAME``) and
+policies/NAME.json: config, episodes per stage, seed, wall time, end-of-stage learning-curve numbers,
+package versions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import platform
+import shutil
+from importlib import metadata
+from pathlib import Path
+
+import pandas as pd
+
+from idas_sumo.training.checkpoint import load_checkpoint
+
+CURVE_WINDOW = 200  # episodes averaged for the end-of-stage numbers
+
+
+def stage_summaries(metrics: pd.DataFrame) -> dict[str, dict[str, float]]:
+    out = {}
+    for stage, rows in metrics.groupby("stage", sort=False):
+        tail = rows.tail(CURVE_WINDOW)
+        out[str(stage)] = {
+            "episodes": int(rows["episode"].max() + 1),
+            "last_episodes_averaged": len(tail),
+            "success_rate": round(float(tail["success"].mean()), 4),
+            "perfect_rate": round(float(tail["perfect"].mean()), 4),
+            "timeout_rate": round(float(tail["timed_out"].mean()), 4),
+            "mean_return": round(float(tail["return_mean"].mean()), 4),
+            "first_episodes_success_rate": round(float(rows.head(CURVE_WINDOW)["success"].mean()), 4),
+            "first_episodes_mean_return": round(float(rows.head(CURVE_WINDOW)["return_mean"].mean()), 4),
+        }
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("name", choices=("idas", "idas_v", "idas_direct"))
+    parser.add_argument("--command", required=True, help="the train command that made the run")
+    parser.add_argument("--stages", nargs="*", help="only these stages' metrics (default: all in the run)")
+    args = parser.parse_args()
+    data = load_checkpoint(args.checkpoint)
+    metrics = pd.read_csv(args.checkpoint.parent / "metrics.csv")
+    if args.stages:
+        metrics = metrics[metrics["stage"].isin(args.stages)]
+    wall_s = float(metrics["wall_time_s"].max())
+    packages = {p: metadata.version(p) for p in ("idas-sumo", "torch", "eclipse-sumo", "libsumo", "numpy")}
+    meta = {
+        "policy": args.name,
+        "file": f"{args.name}.pt",
+        "made_with": args.command,
+        "source_checkpoint": str(args.checkpoint),
+        "stage_of_checkpoint": data["stage"],
+        "global_episodes": int(metrics["global_episode"].max() + 1),
+        "seed": data["config"].get("seed"),
+        "wall_time_s": round(wall_s, 1),
+        "machine": f"{platform.machine()}, {platform.python_version()}, 2 CPU cores, no GPU",
+        "stages": stage_summaries(metrics),
+        "config": data["config"],
+        "packages": {**packages, "python": platform.python_version()},
+        "shipped_on": dt.date.today().isoformat(),
+        "note": "Trained with a budget that fits one laptop session, far below the paper's 20k + 50k episodes; "
+        "see docs/results.md.",
+    }
+    out = Path(__file__).resolve().parents[1] / "policies"
+    out.mkdir(exist_ok=True)
+    shutil.copyfile(args.checkpoint, out / f"{args.name}.pt")
+    (out / f"{args.name}.json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
+    print(f"wrote {out / (args.name + '.pt')} and {args.name}.json")
+
+
+if __name__ == "__main__":
+    main()
