@@ -188,6 +188,7 @@ class SumoBackend:
             from idas_sumo.sim.netgen import sumo_binary
 
             args[0] = str(sumo_binary(binary))
+        failure: BaseException | None = None
         with _captured_stderr() as stderr_lines:
             try:
                 if self._running:
@@ -195,11 +196,11 @@ class SumoBackend:
                 else:
                     libsumo.start(args)
             except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
-                self._running = False
-                _active = None
-                raise SimulationError(
-                    f"SUMO could not load {self.net.path}: {_sumo_message(err, stderr_lines)}"
-                ) from None
+                failure = err
+        if failure is not None:  # read SUMO's reason only now: the captured lines arrive on leaving the block
+            self._running = False
+            _active = None
+            raise SimulationError(f"SUMO could not load {self.net.path}: {_sumo_message(failure, stderr_lines)}")
         self._running = True
         _active = self
         self._controlled = set(scenario.controlled_ids)
