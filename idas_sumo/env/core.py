@@ -7,7 +7,7 @@ parts. Both environments (PettingZoo and Gymnasium) are thin wrappers around it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -346,7 +346,7 @@ class MergeSimulation:
         }
 
     # -- stepping ------------------------------------------------------------------------------
-    def step(self, actions: dict[str, int]) -> StepOutcome:
+    def step(self, actions: Mapping[str, object]) -> StepOutcome:
         if self._closed:
             raise SimulationError("step() after close(); create a new environment")
         if self.scenario is None:
@@ -455,7 +455,9 @@ class MergeSimulation:
 
 def _checked_action(agent: str, action: object, time_s: float) -> int:
     """An action index in [0, 7), or a ValueError naming the agent and the time."""
-    value = action.item() if isinstance(action, np.generic) else action
+    value = action
+    if isinstance(action, np.generic | np.ndarray) and np.ndim(action) == 0:
+        value = action.item()  # numpy scalars and 0-d arrays (what many agents return)
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < N_ACTIONS:
         raise ValueError(
             f"invalid action {action!r} for agent {agent!r} at t = {time_s:.1f} s: expected an int in [0, {N_ACTIONS})"

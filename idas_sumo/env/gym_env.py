@@ -97,7 +97,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
 
     def step(self, action: int) -> tuple[npt.NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         actions = self._others_actions()
-        actions[self.ego] = int(action)
+        actions[self.ego] = action  # checked in the simulation, with the agent named
         outcome = self.sim.step(actions)
         reward = outcome.rewards[self.ego]
         terminated = outcome.terminated[self.ego]

@@ -118,7 +118,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         dict[str, dict[str, Any]],
     ]:
         acting = list(self.agents)
-        outcome = self.sim.step({a: int(actions[a]) for a in acting})
+        outcome = self.sim.step({a: actions[a] for a in acting if a in actions})  # checked there, per agent
         self.last_outcome = outcome
         infos = {a: self._info(a, outcome) for a in acting}
         self.agents = self.sim.active_agents
