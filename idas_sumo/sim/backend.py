@@ -200,7 +200,9 @@ class SumoBackend:
         if failure is not None:  # read SUMO's reason only now: the captured lines arrive on leaving the block
             self._running = False
             _active = None
-            raise SimulationError(f"SUMO could not load {self.net.path}: {_sumo_message(failure, stderr_lines)}")
+            raise SimulationError(
+                f"SUMO could not load {self.net.path}: {_sumo_message(failure, stderr_lines)}"
+            )
         self._running = True
         _active = self
         self._controlled = set(scenario.controlled_ids)
@@ -239,7 +241,12 @@ class SumoBackend:
                 raise SimulationError(
                     f"invalid speed command {speed!r} for vehicle {vid!r} (a bug, not an input)"
                 )
-            libsumo.vehicle.setSpeed(vid, speed)
+            try:
+                libsumo.vehicle.setSpeed(vid, speed)
+            except libsumo.TraCIException as err:
+                if vid in libsumo.vehicle.getIDList():
+                    raise SimulationError(f"SUMO refused the speed of vehicle {vid!r}: {err}") from None
+                # Removed by SUMO (or a tool) since the last step: the step reports it as 'removed'.
 
     def release(self, vehicle_id: str) -> None:
         """Hand a controlled vehicle back to SUMO's own driver model (after it finished)."""
