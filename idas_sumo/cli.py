@@ -202,7 +202,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return err.exit_code
     except OSError as err:  # disk full, I/O error: outputs are atomic, so earlier files are intact
         where = f"{err.filename}: " if err.filename else ""
-        print(f"idas-sumo: error: {where}{err.strerror or err} (files written before are intact)", file=sys.stderr)
+        print(
+            f"idas-sumo: error: {where}{err.strerror or err} (files written before are intact)",
+            file=sys.stderr,
+        )
         return 1
 
 

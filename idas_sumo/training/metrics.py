@@ -62,7 +62,11 @@ class MetricsSink:
 
     def _truncate(self, keep: int) -> None:
         with self.path.open(newline="", encoding="utf-8") as f:
-            rows = [r for r in csv.DictReader(f) if _episode_of(r) is not None and _episode_of(r) <= keep]
+            rows = []
+            for row in csv.DictReader(f):
+                episode = _episode_of(row)
+                if episode is not None and episode <= keep:
+                    rows.append(row)
         fd, tmp = tempfile.mkstemp(prefix=".metrics.", suffix=".tmp", dir=self.path.parent)
         with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
             w = csv.DictWriter(f, fieldnames=METRIC_COLUMNS)
