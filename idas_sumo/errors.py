@@ -19,3 +19,9 @@ class SimulationError(IdasError):
     """SUMO failed while running (carries SUMO's own message where it has one). Exit code 1."""
 
     exit_code = 1
+
+
+class SumoRefusedInput(InputError, SimulationError):
+    """SUMO would not load what it was given (a net our checks let through): exit 2, SUMO's own message."""
+
+    exit_code = 2

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from idas_sumo.env.scenario import Scenario
-from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.sim.netgen import MergeNet
 
 STEP_LENGTH_S = 0.2
@@ -200,7 +200,7 @@ class SumoBackend:
         if failure is not None:  # read SUMO's reason only now: the captured lines arrive on leaving the block
             self._running = False
             _active = None
-            raise SimulationError(
+            raise SumoRefusedInput(
                 f"SUMO could not load {self.net.path}: {_sumo_message(failure, stderr_lines)}"
             )
         self._running = True
