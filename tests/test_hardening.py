@@ -1,0 +1,757 @@
+"""Issue #7, hardening: every failure is clear, early and harmless, through the real entry points.
+
+The cases already covered elsewhere (bad nets in test_cli/test_netgen, scenario TOMLs in test_scenario,
+checkpoints through ``load_checkpoint`` in test_training, env misuse in test_env_api, the second backend
+in test_sim_control) are not repeated here. CLI cases run ``python -m idas_sumo.cli`` in a subprocess;
+a few that need a fault injected (a full disk, a directory the test cannot make unwritable as root) call
+``idas_sumo.cli.main`` in process with one function patched.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+NET = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
+IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
+
+TINY_TRAIN_TOML = """\
+episodes_per_update = 1
+checkpoint_every = 1000
+max_episode_s = 12.0
+[robot_traffic]
+min_vehicles_per_road = 2
+max_vehicles_per_road = 2
+max_controlled = 1
+[intelligent_traffic]
+min_vehicles_per_road = 2
+max_vehicles_per_road = 2
+"""
+
+
+# --- helpers ------------------------------------------------------------------------------------------
+
+
+def run_cli(
+    *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, timeout: float = 60.0
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "idas_sumo.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd or REPO_ROOT,
+        timeout=timeout,
+        env=env if env is not None else {**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def assert_one_line(stderr: str, code: int, returncode: int, *needles: str) -> str:
+    """Exit ``code`` with exactly one 'idas-sumo: error: ...' line on stderr, no traceback."""
+    assert returncode == code, (returncode, stderr)
+    assert "Traceback" not in stderr, stderr
+    lines = stderr.splitlines()
+    assert len(lines) == 1, f"expected one stderr line, got {len(lines)}:\n{stderr}"
+    line = lines[0]
+    assert line.startswith("idas-sumo") and "error: " in line, line
+    for needle in needles:
+        assert needle in line, f"{needle!r} not in {line!r}"
+    return line
+
+
+def check_cli_cases(
+    cases: dict[str, tuple[list[str], list[str]]], in_subprocess: set[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Exit 2 and one line with the needles for every case: those named in ``in_subprocess`` through
+    ``python -m idas_sumo.cli`` (in parallel), the rest through ``idas_sumo.cli.main`` in this process
+    (the same function; it saves the ~1.5 s of imports a subprocess pays)."""
+    names = [n for n in cases if n in in_subprocess]
+    results = dict(zip(names, run_many(*(cases[n][0] for n in names)), strict=True))
+    for name, (args, needles) in cases.items():
+        try:
+            if name in results:
+                assert_usage_error(results[name], *needles)
+            else:
+                code, err = run_main(capsys, *args)
+                assert_one_line(err, 2, code, *needles)
+        except AssertionError as err:
+            raise AssertionError(f"case {name}: {err}") from None
+
+
+def run_many(
+    *commands: list[str], env: dict[str, str] | None = None
+) -> list[subprocess.CompletedProcess[str]]:
+    """Several CLI runs at once (each pays ~1.5 s of imports; the machine has cores to spare)."""
+    with ThreadPoolExecutor(max_workers=max(os.cpu_count() or 1, 2)) as pool:
+        return list(pool.map(lambda args: run_cli(*args, env=env), commands))
+
+
+def assert_usage_error(result: subprocess.CompletedProcess[str], *needles: str) -> str:
+    return assert_one_line(result.stderr, 2, result.returncode, *needles)
+
+
+def run_main(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    """``idas_sumo.cli.main`` in this process: (exit code, stderr)."""
+    from idas_sumo.cli import main
+
+    try:
+        code = main(list(args))
+    except SystemExit as exit_:  # argparse exits on bad usage
+        code = int(exit_.code or 0)
+    return code, capsys.readouterr().err
+
+
+def snapshot(directory: Path) -> dict[str, bytes]:
+    """Every file under ``directory`` with its bytes (to prove nothing was damaged)."""
+    return {
+        str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()
+    }
+
+
+def temp_files(directory: Path) -> list[str]:
+    return sorted(p.name for p in directory.rglob("*") if p.name.endswith(".tmp") or p.name.startswith("."))
+
+
+def eval_args(out: Path, *extra: str, baseline: str = "idm", net: Path = NET) -> list[str]:
+    return [
+        "evaluate", "--baseline", baseline, "--others", "idm", "--net", str(net), "--out", str(out),
+        "--no-progress", *extra,
+    ]  # fmt: skip
+
+
+def train_args(out: Path, *extra: str) -> list[str]:
+    return ["train", "--net", str(NET), "--out", str(out), "--no-progress", *extra]
+
+
+def _learner() -> Any:
+    from idas_sumo.agents.learner import Learner, LearnerConfig
+
+    return Learner(LearnerConfig(), seed=1)
+
+
+def _payload(learner: Any, **extra: Any) -> dict[str, Any]:
+    import torch
+
+    from idas_sumo.training.config import TrainConfig
+
+    return {
+        "learner": learner.state_dict(),
+        "config": TrainConfig().as_dict(),
+        "stage": "robot",
+        "stage_index": 0,
+        "episode": 7,
+        "global_episode": 7,
+        "numpy_rng": np.random.default_rng(3).bit_generator.state,
+        "torch_rng": torch.Generator().manual_seed(3).get_state(),
+        **extra,
+    }
+
+
+class _RunsCode:
+    """Unpickling this would run ``touch MARKER``: loading a checkpoint must never do that."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[Any, tuple[str]]:
+        return (os.system, (f"touch {self.marker}",))
+
+
+def make_bad_checkpoint(path: Path, damage: str, marker: Path) -> None:
+    """Write a checkpoint damaged in one way (``save_checkpoint`` first, then tampered)."""
+    import torch
+
+    from idas_sumo.training.checkpoint import save_checkpoint
+
+    learner = _learner()
+    if damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "truncated":
+        save_checkpoint(path, _payload(learner))
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 3])
+    elif damage == "pickle":  # a plain pickle of an object whose loading runs a shell command
+        path.write_bytes(pickle.dumps(_RunsCode(marker)))
+    elif damage == "torch-pickle":  # the same object inside a torch zip file
+        torch.save({"weights": _RunsCode(marker)}, path)
+    elif damage == "foreign":
+        torch.save({"state_dict": {"w": torch.zeros(3)}}, path)
+    elif damage == "layout":
+        save_checkpoint(path, _payload(learner, obs_layout_id="scalars5-some-other-layout"))
+    elif damage == "version":
+        save_checkpoint(path, _payload(learner))
+        data = torch.load(path, weights_only=True)
+        data["format"] = 99
+        torch.save(data, path)
+    elif damage == "nan":
+        state = learner.state_dict()
+        name = next(iter(state["actor"]))
+        state["actor"][name] = torch.full_like(state["actor"][name], float("nan"))
+        save_checkpoint(path, {**_payload(learner), "learner": state})
+    elif damage == "shapes":
+        state = learner.state_dict()
+        name = next(iter(state["actor"]))
+        state["actor"][name] = torch.zeros(2, 2)
+        save_checkpoint(path, {**_payload(learner), "learner": state})
+    else:  # pragma: no cover
+        raise AssertionError(damage)
+
+
+CHECKPOINT_DAMAGE = [
+    "empty",
+    "truncated",
+    "pickle",
+    "torch-pickle",
+    "foreign",
+    "layout",
+    "version",
+    "nan",
+    "shapes",
+]
+
+
+# --- training config TOML -----------------------------------------------------------------------------
+
+
+BAD_TRAIN_TOML = {
+    "syntax": ("robot_episodes = 3\nseed = = 1\n", ["line 2"]),
+    "unknown-key": ("robot_episods = 3\n", ["'robot_episods'", 'did you mean "robot_episodes"']),
+    "unknown-nested-key": ("[learner]\ngama = 0.5\n", ["gama", 'did you mean "gamma"']),
+    "wrong-type": ('robot_episodes = "three"\n', ["robot_episodes", "integer"]),
+    "float-for-int": ("workers = 1.5\n", ["workers", "integer"]),
+    "zero-episodes": ("robot_episodes = 0\n", ["robot_episodes", "at least 1"]),
+    "negative-episodes": ("direct_episodes = -4\n", ["direct_episodes", "-4"]),
+    "nan": ("max_episode_s = nan\n", ["max_episode_s", "finite"]),
+    "traffic-nan": ("[robot_traffic]\nmin_speed_frac = nan\n", ["min_speed_frac", "finite"]),
+    "traffic-range": (
+        "[robot_traffic]\nmin_vehicles_per_road = 3\nmax_vehicles_per_road = 1\n",
+        ["robot_traffic", "min_vehicles_per_road"],
+    ),
+    "alpha-range": ("[learner]\nalpha = 1.5\n", ["alpha"]),
+    "bad-stage": ('stage = "everything"\n', ["stage", "everything"]),
+    "not-utf8": (b"\xff\xfe\x00robot", ["not a text file"]),
+}
+
+
+def test_train_config_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Every bad training TOML (and bad count flag) is exit 2, one line naming the file and the key."""
+    out = tmp_path / "run"
+    cases: dict[str, tuple[list[str], list[str]]] = {}
+    for case, (text, needles) in BAD_TRAIN_TOML.items():
+        config = tmp_path / f"{case}.toml"
+        if isinstance(text, bytes):
+            config.write_bytes(text)
+        else:
+            config.write_text(text)
+        cases[case] = (train_args(out, "--config", str(config), "--episodes", "1"), [str(config), *needles])
+    missing = tmp_path / "nope.toml"
+    cases["missing"] = (train_args(out, "--config", str(missing)), [str(missing), "not found"])
+    cases["directory"] = (train_args(out, "--config", str(tmp_path)), [str(tmp_path), "directory"])
+    cases["episodes-0"] = (train_args(out, "--episodes", "0"), ["--episodes", "positive"])
+    cases["workers-text"] = (train_args(out, "--workers", "two"), ["--workers", "two"])
+    subprocess_cases = {
+        "syntax",
+        "unknown-key",
+        "wrong-type",
+        "zero-episodes",
+        "nan",
+        "not-utf8",
+        "episodes-0",
+    }
+    check_cli_cases(cases, subprocess_cases, capsys)
+    assert not out.exists()  # refused before anything is written
+
+
+# --- checkpoints and policies -------------------------------------------------------------------------
+
+
+def test_evaluate_bad_policy_is_exit_2_naming_the_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    marker = tmp_path / "CODE_WAS_RUN"
+    policies = {damage: tmp_path / f"{damage}.pt" for damage in CHECKPOINT_DAMAGE}
+    for damage, policy in policies.items():
+        make_bad_checkpoint(policy, damage, marker)
+    before = snapshot(tmp_path)
+    out = tmp_path / "out"
+    cases = {
+        damage: (eval_args(out, "--policy", str(p), "--scenarios", "2", baseline="idas"), [str(p)])
+        for damage, p in policies.items()
+    }
+    # The pickles run in a subprocess too: if one were unpickled, its code would run there, not here.
+    check_cli_cases(cases, {"empty", "truncated", "pickle", "torch-pickle", "nan", "layout"}, capsys)
+    assert not marker.exists(), "loading a policy unpickled an arbitrary object and ran its code"
+    assert snapshot(tmp_path) == before
+    assert not out.exists()
+
+
+def test_pickled_code_is_refused_through_the_python_api(tmp_path: Path) -> None:
+    from idas_sumo.errors import InputError
+    from idas_sumo.training.checkpoint import load_actor
+
+    marker = tmp_path / "CODE_WAS_RUN"
+    for damage in ("pickle", "torch-pickle"):
+        policy = tmp_path / f"{damage}.pt"
+        make_bad_checkpoint(policy, damage, marker)
+        with pytest.raises(InputError, match="never unpickled") as err:
+            load_actor(policy)
+        assert str(policy) in str(err.value) and "\n" not in str(err.value)
+        assert "weights_only" not in str(
+            err.value
+        )  # torch's advice to turn the protection off is not passed on
+    assert not marker.exists()
+
+
+def test_resume_or_init_from_a_bad_checkpoint_leaves_it_untouched(tmp_path: Path) -> None:
+    marker = tmp_path / "CODE_WAS_RUN"
+    commands, needles = [], []
+    for damage in ("truncated", "pickle", "nan"):
+        run = tmp_path / f"run-{damage}"
+        run.mkdir()
+        make_bad_checkpoint(run / "checkpoint.pt", damage, marker)
+        (run / "metrics.csv").write_text("stage,episode\nrobot,0\n")
+        commands.append(train_args(run, "--resume", "--episodes", "1"))
+        needles.append(str(run / "checkpoint.pt"))
+    bad = tmp_path / "init.pt"
+    make_bad_checkpoint(bad, "torch-pickle", marker)
+    config = tmp_path / "c.toml"
+    config.write_text(f'stage = "intelligent"\ninit_from = "{bad}"\n')
+    commands.append(train_args(tmp_path / "fresh", "--config", str(config), "--episodes", "1"))
+    needles.append(str(bad))
+    before = snapshot(tmp_path)
+    for result, needle in zip(run_many(*commands), needles, strict=True):
+        assert_usage_error(result, needle)
+    assert snapshot(tmp_path) == before  # every checkpoint and metrics file byte for byte
+    assert not marker.exists()
+    assert not (tmp_path / "fresh").exists()
+
+
+def test_interrupted_checkpoint_write_keeps_the_previous_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk fills up (or Ctrl-C comes) half-way through torch.save: the old checkpoint survives."""
+    import torch
+
+    from idas_sumo.training import checkpoint as ckpt
+
+    path = tmp_path / "checkpoint.pt"
+    learner = _learner()
+    ckpt.save_checkpoint(path, _payload(learner))
+    before = path.read_bytes()
+    real_save = torch.save
+
+    for failure in (OSError(errno.ENOSPC, "No space left on device"), KeyboardInterrupt()):
+
+        def half_then_fail(obj: Any, f: Any, _failure: BaseException = failure) -> None:
+            real_save(obj, f)
+            f.seek(len(before) // 2)
+            f.truncate()
+            raise _failure
+
+        monkeypatch.setattr(ckpt.torch, "save", half_then_fail)
+        with pytest.raises(type(failure)):
+            ckpt.save_checkpoint(path, _payload(learner, episode=99, global_episode=99))
+        monkeypatch.undo()
+        assert path.read_bytes() == before
+        assert ckpt.load_checkpoint(path)["episode"] == 7
+        assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]
+
+
+def test_resume_drops_a_metrics_row_cut_short(tmp_path: Path) -> None:
+    """A crash mid-row leaves a partial line in metrics.csv; resuming must not trip over it."""
+    from idas_sumo.training.metrics import METRIC_COLUMNS, MetricsSink
+
+    row = ",".join(["robot", "{e}", "{e}", *["0"] * (len(METRIC_COLUMNS) - 3)])
+    text = ",".join(METRIC_COLUMNS) + "\n" + "".join(row.format(e=e) + "\n" for e in range(3))
+    (tmp_path / "metrics.csv").write_text(text + "robot,3,")  # cut off mid-row
+    with MetricsSink(tmp_path, keep_up_to_global_episode=1):
+        pass
+    lines = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert lines == text.splitlines()[:3]  # header + episodes 0 and 1
+
+
+# --- nets ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_route_that_cannot_be_driven(tmp_path: Path) -> None:
+    """The merge road is not connected to the outgoing road: refused before SUMO starts."""
+    from idas_sumo.sim.netgen import NetParams, _plain_xml, sumo_binary
+
+    node_xml, edge_xml = _plain_xml(NetParams())
+    (tmp_path / "n.nod.xml").write_text(node_xml)
+    (tmp_path / "n.edg.xml").write_text(edge_xml)
+    import xml.etree.ElementTree as ET
+
+    edges = ET.fromstring(edge_xml)
+    into = {e.get("to") for e in edges}
+    by_from = {e.get("from"): e.get("id") for e in edges}
+    junction = next(n for n in into if sum(e.get("to") == n for e in edges) == 2)
+    incoming = [e.get("id") for e in edges if e.get("to") == junction]
+    out_edge = by_from[junction]
+    (tmp_path / "n.con.xml").write_text(
+        f'<connections><delete from="{incoming[1]}" to="{out_edge}"/></connections>\n'
+    )
+    net = tmp_path / "n.net.xml"
+    subprocess.run(
+        [
+            str(sumo_binary("netconvert")),
+            "-n", str(tmp_path / "n.nod.xml"),
+            "-e", str(tmp_path / "n.edg.xml"),
+            "-x", str(tmp_path / "n.con.xml"),
+            "-o", str(net),
+            "--no-warnings",
+        ],
+        check=True,
+        capture_output=True,
+    )  # fmt: skip
+    out = tmp_path / "out"
+    result = run_cli(*eval_args(out, "--scenarios", "2", net=net))
+    assert_usage_error(result, str(net), "not drivable")
+    assert not out.exists()
+
+
+def test_unreadable_net(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    net = tmp_path / "locked.net.xml"
+    net.write_bytes(NET.read_bytes())
+    out = tmp_path / "out"
+    if not IS_ROOT:  # root reads any file, so chmod 000 proves nothing there
+        net.chmod(0)
+        try:
+            assert_usage_error(
+                run_cli(*eval_args(out, "--scenarios", "2", net=net)), str(net), "not readable"
+            )
+        finally:
+            net.chmod(0o644)
+    # The same refusal in process, with the permission check answering as for a normal user.
+    real_access = os.access
+    monkeypatch.setattr(
+        os, "access", lambda p, mode, **kw: False if Path(p) == net else real_access(p, mode, **kw)
+    )
+    code, err = run_main(capsys, *eval_args(out, "--scenarios", "2", net=net))
+    assert_one_line(err, 2, code, str(net), "not readable")
+    assert not out.exists()
+
+
+@pytest.mark.sumo
+def test_net_that_sumo_refuses_carries_sumos_own_message(tmp_path: Path) -> None:
+    """Our checks (sumolib) accept it, SUMO does not: its reason, printed only on the C++ stderr, is in the line."""
+    net = tmp_path / "bogus.net.xml"
+    text = NET.read_text()
+    assert 'type="priority"' in text
+    net.write_text(text.replace('type="priority"', 'type="bogus"'))
+    out = tmp_path / "out"
+    line = assert_usage_error(run_cli(*eval_args(out, "--scenarios", "1", net=net)), str(net), "Error: ")
+    assert "not a valid node type" in line, line
+    assert "Process Error" not in line
+    assert not out.exists() or not list(out.glob("*.csv"))
+
+    # The Python API: the same message, as an error that is both bad input and a simulation error.
+    from idas_sumo.errors import InputError, SimulationError
+    from idas_sumo.sim.backend import SumoBackend, slot_taken
+    from idas_sumo.sim.netgen import read_merge_net
+
+    backend = SumoBackend(read_merge_net(net))
+    try:
+        with pytest.raises(SimulationError, match="not a valid node type") as err:
+            backend.reset(_one_car())
+        assert isinstance(err.value, InputError)
+    finally:
+        backend.close()
+    assert not slot_taken()
+
+
+# --- outputs ------------------------------------------------------------------------------------------
+
+
+def test_output_directory_not_writable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    if not IS_ROOT:
+        locked.chmod(0o555)
+        try:
+            for args in (eval_args(locked / "out"), train_args(locked / "run", "--episodes", "1")):
+                assert_usage_error(run_cli(*args), str(locked))
+            assert_usage_error(run_cli("netgen", "--out", str(locked / "x.net.xml")), str(locked))
+        finally:
+            locked.chmod(0o755)
+    # As root, an unwritable directory is simulated in process: os.access says no for it, and mkdir fails.
+    real_access, real_mkdir = os.access, os.mkdir
+
+    def no_write(p: Any, mode: int, **kw: Any) -> bool:
+        inside = Path(p) == locked or locked in Path(p).parents
+        return False if inside and mode & os.W_OK else real_access(p, mode, **kw)
+
+    def no_mkdir(p: Any, *a: Any, **kw: Any) -> None:
+        if locked in Path(p).parents:
+            raise PermissionError(errno.EACCES, "Permission denied", str(p))
+        real_mkdir(p, *a, **kw)
+
+    monkeypatch.setattr(os, "access", no_write)
+    monkeypatch.setattr(os, "mkdir", no_mkdir)
+    for args in (eval_args(locked), train_args(locked, "--episodes", "1")):
+        code, err = run_main(capsys, *args)
+        assert_one_line(err, 2, code, str(locked), "not writable")
+    for args in (eval_args(locked / "out"), train_args(locked / "run", "--episodes", "1")):
+        code, err = run_main(capsys, *args)
+        assert_one_line(
+            err, 2, code, str(locked / ("out" if args[0] == "evaluate" else "run")), "Permission denied"
+        )
+    code, err = run_main(capsys, "netgen", "--out", str(locked / "x.net.xml"))
+    assert_one_line(err, 2, code, str(locked), "not writable")
+    assert list(locked.iterdir()) == []
+
+
+def test_out_paths_that_are_files(tmp_path: Path) -> None:
+    blocker = tmp_path / "afile"
+    blocker.write_text("keep me\n")
+    results = run_many(
+        train_args(blocker, "--episodes", "1"),
+        train_args(blocker / "run", "--episodes", "1"),
+        ["netgen", "--out", str(blocker / "x.net.xml")],
+        ["netgen", "--out", str(tmp_path)],
+    )
+    assert_usage_error(results[0], str(blocker), "not a directory")
+    assert_usage_error(results[1], str(blocker / "run"))
+    assert_usage_error(results[2], "--out", str(blocker))
+    assert_usage_error(results[3], "--out", "directory")
+    assert blocker.read_text() == "keep me\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+@pytest.mark.sumo
+def test_disk_full_while_writing_csvs_keeps_the_previous_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import pandas as pd
+
+    out = tmp_path / "out"
+    code, _ = run_main(capsys, *eval_args(out, "--scenarios", "2"))
+    assert code == 0
+    before = snapshot(out)
+    real_to_csv = pd.DataFrame.to_csv
+
+    def half_then_full(self: pd.DataFrame, f: Any, **kw: Any) -> None:
+        real_to_csv(self.iloc[: max(len(self) // 2, 1)], f, **kw)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pd.DataFrame, "to_csv", half_then_full)
+    code, err = run_main(capsys, *eval_args(out, "--scenarios", "2", "--seed", "7", "--force"))
+    assert_one_line(err, 1, code, "No space left on device")
+    assert snapshot(out) == before  # the previous good CSVs are all there, byte for byte
+    assert temp_files(out) == []
+
+
+# --- runtime: Ctrl-C, SUMO dying, non-finite values ---------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_ctrl_c_during_train_exits_130_with_a_loadable_checkpoint(tmp_path: Path) -> None:
+    from idas_sumo.training.checkpoint import load_checkpoint
+
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_TRAIN_TOML)
+    run = tmp_path / "run"
+    args = train_args(run, "--config", str(config), "--stage", "robot", "--episodes", "100000")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "idas_sumo.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO_ROOT,
+    )
+    metrics = run / "metrics.csv"
+    try:
+        deadline = time.monotonic() + 30.0
+        while proc.poll() is None and time.monotonic() < deadline:
+            if metrics.exists() and len(metrics.read_text().splitlines()) >= 3:
+                break  # two episodes done
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    assert stderr.splitlines()[-1].startswith("idas-sumo: interrupted"), stderr
+    data = load_checkpoint(run / "checkpoint.pt")
+    assert data["episode"] >= 2
+    rows = metrics.read_text().splitlines()
+    assert len(rows) - 1 >= data["episode"]
+    assert temp_files(run) == []
+
+
+def _one_car(vid: str = "ego", road: str = "main", pos: float = 50.0, speed: float = 10.0) -> Any:
+    from idas_sumo.env.scenario import Scenario, VehicleSpec
+
+    return Scenario("one", (VehicleSpec(vid, road, pos, speed),))  # type: ignore[arg-type]
+
+
+@pytest.mark.sumo
+def test_sumo_subprocess_dying_is_a_prompt_simulation_error() -> None:
+    from idas_sumo.errors import SimulationError
+    from idas_sumo.sim.backend import SubprocessBackend
+    from idas_sumo.sim.netgen import read_merge_net
+
+    backend = SubprocessBackend(read_merge_net(NET))
+    try:
+        backend.reset(_one_car())
+        backend.step()
+        os.kill(backend._proc.pid, signal.SIGKILL)
+        backend._proc.join(timeout=10)
+        started = time.monotonic()
+        with pytest.raises(SimulationError, match="died"):
+            backend.step()
+        assert time.monotonic() - started < 10.0
+        with pytest.raises(SimulationError):
+            backend.vehicle_states()
+    finally:
+        backend.close()
+    backend.close()  # twice is fine
+
+
+@pytest.fixture
+def parallel_env() -> Any:
+    from idas_sumo.env import MergeParallelEnv
+    from idas_sumo.env.scenario import Scenario, VehicleSpec
+
+    scenario = Scenario(
+        "two",
+        (VehicleSpec("m0", "main", 120.0, 15.0, 1.0), VehicleSpec("g0", "merge", 100.0, 12.0, -1.0)),
+    )
+    env = MergeParallelEnv(scenario=scenario, seed=0)
+    env.reset(seed=0)
+    yield env
+    env.close()
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 2.0, 7, -1, np.int64(9), "2", None, True])
+def test_invalid_action_names_the_agent(parallel_env: Any, bad: Any) -> None:
+    actions = dict.fromkeys(parallel_env.agents, 2)
+    actions["g0"] = bad
+    with pytest.raises(ValueError, match=r"'g0'.*t = ") as err:
+        parallel_env.step(actions)
+    assert "\n" not in str(err.value)
+    # Refused at the boundary: nothing was applied, the episode goes on.
+    obs, *_ = parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
+    assert set(obs) == {"m0", "g0"}
+
+
+@pytest.mark.sumo
+def test_non_finite_observation_names_the_agent(parallel_env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    import idas_sumo.env.core as core
+    from idas_sumo.errors import SimulationError
+
+    real = core.build_observations
+
+    def poisoned(snapshot: Any, egos: Any, *args: Any) -> Any:
+        obs = real(snapshot, egos, *args)
+        obs[-1, 0] = np.nan  # the last agent asked for
+        return obs
+
+    monkeypatch.setattr(core, "build_observations", poisoned)
+    with pytest.raises(SimulationError, match=r"non-finite observation for agent 'g0' at t = "):
+        parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
+
+
+@pytest.mark.sumo
+def test_vehicle_removed_by_sumo_is_accounted_for(parallel_env: Any) -> None:
+    parallel_env.sim.backend.raw_call("vehicle", "remove", "g0")
+    obs, rewards, terms, _, infos = parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
+    assert terms["g0"] is True and infos["g0"]["end_reason"] == "removed"
+    assert rewards["g0"] == 0.0
+    assert parallel_env.agents == ["m0"]
+    obs, *_ = parallel_env.step({"m0": 2})
+    assert set(obs) == {"m0"}
+
+
+# --- environments -------------------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_two_parallel_envs_in_one_process_run_independently() -> None:
+    """The second env gets SUMO in a subprocess; lockstep with the same seed gives the same episode."""
+    from idas_sumo.env import MergeParallelEnv
+    from idas_sumo.env.scenario import TrafficConfig
+    from idas_sumo.sim.backend import SubprocessBackend, SumoBackend
+
+    traffic = TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=2)
+    first = MergeParallelEnv(traffic=traffic, seed=5)
+    second = MergeParallelEnv(traffic=traffic, seed=5)
+    try:
+        obs_a, _ = first.reset(seed=5)
+        obs_b, _ = second.reset(seed=5)
+        assert isinstance(first.sim.backend, SumoBackend)
+        assert isinstance(second.sim.backend, SubprocessBackend)
+        for _ in range(25):
+            assert sorted(obs_a) == sorted(obs_b)
+            for agent in obs_a:
+                np.testing.assert_array_equal(obs_a[agent]["observation"], obs_b[agent]["observation"])
+            if not first.agents:
+                break
+            actions = {a: int(np.flatnonzero(obs_a[a]["action_mask"])[0]) for a in first.agents}
+            obs_a, *_ = first.step(actions)
+            obs_b, *_ = second.step(actions)
+        # Closing one leaves the other running.
+        second.close()
+        if first.agents:
+            first.step(dict.fromkeys(first.agents, 2))
+        first.reset(seed=6)
+    finally:
+        second.close()
+        first.close()
+
+
+def test_env_with_a_scenario_above_the_speed_limit_is_refused() -> None:
+    from idas_sumo.env import MergeParallelEnv
+    from idas_sumo.errors import InputError
+
+    with pytest.raises(InputError, match=r"'fast'.*above the main road's limit"):
+        MergeParallelEnv(scenario=_one_car("fast", "main", 50.0, 25.0))
+
+
+def test_gui_without_a_display(tmp_path: Path) -> None:
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    results = run_many(
+        eval_args(tmp_path / "eval", "--gui", "--scenarios", "1"),
+        train_args(tmp_path / "run", "--gui", "--episodes", "1"),
+        env=env,
+    )
+    for result in results:
+        assert_usage_error(result, "--gui", "display")
+    assert list(tmp_path.iterdir()) == []  # refused before any directory or file is made
+
+
+@pytest.mark.sumo
+def test_gui_without_a_display_through_the_python_api() -> None:
+    from idas_sumo.env import MergeParallelEnv
+    from idas_sumo.errors import InputError
+    from idas_sumo.sim.backend import slot_taken
+
+    saved = {k: os.environ.pop(k) for k in ("DISPLAY", "WAYLAND_DISPLAY") if k in os.environ}
+    try:
+        env = MergeParallelEnv(seed=0, gui=True)
+        with pytest.raises(InputError, match="display"):
+            env.reset(seed=0)
+        env.close()
+        assert not slot_taken()
+    finally:
+        os.environ.update(saved)
