@@ -122,3 +122,20 @@ def test_combined_policy_loss_does_not_backprop_into_advantages() -> None:
     adv_q = t(2.0).requires_grad_()
     combined_policy_loss(t(-1.0).requires_grad_(), adv_v, adv_q, 0.7).backward()
     assert adv_v.grad is None and adv_q.grad is None
+
+
+def test_gae_against_hand_worked_values() -> None:
+    from idas_sumo.agents.returns import gae_advantages
+
+    # Two agents interleaved: rows 0, 2, 3 are agent A's steps, rows 1, 4 agent B's.
+    # δ = [1, 2, 0.5, -1, 3], γ = 0.9, λ = 0.5 → γλ = 0.45.
+    # A: A3 = -1; A2 = 0.5 + 0.45·(-1) = 0.05; A0 = 1 + 0.45·0.05 = 1.0225
+    # B: A4 = 3;  A1 = 2 + 0.45·3 = 3.35
+    delta = torch.tensor([1.0, 2.0, 0.5, -1.0, 3.0])
+    next_row = torch.tensor([2, 4, 3, -1, -1])
+    adv = gae_advantages(delta, next_row, gamma=0.9, lam=0.5)
+    torch.testing.assert_close(adv, torch.tensor([1.0225, 3.35, 0.05, -1.0, 3.0]))
+    # λ = 0 is the one-step TD error (the paper's A1).
+    torch.testing.assert_close(gae_advantages(delta, next_row, gamma=0.9, lam=0.0), delta)
+    with pytest.raises(ValueError, match="point forward"):
+        gae_advantages(delta, torch.tensor([0, -1, -1, -1, -1]), gamma=0.9, lam=0.5)

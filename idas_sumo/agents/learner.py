@@ -24,7 +24,7 @@ from torch import nn
 
 from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss
 from idas_sumo.agents.networks import Actor, CentralCritic, ValueCritic
-from idas_sumo.agents.returns import GAMMA, td_advantages, td_targets
+from idas_sumo.agents.returns import GAMMA, gae_advantages, td_advantages, td_targets
 from idas_sumo.agents.state_layout import STATE_LAYOUT_ID, STATE_SLOTS
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
@@ -57,6 +57,9 @@ class LearnerConfig:
     """Weight of the mean policy entropy subtracted from the actor loss (ours; the paper has none)."""
     max_grad_norm: float = 10.0
     """Global L2 norm each network's gradient is clipped to before its Adam step (ours)."""
+    gae_lambda: float = 0.0
+    """λ of generalised advantage estimation for A1 and the V target (ours). 0: the paper's one-step TD
+    error and TD(0) target; > 0 needs ``Batch.next_row``."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -70,6 +73,8 @@ class LearnerConfig:
             raise InputError(f"alpha must lie in [0, 1], got {self.alpha}")
         if not 0.0 < self.target_tau <= 1.0:
             raise InputError(f"target_tau must lie in (0, 1], got {self.target_tau}")
+        if not 0.0 <= self.gae_lambda <= 1.0:
+            raise InputError(f"gae_lambda must lie in [0, 1], got {self.gae_lambda}")
         if self.entropy_coef < 0.0:
             raise InputError(f"entropy_coef must be non-negative, got {self.entropy_coef}")
 
@@ -103,6 +108,7 @@ class Batch:
     next_slot: torch.Tensor | None = None
     next_action: torch.Tensor | None = None  # (B,) int64, any value where next_valid is 0
     next_valid: torch.Tensor | None = None  # (B,) float32
+    next_row: torch.Tensor | None = None  # (B,) int64 row of the same agent's next step, -1: none
 
     def to(self, device: torch.device | str) -> Batch:
         moved: dict[str, Any] = {
@@ -202,6 +208,9 @@ class Learner:
             v_target = td_targets(reward, self.value_target(b.next_obs), done, cfg.gamma)
             # A1 uses the online critic on both ends (paper eq. for ∇J1).
             adv_v = td_advantages(reward, values.detach(), self.value(b.next_obs), done, cfg.gamma)
+            if cfg.gae_lambda > 0.0:
+                adv_v = gae_advantages(adv_v, _require(b.next_row, "next_row"), cfg.gamma, cfg.gae_lambda)
+                v_target = adv_v + values.detach()  # the λ-return
         v_loss = 0.5 * (v_target - values).pow(2).mean()
         self.opt_value.zero_grad(set_to_none=True)
         v_loss.backward()

@@ -49,3 +49,24 @@ def td_advantages(
 ) -> torch.Tensor:
     """The TD error r + γ V(o') (1 - done) - V(o): the paper's estimate of A1 for ∇J1."""
     return td_targets(rewards, next_values, dones, gamma) - values
+
+
+def gae_advantages(
+    td_errors: torch.Tensor, next_row: torch.Tensor, gamma: float = GAMMA, lam: float = 0.95
+) -> torch.Tensor:
+    """Generalised advantage estimates A_i = δ_i + γλ·A_next(i) over agent-steps in any row order.
+
+    ``next_row[i]`` is the row of the same agent's next step (-1 when the agent has none in the batch);
+    it must point forward (``next_row[i] > i``), as rollouts record steps in time order. λ = 0 gives
+    the one-step TD error back (the paper's A1); λ = 1 the discounted return minus V.
+    """
+    adv = td_errors.detach().clone()
+    nxt = next_row.tolist()
+    values = adv.tolist()
+    for i in range(len(values) - 1, -1, -1):
+        j = nxt[i]
+        if j >= 0:
+            if j <= i:
+                raise ValueError(f"next_row[{i}] = {j} does not point forward")
+            values[i] += gamma * lam * values[j]
+    return torch.tensor(values, dtype=td_errors.dtype, device=td_errors.device)

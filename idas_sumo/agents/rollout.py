@@ -262,6 +262,15 @@ def collect_episode(
     )
 
 
+def _global_next_rows(episodes: list[EpisodeData]) -> npt.NDArray[np.int64]:
+    """Each episode's ``next_row`` shifted to the row numbering of the concatenated batch."""
+    rows, offset = [], 0
+    for e in episodes:
+        rows.append(np.where(e.next_row >= 0, e.next_row + offset, -1))
+        offset += len(e)
+    return np.concatenate(rows).astype(np.int64) if rows else np.zeros(0, dtype=np.int64)
+
+
 def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Batch:
     """Concatenate episodes into one ``Batch``; ``central=False`` leaves the critic-Q fields None."""
 
@@ -275,6 +284,7 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
         reward=cat("reward"),
         next_obs=torch.from_numpy(np.concatenate([e.next_obs for e in episodes])),
         done=cat("done"),
+        next_row=torch.from_numpy(_global_next_rows(episodes)),
     )
     if central:
         batch.state = cat("state")
