@@ -230,3 +230,14 @@ def test_others_actions_onehot() -> None:
     assert np.flatnonzero(rows[0]).tolist() == [3 * N_ACTIONS + 2]
     assert np.flatnonzero(rows[3]).tolist() == [HARD_BRAKE]
     assert np.flatnonzero(rows[5]).tolist() == [HARD_BRAKE, 3 * N_ACTIONS + 2]
+
+
+def test_normalised_advantages_change_the_step_but_not_the_direction_of_a_single_sample() -> None:
+    from idas_sumo.agents.learner import _standardised
+
+    adv = torch.tensor([1.0, 2.0, 3.0, 6.0])
+    # mean 3, deviations [-2, -1, 0, 3], sample std sqrt(14/3) = 2.1602
+    torch.testing.assert_close(
+        _standardised(adv), torch.tensor([-0.9258, -0.4629, 0.0, 1.3887]), atol=1e-4, rtol=0
+    )
+    torch.testing.assert_close(_standardised(torch.tensor([5.0])), torch.tensor([0.0]))

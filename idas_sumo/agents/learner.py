@@ -60,6 +60,8 @@ class LearnerConfig:
     gae_lambda: float = 0.0
     """λ of generalised advantage estimation for A1 and the V target (ours). 0: the paper's one-step TD
     error and TD(0) target; > 0 needs ``Batch.next_row``."""
+    normalize_advantages: bool = False
+    """Standardise A1 and A2 over each batch before the policy gradient (ours; the paper does not)."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -116,6 +118,12 @@ class Batch:
             for f in dataclasses.fields(self)
         }
         return Batch(**moved)
+
+
+def _standardised(adv: torch.Tensor) -> torch.Tensor:
+    """Zero mean, unit variance over the batch (a batch of one is only centred)."""
+    centred = adv - adv.mean()
+    return centred / (centred.std() + 1e-8) if adv.numel() > 1 else centred
 
 
 def _soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
@@ -255,8 +263,17 @@ class Learner:
             adv_q = coma_advantage(q_all.detach(), dist.probs.detach(), action)
 
         # --- actor: ∇J = α∇J1 + (1-α)∇J2.
+        policy_adv_v, policy_adv_q = adv_v, adv_q
+        if cfg.normalize_advantages:
+            policy_adv_v = _standardised(adv_v)
+            policy_adv_q = None if adv_q is None else _standardised(adv_q)
         actor_loss = combined_policy_loss(
-            log_probs, adv_v, adv_q, cfg.effective_alpha, entropy=entropy, entropy_coef=cfg.entropy_coef
+            log_probs,
+            policy_adv_v,
+            policy_adv_q,
+            cfg.effective_alpha,
+            entropy=entropy,
+            entropy_coef=cfg.entropy_coef,
         )
         self.opt_actor.zero_grad(set_to_none=True)
         actor_loss.backward()
