@@ -76,6 +76,14 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--net", default=DEFAULT_NET, help="merge network (default: %(default)s)")
     ev.add_argument("--suite", default="paper", choices=("paper", "representative", "driver-types"))
     ev.add_argument("--scenarios", type=_positive_int, default=100, help="random scenarios (paper suite)")
+    ev.add_argument("--config", type=Path, help="TOML: [traffic] and max_episode_s for the paper suite")
+    ev.add_argument(
+        "--scenario",
+        type=Path,
+        action="append",
+        default=[],
+        help="evaluate this scenario TOML instead of a suite (repeatable; ego = its first vehicle)",
+    )
     ev.add_argument(
         "--seed", type=int, default=2019, help="scenario seed (default: %(default)s, not used in training)"
     )
@@ -140,6 +148,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             sumo_output=args.sumo_output,
             progress=not args.no_progress and sys.stderr.isatty(),
             gui=args.gui,
+            config=args.config,
+            scenario_files=tuple(args.scenario),
         )
     )
     if args.others is None and others == "idm":

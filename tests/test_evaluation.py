@@ -393,3 +393,32 @@ def test_outputs_get_the_usual_file_permissions(tmp_path: Path, net_path: Path) 
         os.umask(umask)
     for name in CSV_NAMES:
         assert (tmp_path / "p" / name).stat().st_mode & 0o777 == 0o644, name
+
+
+@pytest.mark.sumo
+def test_scenario_files_are_evaluated_with_their_first_vehicle_as_ego(tmp_path: Path, net_path: Path) -> None:
+    s4 = Path(__file__).resolve().parents[1] / "scenarios" / "representative" / "s4.toml"
+    evaluate(tmp_path / "f", net_path, "--baseline", "idm", "--scenario", str(s4), "--scenario", str(s4))
+    episodes = pd.read_csv(tmp_path / "f" / "episodes.csv")
+    assert episodes["scenario"].tolist() == ["s4", "s4"]
+    assert (episodes["ego_id"] == "main_car").all()  # the file's first vehicle
+
+
+@pytest.mark.sumo
+def test_config_changes_the_paper_suite_traffic(tmp_path: Path, net_path: Path) -> None:
+    config = tmp_path / "eval.toml"
+    config.write_text(
+        "max_episode_s = 30.0\n[traffic]\nmin_vehicles_per_road = 2\nmax_vehicles_per_road = 2\n"
+    )
+    evaluate(tmp_path / "c", net_path, "--baseline", "idm", "--scenarios", "3", "--config", str(config))
+    flow = pd.read_csv(tmp_path / "c" / "flow.csv")
+    assert (flow["vehicles"] == 4).all()  # 2 per road, as configured
+
+
+def test_bad_eval_config_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = tmp_path / "eval.toml"
+    config.write_text("max_episode_s = 60\n[trafic]\n")
+    assert main(["evaluate", "--baseline", "idm", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'did you mean "traffic"' in err[0]
+    assert not (tmp_path / "o").exists()

@@ -11,6 +11,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
+from idas_sumo.config import from_dict, load_toml
 from idas_sumo.env.core import MergeSimulation
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, generate_scenario, load_scenario
@@ -33,6 +34,32 @@ class EvalCase:
     ego: str
     seed: int
     method_vehicles: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """``evaluate --config FILE.toml``: how the paper suite's random scenarios are drawn, and the timeout."""
+
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+    max_episode_s: float = 60.0
+    """Simulated seconds before an episode is cut off (a timeout is not a success)."""
+
+    def __post_init__(self) -> None:
+        if not self.max_episode_s > 0:
+            raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+
+
+def load_eval_config(path: Path) -> EvalConfig:
+    return from_dict(EvalConfig, load_toml(path), str(path))
+
+
+def file_cases(paths: list[Path], seed: int, speed_limits: dict) -> list[EvalCase]:
+    """One case per scenario file; the ego (running the method) is the file's first vehicle."""
+    cases = []
+    for path in paths:
+        scenario = load_scenario(path, speed_limits)
+        cases.append(EvalCase(scenario, scenario.vehicles[0].id, seed, (scenario.vehicles[0].id,)))
+    return cases
 
 
 def suite_cases(

@@ -10,7 +10,6 @@ from pathlib import Path
 import pandas as pd
 
 from idas_sumo.env.core import EnvConfig, MergeSimulation
-from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.evaluation.metrics import (
     EPISODE_COLUMNS,
     FLOW_COLUMNS,
@@ -19,7 +18,14 @@ from idas_sumo.evaluation.metrics import (
     summary_rows,
 )
 from idas_sumo.evaluation.policies import LEARNED_METHODS, POLICY_DIR, PolicyFn, resolve_policy
-from idas_sumo.evaluation.protocol import Suite, iterate_runs, suite_cases
+from idas_sumo.evaluation.protocol import (
+    EvalConfig,
+    Suite,
+    file_cases,
+    iterate_runs,
+    load_eval_config,
+    suite_cases,
+)
 from idas_sumo.io_utils import prepare_output_dir, write_csv_atomic
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import read_merge_net
@@ -43,6 +49,10 @@ class EvalRequest:
     sumo_output: bool = False
     progress: bool = True
     gui: bool = False
+    config: Path | None = None
+    """TOML with [traffic] and max_episode_s for the paper suite (see scenarios/eval_paper.toml)."""
+    scenario_files: tuple[Path, ...] = ()
+    """Evaluate these scenario TOML files instead of a suite (the ego is each file's first vehicle)."""
 
 
 def default_others() -> str:
@@ -52,6 +62,7 @@ def default_others() -> str:
 def run_evaluation(req: EvalRequest) -> pd.DataFrame:
     """Run the suite; write CSVs into ``req.out`` (atomically, only once everything ran). Returns the summary."""
     net = read_merge_net(req.net)
+    eval_config = load_eval_config(req.config) if req.config is not None else EvalConfig()
     others_name = req.others or default_others()
     policies: dict[str, PolicyFn] = {
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
@@ -63,8 +74,13 @@ def run_evaluation(req: EvalRequest) -> pd.DataFrame:
     if req.sumo_output:
         tripinfo_dir = out / "sumo"
         tripinfo_dir.mkdir(exist_ok=True)
-    sim = MergeSimulation(net, seed=req.seed, config=EnvConfig(), gui=req.gui)
-    cases = suite_cases(req.suite, req.scenarios, req.seed, sim.speed_limits_mps, TrafficConfig())
+    sim = MergeSimulation(
+        net, seed=req.seed, config=EnvConfig(max_episode_s=eval_config.max_episode_s), gui=req.gui
+    )
+    if req.scenario_files:
+        cases = file_cases(list(req.scenario_files), req.seed, sim.speed_limits_mps)
+    else:
+        cases = suite_cases(req.suite, req.scenarios, req.seed, sim.speed_limits_mps, eval_config.traffic)
     log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
     episodes, flows, trajectories = [], [], []
     total = len(cases) * len(policies)
