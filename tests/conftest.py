@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -47,3 +48,23 @@ def merge_net(net_path: Path):  # type: ignore[no-untyped-def]
     from idas_sumo.sim.netgen import read_merge_net
 
     return read_merge_net(net_path)
+
+
+def checkpoint_payload(learner: Any, **extra: Any) -> dict[str, Any]:
+    """A complete training-checkpoint payload around ``learner`` (for checkpoint tests)."""
+    import numpy as np
+    import torch
+
+    from idas_sumo.training.config import TrainConfig
+
+    return {
+        "learner": learner.state_dict(),
+        "config": TrainConfig().as_dict(),
+        "stage": "robot",
+        "stage_index": 0,
+        "episode": 7,
+        "global_episode": 7,
+        "numpy_rng": np.random.default_rng(3).bit_generator.state,
+        "torch_rng": torch.Generator().manual_seed(3).get_state(),
+        **extra,
+    }

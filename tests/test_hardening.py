@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import checkpoint_payload
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 NET = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
@@ -141,21 +142,7 @@ def _learner() -> Any:
 
 
 def _payload(learner: Any, **extra: Any) -> dict[str, Any]:
-    import torch
-
-    from idas_sumo.training.config import TrainConfig
-
-    return {
-        "learner": learner.state_dict(),
-        "config": TrainConfig().as_dict(),
-        "stage": "robot",
-        "stage_index": 0,
-        "episode": 7,
-        "global_episode": 7,
-        "numpy_rng": np.random.default_rng(3).bit_generator.state,
-        "torch_rng": torch.Generator().manual_seed(3).get_state(),
-        **extra,
-    }
+    return checkpoint_payload(learner, **extra)
 
 
 class _RunsCode:

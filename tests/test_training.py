@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from conftest import checkpoint_payload
 
 from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.env.layout import OBS_LAYOUT_ID
@@ -43,18 +44,8 @@ def read_metrics(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def _payload(learner: Learner, **extra: Any) -> dict[str, Any]:
-    return {
-        "learner": learner.state_dict(),
-        "config": TrainConfig().as_dict(),
-        "stage": "robot",
-        "stage_index": 0,
-        "episode": 7,
-        "global_episode": 7,
-        "numpy_rng": np.random.default_rng(3).bit_generator.state,
-        "torch_rng": torch.Generator().manual_seed(3).get_state(),
-        **extra,
-    }
+def _payload(learner: Any, **extra: Any) -> dict[str, Any]:
+    return checkpoint_payload(learner, **extra)
 
 
 # --- config --------------------------------------------------------------------------------------
