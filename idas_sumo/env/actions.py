@@ -38,21 +38,20 @@ _DELTAS = np.asarray(DELTA_ACCEL_MPS2)
 
 def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> FloatArray:
     """Acceleration (m/s²) each agent drives with after taking ``actions`` (int array)."""
-    prev = np.asarray(prev_accel, dtype=np.float64)
-    act = np.asarray(actions, dtype=np.int64)
+    prev, act = np.broadcast_arrays(
+        np.asarray(prev_accel, dtype=np.float64), np.asarray(actions, dtype=np.int64)
+    )
     if np.any((act < 0) | (act >= N_ACTIONS)):
         raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
-    deltas = np.asarray((*DELTA_ACCEL_MPS2, 0.0, 0.0))[act]
-    accel = np.round(prev + deltas, 6)  # keep the 0.1 grid exact over long episodes
-    accel = np.where(act == HARD_BRAKE, HARD_BRAKE_MPS2, accel)
-    return np.asarray(np.where(act == RELEASE_BRAKE, RELEASE_BRAKE_MPS2, accel), dtype=np.float64)
+    cand = candidate_accelerations(prev.ravel())
+    return np.asarray(cand[np.arange(cand.shape[0]), act.ravel()].reshape(act.shape), dtype=np.float64)
 
 
 def candidate_accelerations(prev_accel: npt.ArrayLike) -> FloatArray:
-    """(n_agents, 7) acceleration each action would produce (same values as ``next_acceleration``)."""
+    """(n_agents, 7) acceleration each action would produce."""
     prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
     cand = np.empty((prev.shape[0], N_ACTIONS))
-    cand[:, :N_DELTA_ACTIONS] = np.round(prev[:, None] + _DELTAS, 6)
+    cand[:, :N_DELTA_ACTIONS] = np.round(prev[:, None] + _DELTAS, 6)  # keep the 0.1 grid exact
     cand[:, HARD_BRAKE] = HARD_BRAKE_MPS2
     cand[:, RELEASE_BRAKE] = RELEASE_BRAKE_MPS2
     return cand

@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.agents.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.baselines.policies import closest_allowed_action
 from idas_sumo.env.actions import (
     HARD_BRAKE,
     N_ACTIONS,
@@ -113,11 +114,6 @@ class MergeSimulation:
             self.net.main.edge_id: MAIN,
             self.net.merge.edge_id: MERGE,
             self.net.out.edge_id: OUT,
-        }
-        self._road_limit = {
-            MAIN: self.net.main.speed_limit_mps,
-            MERGE: self.net.merge.speed_limit_mps,
-            OUT: self.net.out.speed_limit_mps,
         }
         self._road_length_by_code = np.array([self.net.main.length_m, self.net.merge.length_m])
         self._via_length_by_code = np.array([self.net.main.via_length_m, self.net.merge.via_length_m])
@@ -222,8 +218,9 @@ class MergeSimulation:
             self._road_length_by_code[np.where(incoming, edge_road, 0)] - pos,
             np.where(edge_road == OUT, -(self._via_length_by_code[origin] + pos), -pos),
         )
-        own_limit = effective_speed_limit(self._limit_by_code[road], dist, self._road_limit[OUT])
-        limit = np.where(road == OUT, self._road_limit[OUT], own_limit)
+        out_limit = self._limit_by_code[OUT]
+        own_limit = effective_speed_limit(self._limit_by_code[road], dist, out_limit)
+        limit = np.where(road == OUT, out_limit, own_limit)
         return TrafficSnapshot(
             ids=states.ids,
             road=road.astype(np.int64),
@@ -363,7 +360,11 @@ class MergeSimulation:
                 [_checked_action(a, actions[a], self.time_s) for a in acting], dtype=np.int64
             )
             masks = self.masks(acting)
-            applied = _enforce_masks(requested, masks, np.array([self._accel[a] for a in acting]))
+            prev = np.array([self._accel[a] for a in acting])
+            allowed = masks[np.arange(len(requested)), requested].astype(bool)
+            # A masked request becomes the allowed action with the closest (then lower) acceleration.
+            wanted = candidate_accelerations(prev)[np.arange(len(requested)), requested]
+            applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
             for a, req, app in zip(acting, requested, applied, strict=True):
                 if req != app:
                     replaced[a] = int(app)
@@ -465,19 +466,6 @@ def _checked_action(agent: str, action: object, time_s: float) -> int:
     return value
 
 
-def _enforce_masks(
-    requested: npt.NDArray[np.int64], masks: npt.NDArray[np.int8], prev_accel: FloatArray
-) -> npt.NDArray[np.int64]:
-    """Replace each masked request by the allowed action with the closest (then lower) acceleration."""
-    allowed = masks[np.arange(len(requested)), requested].astype(bool)
-    if allowed.all():
-        return requested
-    cand = candidate_accelerations(prev_accel)
-    wanted = cand[np.arange(len(requested)), requested][:, None]
-    cost = np.where(masks.astype(bool), np.abs(cand - wanted) + 1e-3 * cand, np.inf)
-    return np.where(allowed, requested, np.argmin(cost, axis=1)).astype(np.int64)
-
-
 def _impeding_vehicles(before: TrafficSnapshot, brake_idx: list[int]) -> list[str]:
     """For each hard-braking vehicle, the nearest vehicle ahead of it on either lane (within sight)."""
     if not brake_idx:
@@ -495,3 +483,10 @@ def _impeding_vehicles(before: TrafficSnapshot, brake_idx: list[int]) -> list[st
 def _empty_snapshot() -> TrafficSnapshot:
     z = np.zeros(0)
     return TrafficSnapshot((), np.zeros(0, dtype=np.int64), z, z, z, z, z)
+
+
+def placeholder_mask() -> npt.NDArray[np.int8]:
+    """The action mask handed back with an agent's last observation: one action, never used."""
+    mask = np.zeros(N_ACTIONS, dtype=np.int8)
+    mask[0] = 1
+    return mask

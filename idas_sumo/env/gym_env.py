@@ -11,7 +11,7 @@ import numpy.typing as npt
 from gymnasium import Env, spaces
 
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.core import EnvConfig, MergeSimulation
+from idas_sumo.env.core import EnvConfig, MergeSimulation, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.parallel import DEFAULT_NET
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, check_against_net, generate_scenario
@@ -106,8 +106,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         if self.ego in outcome.end_reason:
             extra["end_reason"] = outcome.end_reason[self.ego]
         if terminated or truncated:
-            mask = np.zeros(N_ACTIONS, dtype=np.int8)
-            mask[0] = 1
+            mask = placeholder_mask()
             return (
                 self.sim.last_observation(self.ego),
                 reward,

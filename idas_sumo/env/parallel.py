@@ -11,7 +11,7 @@ from pettingzoo import ParallelEnv
 
 from idas_sumo.agents.state_layout import STATE_DIM
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.core import EnvConfig, MergeSimulation, StepOutcome
+from idas_sumo.env.core import EnvConfig, MergeSimulation, StepOutcome, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
 from idas_sumo.sim.netgen import MergeNet
@@ -127,9 +127,8 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
             if a not in observations:  # ended this step: hand back its last observation
                 observations[a] = {
                     "observation": self.sim.last_observation(a),
-                    "action_mask": np.zeros(N_ACTIONS, dtype=np.int8),
+                    "action_mask": placeholder_mask(),
                 }
-                observations[a]["action_mask"][0] = 1  # any one action, never used
         new_agents = [a for a in self.agents if a not in acting]
         for a in new_agents:
             infos[a] = self._info(a)
@@ -147,7 +146,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         return self.sim.state()
 
     def render(self) -> None:
-        """sumo-gui shows the run when the env was made with render_mode='human'."""
+        """Nothing to draw here: create the env with ``gui=True`` to watch the run in sumo-gui."""
 
     def close(self) -> None:
         self.sim.close()

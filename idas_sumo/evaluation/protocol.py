@@ -16,7 +16,7 @@ from idas_sumo.env.core import MergeSimulation
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, generate_scenario, load_scenario
 from idas_sumo.env.snapshot import ROAD_NAMES
-from idas_sumo.evaluation.metrics import EpisodeFacts, episode_row, flow_row
+from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
 from idas_sumo.evaluation.policies import PolicyFn
 
 Suite = Literal["paper", "representative", "driver-types"]
@@ -145,13 +145,7 @@ def run_case(
         impedes += sum(1 for parts in outcome.reward_parts.values() if parts["impede"] < 0)
         if case.ego in outcome.rewards:
             ego_reward += outcome.rewards[case.ego]
-    trajectory = pd.DataFrame(
-        rows,
-        columns=[
-            "time_s", "vehicle", "controlled", "method", "road", "dist_to_merge_m",
-            "speed_mps", "accel_mps2", "action", "allowed_actions",
-        ],
-    )  # fmt: skip
+    trajectory = pd.DataFrame(rows, columns=list(TRAJECTORY_COLUMNS))
     ego_spec = next(v for v in scenario.vehicles if v.id == case.ego)
     facts = EpisodeFacts(
         scenario=scenario.name,

@@ -12,11 +12,9 @@ is one ``InputError`` line naming the file.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import pickle
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any
@@ -27,6 +25,7 @@ from idas_sumo import __version__
 from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.errors import InputError
+from idas_sumo.io_utils import atomic_open
 
 __all__ = ["CHECKPOINT_KIND", "TRAIN_CHECKPOINT_FORMAT", "load_actor", "load_checkpoint", "save_checkpoint"]
 
@@ -46,18 +45,8 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
         "obs_layout_id": OBS_LAYOUT_ID,
         **payload,
     }
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(full, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; a checkpoint is an ordinary output file
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    with atomic_open(path, "wb") as f:
+        torch.save(full, f)
     try:  # make the rename itself durable
         dir_fd = os.open(path.parent, os.O_RDONLY)
     except OSError:
