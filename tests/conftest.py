@@ -68,3 +68,26 @@ def checkpoint_payload(learner: Any, **extra: Any) -> dict[str, Any]:
         "torch_rng": torch.Generator().manual_seed(3).get_state(),
         **extra,
     }
+
+
+def interrupt_when(proc: Any, ready: Any, settle_s: float = 0.0, timeout_s: float = 30.0) -> str:
+    """Wait until ``ready()`` (or ``timeout_s``), let ``settle_s`` pass, send Ctrl-C; return stderr.
+
+    Fails if the process ended before it could be interrupted; never leaves it running.
+    """
+    import signal
+    import time
+
+    try:
+        deadline = time.monotonic() + timeout_s
+        while proc.poll() is None and not ready() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(settle_s)
+        assert proc.poll() is None, f"finished before it could be interrupted: {proc.communicate()}"
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    return str(stderr)

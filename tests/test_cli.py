@@ -4,13 +4,12 @@ that names the flag or file, never a traceback; nothing is overwritten or half-w
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from conftest import interrupt_when
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -244,18 +243,8 @@ def test_ctrl_c_exits_130_and_writes_nothing(tmp_path: Path, net_path: Path) -> 
         text=True,
         cwd=REPO_ROOT,
     )
-    try:
-        deadline = time.monotonic() + 30.0
-        while not out.exists() and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)  # the output directory appears once the inputs are checked
-        time.sleep(1.0)  # well into the episodes
-        assert proc.poll() is None, "evaluation finished before it could be interrupted"
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    # The output directory appears once the inputs are checked; one more second is well into the episodes.
+    stderr = interrupt_when(proc, out.exists, settle_s=1.0)
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr
     assert "interrupted" in stderr

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import checkpoint_payload
+from conftest import checkpoint_payload, interrupt_when
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 NET = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
@@ -562,19 +562,11 @@ def test_ctrl_c_during_train_exits_130_with_a_loadable_checkpoint(tmp_path: Path
         cwd=REPO_ROOT,
     )
     metrics = run / "metrics.csv"
-    try:
-        deadline = time.monotonic() + 30.0
-        while proc.poll() is None and time.monotonic() < deadline:
-            if metrics.exists() and len(metrics.read_text().splitlines()) >= 3:
-                break  # two episodes done
-            time.sleep(0.05)
-        assert proc.poll() is None, proc.communicate()
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+
+    def two_episodes_done() -> bool:
+        return metrics.exists() and len(metrics.read_text().splitlines()) >= 3
+
+    stderr = interrupt_when(proc, two_episodes_done)
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr
     assert stderr.splitlines()[-1].startswith("idas-sumo: interrupted"), stderr
