@@ -292,3 +292,20 @@ def test_registry() -> None:
     for name, policy in BASELINES.items():
         actions = policy(snap, EGO, np.array([0.0]), full, FSMParams())
         assert actions.shape == (1,), name
+
+
+def test_other_road_leaders_for_the_safety_mask() -> None:
+    from idas_sumo.env.snapshot import other_road_leaders
+
+    # merge ego at 60 m; main cars at 50 m (ahead by 10 m: gap 10 - 5 = 5 m) and 30 m (further ahead).
+    snap = make_snapshot([(MERGE, 60.0, 10.0), (MAIN, 50.0, 10.0), (MAIN, 30.0, 10.0)])
+    leader, gap = other_road_leaders(snap, np.array([0]), max_ahead_m=np.inf, zone_m=100.0)
+    assert leader.tolist() == [1] and gap.tolist() == [5.0]
+    # Outside the zone (ego at 120 m from the merge point) nobody counts.
+    far = make_snapshot([(MERGE, 120.0, 10.0), (MAIN, 50.0, 10.0)])
+    assert other_road_leaders(far, np.array([0]), max_ahead_m=np.inf, zone_m=100.0)[0].tolist() == [NO_LEADER]
+    # Level cars: with level_counts_for_main the merge car sees the main car (gap -5), never the reverse.
+    level = make_snapshot([(MAIN, 40.0, 10.0), (MERGE, 40.0, 10.0)])
+    leader, gap = other_road_leaders(level, np.array([0, 1]), np.inf, 100.0, level_counts_for_main=True)
+    assert leader.tolist() == [NO_LEADER, 0] and gap.tolist() == [np.inf, -5.0]
+    assert other_road_leaders(level, np.array([0, 1]), np.inf, 100.0)[0].tolist() == [NO_LEADER, NO_LEADER]

@@ -190,3 +190,14 @@ def test_masked_actions_are_never_sampled_or_applied(small_budget) -> None:  # t
         assert env.last_outcome is not None and env.last_outcome.replaced_actions == {agent: replaced}
     finally:
         env.close()
+
+
+def test_ease_in_keeps_the_strongest_step_for_a_far_other_road_front_car() -> None:
+    # The emergency above (bound -25.38): with ease_in (the front car is on the other road and the merge
+    # point still more than 50 m away) the -0.2 step stays allowed next to the hard brake.
+    strict = safety_mask([0.0], [10.0], [10.0], [0.0])[0].tolist()
+    eased = safety_mask([0.0], [10.0], [10.0], [0.0], ease_in=np.array([True]))[0].tolist()
+    assert strict == [False, False, False, False, False, True, False]
+    assert eased == [True, False, False, False, False, True, False]
+    # Never below the kinematic floor: from -2 the -0.2 step would give -2.2.
+    assert safety_mask([-2.0], [10.0], [10.0], [0.0], ease_in=np.array([True]))[0, 0] == np.False_

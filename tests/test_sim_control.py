@@ -5,8 +5,10 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 
+from idas_sumo.baselines.policies import BASELINES
 from idas_sumo.env.core import EnvConfig, MergeSimulation
 from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.errors import SimulationError
@@ -107,12 +109,12 @@ def test_invalid_speed_commands_are_refused(backend: SumoBackend) -> None:
 
 
 def test_merge_crash_is_collided_with_collide_reward(merge_net: MergeNet) -> None:
-    # Both cars reach the merge point at the same moment and keep their speed: a crash on the junction.
+    # Both cars are level 3 m before the merge point at 15 m/s: even the masked hard brake comes too late.
     scenario = Scenario(
         "crash",
         (
-            VehicleSpec("m", "main", 230.0, 10.0, b_type=0.0),
-            VehicleSpec("g", "merge", 230.0, 10.0, b_type=0.0),
+            VehicleSpec("m", "main", 247.0, 15.0, b_type=0.0),
+            VehicleSpec("g", "merge", 247.0, 15.0, b_type=0.0),
         ),
         main_prio=1,
         merge_prio=0,
@@ -219,3 +221,36 @@ def test_second_backend_goes_to_a_subprocess(merge_net: MergeNet) -> None:
     with pytest.raises(SimulationError):
         second.step()
     assert not slot_taken()
+
+
+def test_safety_mask_makes_the_later_car_yield_at_the_merge(merge_net: MergeNet) -> None:
+    # Level 20 m before the merge point, both driven by plain IDM (which ignores the other road): under
+    # the literal own-lane mask they met side by side on the junction; the other-road front car makes the
+    # merge car (level cars: main goes first) brake, and both finish.
+    scenario = Scenario(
+        "level",
+        (
+            VehicleSpec("m", "main", 230.0, 10.0, b_type=0.0),
+            VehicleSpec("g", "merge", 230.0, 10.0, b_type=0.0),
+        ),
+        main_prio=1,
+        merge_prio=0,
+    )
+    sim = MergeSimulation(merge_net, config=EnvConfig(max_episode_s=20.0))
+    try:
+        sim.reset(scenario)
+        ended: dict[str, str] = {}
+        first_masks = dict(zip(sim.active_agents, sim.observe()[1].tolist(), strict=True))
+        assert first_masks["m"][DA0] == 1 and first_masks["g"][DA0] == 0
+        while sim.active_agents:
+            agents = sim.active_agents
+            _, masks = sim.observe(agents)
+            prev = np.array([sim.prev_accel(a) for a in agents])
+            actions = BASELINES["idm"](sim.snapshot, sim.snapshot.index(agents), prev, masks)
+            out = sim.step(dict(zip(agents, actions.tolist(), strict=True)))
+            ended.update(out.end_reason)
+            assert out.collisions == []
+        assert ended == {"m": "finished", "g": "finished"}
+        assert list(ended) == ["m", "g"]  # the main car went first
+    finally:
+        sim.close()

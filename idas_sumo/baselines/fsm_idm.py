@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.baselines.idm import DEFAULT_IDM, IDMParams, idm_acceleration
-from idas_sumo.env.snapshot import MAIN, MERGE, NO_LEADER, TrafficSnapshot, leaders
+from idas_sumo.env.snapshot import NO_LEADER, TrafficSnapshot, leaders, other_road_leaders
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -87,23 +87,9 @@ def virtual_leaders(
     Where there is no virtual leader the speed is the ego's own (so IDM sees no approach rate).
     """
     idx = _as_indices(snapshot, egos)
-    n = idx.shape[0]
-    if n == 0:
+    if idx.shape[0] == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.float64), np.empty(0, dtype=np.float64)
-    road = snapshot.road
-    dist = snapshot.dist_to_merge_m
-    ego_road = road[idx][:, None]
-    incoming_ego = ((ego_road == MAIN) | (ego_road == MERGE)) & (dist[idx][:, None] >= 0.0)
-    # Cars already on OUT are real leaders (leaders()), so only the other *incoming* road is scanned.
-    other_incoming = ((road[None, :] == MAIN) | (road[None, :] == MERGE)) & (road[None, :] != ego_road)
-    ahead_by = dist[idx][:, None] - dist[None, :]  # > 0: closer to the merge point than the ego
-    candidates = incoming_ego & other_incoming & (ahead_by > 0.0) & (ahead_by <= window_m)
-    distance = np.where(candidates, ahead_by, np.inf)
-    nearest = np.argmin(distance, axis=1)
-    rows = np.arange(n)
-    has = np.isfinite(distance[rows, nearest])
-    leader = np.where(has, nearest, NO_LEADER).astype(np.int64)
-    gap = np.where(has, distance[rows, nearest] - snapshot.length_m[nearest], np.inf).astype(np.float64)
+    leader, gap = other_road_leaders(snapshot, idx, max_ahead_m=window_m)
     return leader, gap, _leader_speed(snapshot, idx, leader)
 
 

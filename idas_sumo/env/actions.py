@@ -119,6 +119,7 @@ def safety_mask(
     leader_speed_mps: npt.ArrayLike,
     params: IDMParams = DEFAULT_IDM,
     cand: FloatArray | None = None,
+    ease_in: BoolArray | None = None,
 ) -> BoolArray:
     """Actions whose acceleration does not exceed IDM's to the car in front (gap = inf: no leader).
 
@@ -126,12 +127,15 @@ def safety_mask(
     Δa step stays allowed even if it does not reach the bound yet, so the agent closes in on the bound at
     the jerk limit. Without this, any bound between a - 0.2 and -2 m/s² left only the hard brake, and dense
     traffic turned into hard-brake waves (every agent timed out in the intelligent world). When IDM asks
-    for more than -b, only actions under the bound (and the hard brake) remain.
+    for more than -b, only actions under the bound (and the hard brake) remain, except where ``ease_in``
+    is set: there the strongest Δa step stays allowed whatever the bound (see ``MaskInputs.ease_in``).
     """
     cand = candidate_accelerations(prev_accel) if cand is None else cand
     bound = safety_bound(speed_mps, gap_m, leader_speed_mps, params)
     allowed = cand <= bound[:, None] + _TOLERANCE
     comfortable = bound >= -params.comfortable_decel_mps2 - _TOLERANCE
+    if ease_in is not None:
+        comfortable |= np.asarray(ease_in, dtype=np.bool_)
     allowed[:, 0] |= comfortable & (cand[:, 0] >= MIN_ACCEL_MPS2 - _TOLERANCE)
     allowed[:, HARD_BRAKE] = True
     return np.asarray(allowed, dtype=np.bool_)
@@ -145,7 +149,12 @@ class MaskInputs:
     speed_mps: FloatArray
     speed_limit_mps: FloatArray
     gap_m: FloatArray
+    """Bumper gap to the front car (inf: none); see ``MergeSimulation`` for which car that is."""
     leader_speed_mps: FloatArray
+    ease_in: BoolArray | None = None
+    """Ours: the front car is on the other road and the ego is still outside the merging zone. Opening a
+    gap to it only has to be done by the merge point, and from there comfortable braking does it, so
+    the strongest Δa step stays allowed instead of forcing a hard brake the moment it comes into sight."""
 
 
 def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDArray[np.int8]:
@@ -161,6 +170,7 @@ def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDA
             inputs.leader_speed_mps,
             params,
             cand,
+            inputs.ease_in,
         )
     )
     return allowed.astype(np.int8)

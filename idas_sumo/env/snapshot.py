@@ -74,3 +74,38 @@ def leaders(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatA
     has_leader = np.isfinite(distance[np.arange(len(egos)), leader])
     gap = np.where(has_leader, distance[np.arange(len(egos)), leader] - snapshot.length_m[leader], np.inf)
     return np.where(has_leader, leader, NO_LEADER).astype(np.int64), gap.astype(np.float64)
+
+
+def other_road_leaders(
+    snapshot: TrafficSnapshot,
+    egos: IntArray,
+    max_ahead_m: float,
+    zone_m: float = np.inf,
+    level_counts_for_main: bool = False,
+) -> tuple[IntArray, FloatArray]:
+    """Nearest car on the *other incoming road* ahead of each ego in projection: (index or NO_LEADER, gap).
+
+    Only egos on an incoming road at or before the merge point have one. A candidate must be ahead of the
+    ego by more than 0 and at most ``max_ahead_m`` (front bumper to front bumper), and both cars must be
+    within ``zone_m`` of the merge point. With ``level_counts_for_main`` a main-road car exactly level
+    with a merge-road ego counts as ahead (so two level cars never both see a free road). The gap is the
+    projected distance minus the leader's length and may be <= 0: the cars already overlap in projection.
+    """
+    road = snapshot.road
+    dist = snapshot.dist_to_merge_m
+    ego_road = road[egos][:, None]
+    ego_dist = dist[egos][:, None]
+    incoming_ego = ((ego_road == MAIN) | (ego_road == MERGE)) & (ego_dist >= 0.0) & (ego_dist <= zone_m)
+    # Cars already past the merge point are real leaders (leaders()), so only the other incoming road counts.
+    other_incoming = ((road[None, :] == MAIN) | (road[None, :] == MERGE)) & (road[None, :] != ego_road)
+    ahead_by = ego_dist - dist[None, :]  # > 0: closer to the merge point than the ego
+    ahead = ahead_by > 0.0
+    if level_counts_for_main:
+        ahead |= (ahead_by == 0.0) & (road[None, :] == MAIN)
+    candidates = incoming_ego & other_incoming & ahead & (ahead_by <= max_ahead_m) & (dist[None, :] <= zone_m)
+    distance = np.where(candidates, ahead_by, np.inf)
+    nearest = np.argmin(distance, axis=1) if len(snapshot) else np.zeros(len(egos), dtype=np.int64)
+    rows = np.arange(len(egos))
+    has = np.isfinite(distance[rows, nearest]) if len(snapshot) else np.zeros(len(egos), dtype=bool)
+    gap = np.where(has, distance[rows, nearest] - snapshot.length_m[nearest], np.inf)
+    return np.where(has, nearest, NO_LEADER).astype(np.int64), gap.astype(np.float64)
