@@ -309,3 +309,7 @@ def test_other_road_leaders_for_the_safety_mask() -> None:
     leader, gap = other_road_leaders(level, np.array([0, 1]), np.inf, 100.0, level_counts_for_main=True)
     assert leader.tolist() == [NO_LEADER, 0] and gap.tolist() == [np.inf, -5.0]
     assert other_road_leaders(level, np.array([0, 1]), np.inf, 100.0)[0].tolist() == [NO_LEADER, NO_LEADER]
+    # A flagged vehicle (a SUMO car that yields at the junction by itself) is nobody's leader.
+    assert other_road_leaders(
+        snap, np.array([0]), np.inf, 100.0, never_leading=np.array([False, True, False])
+    )[0].tolist() == [2]

@@ -314,8 +314,18 @@ class MergeSimulation:
         """
         snap = self.snapshot
         leader, gap = leaders(snap, egos)
+        # SUMO's own cars on the merge road give way to every main-road car at the junction (stage 1's
+        # "merge always yields"); counting them as front cars of main-road cars deadlocked both.
+        sumo_yielding = (snap.road == MERGE) & ~np.fromiter(
+            (self._spec[v].controlled for v in snap.ids), dtype=np.bool_, count=len(snap)
+        )
         merge_leader, merge_gap = other_road_leaders(
-            snap, egos, max_ahead_m=np.inf, zone_m=VISIBILITY_M, level_counts_for_main=True
+            snap,
+            egos,
+            max_ahead_m=np.inf,
+            zone_m=VISIBILITY_M,
+            level_counts_for_main=True,
+            never_leading=sumo_yielding,
         )
         speed = snap.speed_mps[egos]
         leader_speed = np.where(leader >= 0, snap.speed_mps[np.maximum(leader, 0)], speed)

@@ -82,6 +82,7 @@ def other_road_leaders(
     max_ahead_m: float,
     zone_m: float = np.inf,
     level_counts_for_main: bool = False,
+    never_leading: BoolArray | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """Nearest car on the *other incoming road* ahead of each ego in projection: (index or NO_LEADER, gap).
 
@@ -103,6 +104,8 @@ def other_road_leaders(
     if level_counts_for_main:
         ahead |= (ahead_by == 0.0) & (road[None, :] == MAIN)
     candidates = incoming_ego & other_incoming & ahead & (ahead_by <= max_ahead_m) & (dist[None, :] <= zone_m)
+    if never_leading is not None:
+        candidates &= ~never_leading[None, :]
     distance = np.where(candidates, ahead_by, np.inf)
     nearest = np.argmin(distance, axis=1) if len(snapshot) else np.zeros(len(egos), dtype=np.int64)
     rows = np.arange(len(egos))
