@@ -15,6 +15,7 @@ from idas_sumo.env.actions import (
     effective_speed_limit,
     kinematic_mask,
     next_acceleration,
+    peak_speed_gain,
     rule_mask,
     safety_bound,
     safety_mask,
@@ -50,12 +51,29 @@ def test_action_accelerations() -> None:
 
 
 def test_speed_limit_hand_worked() -> None:
-    # v = 14.9 m/s on the 15 m/s road, a_prev = 0.5: next speed v + a·0.2 for
-    #   Δa -0.2 -> a 0.3 -> 14.96 ok;  -0.1 -> 0.4 -> 14.98 ok;  0 -> 0.5 -> 15.00 ok (at the limit)
-    #   +0.1 -> 0.6 -> 15.02 too fast;  +0.2 -> 0.7 -> 15.04 too fast;  hard brake never masked.
-    assert rule_mask([0.5], [14.9], [15.0])[0].tolist() == [True, True, True, False, False, True, True]
+    # v = 14.9 m/s on the 15 m/s road, a_prev = 0.5. Peak speed while easing off at 0.2 m/s² per step:
+    #   Δa -0.2 -> a 0.3: steps at 0.3, 0.1 -> +0.08 -> 14.98 ok
+    #   Δa -0.1 -> a 0.4: steps at 0.4, 0.2 -> +0.12 -> 15.02 too fast
+    #   Δa  0   -> a 0.5: steps at 0.5, 0.3, 0.1 -> +0.18 -> 15.08 too fast (and +0.1, +0.2 more so)
+    # Hard brake is never masked; release (a = 0) keeps 14.9.
+    assert rule_mask([0.5], [14.9], [15.0])[0].tolist() == [True, False, False, False, False, True, True]
     # Release brake is only allowed right after a hard brake (kinematic mask), so the full mask drops it.
-    assert masks_for(0.5, 14.9, 15.0) == [1, 1, 1, 0, 0, 1, 0]
+    assert masks_for(0.5, 14.9, 15.0) == [1, 0, 0, 0, 0, 1, 0]
+    np.testing.assert_allclose(peak_speed_gain([0.0, 0.2, 0.3, 2.0, -1.0]), [0.0, 0.04, 0.08, 2.2, -0.2])
+
+
+def test_full_throttle_towards_the_limit_never_needs_a_hard_brake() -> None:
+    # Always take the strongest allowed Δa action from 10 m/s on a 20 m/s road: the rule mask makes the
+    # agent ease off in time, so it reaches the limit without exceeding it and without a forced hard brake.
+    a, v = 0.0, 10.0
+    for _ in range(200):
+        mask = masks_for(a, v, 20.0)
+        assert any(mask[:5]), f"only the hard brake left at v = {v:.2f}, a = {a:.1f}"
+        action = max(i for i in range(5) if mask[i])
+        a = float(next_acceleration([a], [action])[0])
+        v += a * 0.2
+        assert v <= 20.0 + 1e-9
+    assert v == pytest.approx(20.0, abs=0.05)
 
 
 def test_merge_exemption_within_100_m() -> None:

@@ -86,13 +86,33 @@ def rule_mask(
     speed_limit_mps: npt.ArrayLike,
     cand: FloatArray | None = None,
 ) -> BoolArray:
-    """Actions whose next speed v + a·dt stays within the (effective) speed limit."""
+    """Actions after which the agent can stay within the (effective) speed limit without a hard brake.
+
+    Ours: a positive acceleration can only be taken back by 0.2 m/s² per step (the jerk limit), and the
+    speed keeps rising meanwhile, so the check is on the peak speed reached while easing off at the jerk
+    limit, not just on the next speed. Checking only v + a·dt let an agent reach the limit at +2 m/s²
+    with every Δa action then breaking the rule: the hard brake was its only action, and learned policies
+    drove saw-tooth profiles of hard brakes at the limit (5-7 per two-car representative scenario).
+    """
     cand = candidate_accelerations(prev_accel) if cand is None else cand
     v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))[:, None]
     limit = np.atleast_1d(np.asarray(speed_limit_mps, dtype=np.float64))[:, None]
-    allowed = v + cand * STEP_LENGTH_S <= limit + _TOLERANCE
+    allowed = v + peak_speed_gain(cand) <= limit + _TOLERANCE
     allowed[:, HARD_BRAKE] = True
     return np.asarray(allowed, dtype=np.bool_)
+
+
+def peak_speed_gain(accel_mps2: npt.ArrayLike) -> FloatArray:
+    """Speed gained (m/s) from driving one step at ``accel`` and then easing off to 0 at the jerk limit.
+
+    a > 0: steps at a, a - 0.2, ..., down to the last positive value: dt·((m+1)·a - 0.2·m(m+1)/2) with
+    m = floor(a / 0.2). a <= 0: the one step's a·dt.
+    """
+    a = np.asarray(accel_mps2, dtype=np.float64)
+    step = DELTA_ACCEL_MPS2[-1]
+    m = np.floor(np.maximum(a, 0.0) / step + _TOLERANCE)
+    easing = (m + 1.0) * a - step * m * (m + 1.0) / 2.0
+    return np.asarray(np.where(a > 0.0, easing, a) * STEP_LENGTH_S, dtype=np.float64)
 
 
 def safety_bound(
