@@ -120,7 +120,9 @@ def profiles(traj: pd.DataFrame, path: Path) -> Path:
 
     traj = traj[traj["scenario"].astype(str).isin(["s1", "s2", "s3", "s4"])]
     methods = list(dict.fromkeys(traj["run_method"]))
-    fig, axes = plt.subplots(2 * len(methods), 4, figsize=(14, 4.2 * len(methods)), squeeze=False)
+    fig, axes = plt.subplots(
+        2 * len(methods), 4, figsize=(14, 4.2 * len(methods)), squeeze=False, layout="constrained"
+    )
     for m, method in enumerate(methods):
         for s, name in enumerate(["s1", "s2", "s3", "s4"]):
             run = traj[(traj["run_method"] == method) & (traj["scenario"] == name)]
@@ -136,7 +138,6 @@ def profiles(traj: pd.DataFrame, path: Path) -> Path:
             vel_ax.set_xlabel("time, s")
             pos_ax.legend(fontsize=7)
     fig.suptitle("Representative scenarios: position-time (merging zone shaded) and velocity profiles")
-    fig.tight_layout()
     return _save(fig, path)
 
 
