@@ -108,18 +108,19 @@ def test_invalid_speed_commands_are_refused(backend: SumoBackend) -> None:
             backend.set_speeds({"ego": bad})
 
 
+def _level_pair(net: MergeNet, start_pos_m: float, speed_mps: float) -> tuple[MergeSimulation, Scenario]:
+    """A main-road car "m" and a merge-road car "g", level with each other, main road has priority."""
+    cars = (
+        VehicleSpec("m", "main", start_pos_m, speed_mps, b_type=0.0),
+        VehicleSpec("g", "merge", start_pos_m, speed_mps, b_type=0.0),
+    )
+    scenario = Scenario("level", cars, main_prio=1, merge_prio=0)
+    return MergeSimulation(net, config=EnvConfig(max_episode_s=20.0)), scenario
+
+
 def test_merge_crash_is_collided_with_collide_reward(merge_net: MergeNet) -> None:
     # Both cars are level 3 m before the merge point at 15 m/s: even the masked hard brake comes too late.
-    scenario = Scenario(
-        "crash",
-        (
-            VehicleSpec("m", "main", 247.0, 15.0, b_type=0.0),
-            VehicleSpec("g", "merge", 247.0, 15.0, b_type=0.0),
-        ),
-        main_prio=1,
-        merge_prio=0,
-    )
-    sim = MergeSimulation(merge_net, config=EnvConfig(max_episode_s=20.0))
+    sim, scenario = _level_pair(merge_net, start_pos_m=247.0, speed_mps=15.0)
     try:
         sim.reset(scenario)
         ended: dict[str, str] = {}
@@ -227,16 +228,7 @@ def test_safety_mask_makes_the_later_car_yield_at_the_merge(merge_net: MergeNet)
     # Level 20 m before the merge point, both driven by plain IDM (which ignores the other road): under
     # the literal own-lane mask they met side by side on the junction; the other-road front car makes the
     # merge car (level cars: main goes first) brake, and both finish.
-    scenario = Scenario(
-        "level",
-        (
-            VehicleSpec("m", "main", 230.0, 10.0, b_type=0.0),
-            VehicleSpec("g", "merge", 230.0, 10.0, b_type=0.0),
-        ),
-        main_prio=1,
-        merge_prio=0,
-    )
-    sim = MergeSimulation(merge_net, config=EnvConfig(max_episode_s=20.0))
+    sim, scenario = _level_pair(merge_net, start_pos_m=230.0, speed_mps=10.0)
     try:
         sim.reset(scenario)
         ended: dict[str, str] = {}
