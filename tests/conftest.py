@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -91,3 +94,17 @@ def interrupt_when(proc: Any, ready: Any, settle_s: float = 0.0, timeout_s: floa
             proc.kill()
             proc.communicate()
     return str(stderr)
+
+
+def run_cli(
+    *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, timeout: float = 60.0
+) -> subprocess.CompletedProcess[str]:
+    """`python -m idas_sumo.cli ARGS` in a child process (repo root by default), output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", "idas_sumo.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd or REPO_ROOT,
+        timeout=timeout,
+        env=env if env is not None else {**os.environ, "PYTHONUNBUFFERED": "1"},
+    )

@@ -3,26 +3,14 @@ that names the flag or file, never a traceback; nothing is overwritten or half-w
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from conftest import interrupt_when
+from conftest import interrupt_when, run_cli
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "idas_sumo.cli", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd or REPO_ROOT,
-        timeout=timeout,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
 
 
 def assert_usage_error(result: subprocess.CompletedProcess[str], *needles: str) -> str:

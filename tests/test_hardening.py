@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import checkpoint_payload, interrupt_when
+from conftest import checkpoint_payload, interrupt_when, run_cli
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 NET = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
@@ -43,19 +43,6 @@ max_vehicles_per_road = 2
 
 
 # --- helpers ------------------------------------------------------------------------------------------
-
-
-def run_cli(
-    *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, timeout: float = 60.0
-) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "idas_sumo.cli", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd or REPO_ROOT,
-        timeout=timeout,
-        env=env if env is not None else {**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
 
 
 def assert_one_line(stderr: str, code: int, returncode: int, *needles: str) -> str:

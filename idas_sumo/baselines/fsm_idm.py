@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.baselines.idm import DEFAULT_IDM, IDMParams, idm_acceleration
-from idas_sumo.env.snapshot import NO_LEADER, TrafficSnapshot, leaders, other_road_leaders
+from idas_sumo.env.snapshot import TrafficSnapshot, leader_speeds, leaders, other_road_leaders
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -65,14 +65,6 @@ def _as_indices(snapshot: TrafficSnapshot, egos: npt.ArrayLike) -> IntArray:
     return idx
 
 
-def _leader_speed(snapshot: TrafficSnapshot, egos: IntArray, leader: IntArray) -> FloatArray:
-    # Without a leader report the ego's own speed (approach rate 0) rather than a sentinel: IDM ignores
-    # it where the gap is inf, and a finite value keeps inf/nan out of the arithmetic.
-    has = leader != NO_LEADER
-    speed = np.where(has, snapshot.speed_mps[np.where(has, leader, 0)], snapshot.speed_mps[egos])
-    return speed.astype(np.float64)
-
-
 def virtual_leaders(
     snapshot: TrafficSnapshot,
     egos: npt.ArrayLike,
@@ -90,7 +82,7 @@ def virtual_leaders(
     if idx.shape[0] == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.float64), np.empty(0, dtype=np.float64)
     leader, gap = other_road_leaders(snapshot, idx, max_ahead_m=window_m)
-    return leader, gap, _leader_speed(snapshot, idx, leader)
+    return leader, gap, leader_speeds(snapshot, idx, leader)
 
 
 def real_leader_idm_acceleration(
@@ -103,7 +95,7 @@ def real_leader_idm_acceleration(
     leader, gap = leaders(snapshot, idx)
     v = snapshot.speed_mps[idx]
     return idm_acceleration(
-        v, snapshot.speed_limit_mps[idx], gap, v - _leader_speed(snapshot, idx, leader), idm
+        v, snapshot.speed_limit_mps[idx], gap, v - leader_speeds(snapshot, idx, leader), idm
     )
 
 

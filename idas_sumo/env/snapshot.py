@@ -68,12 +68,25 @@ def leaders(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatA
     """Nearest car ahead in each ego's current lane: (index or NO_LEADER, bumper gap in m or inf)."""
     same, _ = lane_relations(snapshot.road, egos)
     ahead_by = snapshot.dist_to_merge_m[egos][:, None] - snapshot.dist_to_merge_m[None, :]  # > 0: ahead
-    candidates = same & (ahead_by > 0.0)
-    distance = np.where(candidates, ahead_by, np.inf)
-    leader = np.argmin(distance, axis=1)
-    has_leader = np.isfinite(distance[np.arange(len(egos)), leader])
-    gap = np.where(has_leader, distance[np.arange(len(egos)), leader] - snapshot.length_m[leader], np.inf)
-    return np.where(has_leader, leader, NO_LEADER).astype(np.int64), gap.astype(np.float64)
+    return _nearest_ahead(snapshot, np.where(same & (ahead_by > 0.0), ahead_by, np.inf))
+
+
+def _nearest_ahead(snapshot: TrafficSnapshot, distance: FloatArray) -> tuple[IntArray, FloatArray]:
+    """Per ego row of ``distance`` (front to front, inf: not a candidate): (nearest index or NO_LEADER, gap)."""
+    rows = np.arange(distance.shape[0])
+    if distance.shape[1] == 0:
+        return np.full(rows.shape, NO_LEADER, dtype=np.int64), np.full(rows.shape, np.inf)
+    nearest = np.argmin(distance, axis=1)
+    has = np.isfinite(distance[rows, nearest])
+    gap = np.where(has, distance[rows, nearest] - snapshot.length_m[nearest], np.inf)
+    return np.where(has, nearest, NO_LEADER).astype(np.int64), gap.astype(np.float64)
+
+
+def leader_speeds(snapshot: TrafficSnapshot, egos: IntArray, leader: IntArray) -> FloatArray:
+    """Each leader's speed (m/s); the ego's own speed where it has none (so IDM sees no approach rate)."""
+    has = leader != NO_LEADER
+    speed = np.where(has, snapshot.speed_mps[np.where(has, leader, 0)], snapshot.speed_mps[egos])
+    return speed.astype(np.float64)
 
 
 def other_road_leaders(
@@ -106,9 +119,4 @@ def other_road_leaders(
     candidates = incoming_ego & other_incoming & ahead & (ahead_by <= max_ahead_m) & (dist[None, :] <= zone_m)
     if never_leading is not None:
         candidates &= ~never_leading[None, :]
-    distance = np.where(candidates, ahead_by, np.inf)
-    nearest = np.argmin(distance, axis=1) if len(snapshot) else np.zeros(len(egos), dtype=np.int64)
-    rows = np.arange(len(egos))
-    has = np.isfinite(distance[rows, nearest]) if len(snapshot) else np.zeros(len(egos), dtype=bool)
-    gap = np.where(has, distance[rows, nearest] - snapshot.length_m[nearest], np.inf)
-    return np.where(has, nearest, NO_LEADER).astype(np.int64), gap.astype(np.float64)
+    return _nearest_ahead(snapshot, np.where(candidates, ahead_by, np.inf))
