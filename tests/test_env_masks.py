@@ -217,5 +217,16 @@ def test_ease_in_keeps_the_strongest_step_for_a_far_other_road_front_car() -> No
     eased = safety_mask([0.0], [10.0], [10.0], [0.0], ease_in=np.array([True]))[0].tolist()
     assert strict == [False, False, False, False, False, True, False]
     assert eased == [True, False, False, False, False, True, False]
-    # Never below the kinematic floor: from -2 the -0.2 step would give -2.2.
-    assert safety_mask([-2.0], [10.0], [10.0], [0.0], ease_in=np.array([True]))[0, 0] == np.False_
+    # Never below the kinematic floor: from -2 the -0.2 step would give -2.2, so keeping -2 (Δa = 0) is
+    # the strongest step left; from -1.9 it is -0.1. Without ease_in both are left with the hard brake.
+    at_floor = safety_mask(
+        [-2.0, -1.9], [10.0, 10.0], [10.0, 10.0], [0.0, 0.0], ease_in=np.array([True, True])
+    )
+    assert at_floor.tolist() == [
+        [False, False, True, False, False, True, False],
+        [False, True, False, False, False, True, False],
+    ]
+    strict_at_floor = safety_mask([-2.0, -1.9], [10.0, 10.0], [10.0, 10.0], [0.0, 0.0])
+    assert strict_at_floor[:, :5].sum() == 0
+    # During a hard brake every Δa step lies below -2: ease_in adds none of them.
+    assert safety_mask([-4.0], [10.0], [10.0], [0.0], ease_in=np.array([True]))[0, :5].sum() == 0

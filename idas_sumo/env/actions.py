@@ -145,7 +145,7 @@ def safety_mask(
 
     Ours: while IDM asks for no more than the comfortable deceleration (bound >= -b), the strongest
     Δa step stays allowed even if it does not reach the bound yet, so the agent closes in on the bound at
-    the jerk limit. Without this, any bound between a - 0.2 and -2 m/s² left only the hard brake, and dense
+    the jerk limit (the strongest step within the kinematic range: at a = -2 that is keeping -2). Without this, any bound between a - 0.2 and -2 m/s² left only the hard brake, and dense
     traffic turned into hard-brake waves (every agent timed out in the intelligent world). When IDM asks
     for more than -b, only actions under the bound (and the hard brake) remain, except where ``ease_in``
     is set: there the strongest Δa step stays allowed whatever the bound (see ``MaskInputs.ease_in``).
@@ -156,7 +156,13 @@ def safety_mask(
     comfortable = bound >= -params.comfortable_decel_mps2 - _TOLERANCE
     if ease_in is not None:
         comfortable |= np.asarray(ease_in, dtype=np.bool_)
-    allowed[:, 0] |= comfortable & (cand[:, 0] >= MIN_ACCEL_MPS2 - _TOLERANCE)
+    # The strongest Δa step that stays within the kinematic range: -0.2 normally, but 0 at a = -2, so a
+    # car already braking at -2 keeps braking instead of being left with the hard brake alone.
+    # During a hard brake (a = -4) no Δa step is within the range: the mask leaves those rows alone.
+    in_range = cand[:, :N_DELTA_ACTIONS] >= MIN_ACCEL_MPS2 - _TOLERANCE
+    rows = np.arange(cand.shape[0])
+    strongest = np.argmax(in_range, axis=1)
+    allowed[rows, strongest] |= comfortable & in_range[rows, strongest]
     allowed[:, HARD_BRAKE] = True
     return np.asarray(allowed, dtype=np.bool_)
 
