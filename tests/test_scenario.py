@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from idas_sumo.env.scenario import TrafficConfig, generate_scenario, load_scenario
+from idas_sumo.env.actions import safety_bound
+from idas_sumo.env.scenario import TrafficConfig, _speeds_without_braking, generate_scenario, load_scenario
 from idas_sumo.errors import InputError
 
 LIMITS = {"main": 20.0, "merge": 15.0}
@@ -23,7 +24,7 @@ def test_generate_is_deterministic_per_seed() -> None:
 
 
 def test_generated_ranges() -> None:
-    traffic = TrafficConfig()
+    traffic = TrafficConfig(start_without_braking=False)  # speeds exactly as drawn
     rng = np.random.default_rng(0)
     counts: set[int] = set()
     prios: set[tuple[int, int]] = set()
@@ -44,6 +45,41 @@ def test_generated_ranges() -> None:
                 assert front.start_pos_m - back.start_pos_m >= 20.0 - 2e-3
     assert counts == set(range(2, 9))
     assert (1, 0) in prios and ((0, 0) in prios or (1, 1) in prios)
+
+
+def test_start_speed_cap_hand_worked() -> None:
+    # Leader at 9 m/s, follower 15 m behind (bumper gap): s* = 2 + v + v(v - 9)/4 <= 15 gives
+    # v²/4 - 1.25·v - 13 <= 0, whose larger root is (1.25 + sqrt(1.5625 + 13)) / 0.5 = 10.132 m/s.
+    capped = _speeds_without_braking(np.array([5.0, 25.0]), np.array([14.0, 9.0]))
+    np.testing.assert_allclose(capped, [10.1322, 9.0], atol=1e-4)
+    # A slower follower keeps its drawn speed.
+    np.testing.assert_allclose(
+        _speeds_without_braking(np.array([5.0, 25.0]), np.array([8.0, 9.0])), [8.0, 9.0]
+    )
+
+
+def test_no_car_starts_inside_its_safety_braking_region() -> None:
+    rng = np.random.default_rng(3)
+    drawn_off = TrafficConfig(start_without_braking=False)
+    capped_any = False
+    for _ in range(200):
+        state = rng.bit_generator.state
+        s = generate_scenario(rng, TrafficConfig(), LIMITS)
+        rng_off = np.random.default_rng()
+        rng_off.bit_generator.state = state
+        as_drawn = generate_scenario(rng_off, drawn_off, LIMITS)
+        # Same draws: positions, types and priorities agree; speeds are only ever lowered.
+        for v, w in zip(s.vehicles, as_drawn.vehicles, strict=True):
+            assert (v.id, v.start_pos_m, v.b_type) == (w.id, w.start_pos_m, w.b_type)
+            assert v.speed_mps <= w.speed_mps + 1e-9
+            capped_any |= v.speed_mps < w.speed_mps - 1e-6
+        for road in ("main", "merge"):
+            cars = sorted((v for v in s.vehicles if v.road == road), key=lambda v: v.start_pos_m)
+            for back, front in itertools.pairwise(cars):
+                gap = front.start_pos_m - back.start_pos_m - 5.0
+                bound = safety_bound([back.speed_mps], [gap], [front.speed_mps])[0]
+                assert bound >= -0.01  # IDM asks for no braking at the start (up to mm rounding)
+    assert capped_any
 
 
 def test_max_controlled_makes_robot_cars() -> None:
