@@ -82,7 +82,7 @@ def summary_bars(episodes: pd.DataFrame, path: Path) -> Path:
     ax.set_ylabel("scenarios, %")
     ax.set_ylim(0, 105)
     ax.set_title(f"Overall performance ({len(episodes) // max(len(methods), 1)} scenarios per method)")
-    ax.legend(loc="lower right")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: no bar is ever hidden
     return _save(fig, path)
 
 
@@ -93,7 +93,9 @@ def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
     rep = episodes[episodes["scenario"].astype(str).isin(["s1", "s2", "s3", "s4"])]
     methods = list(dict.fromkeys(rep["method"]))
     scenarios = ["s1", "s2", "s3", "s4"]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    from matplotlib.patches import Patch
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
     width = 0.8 / max(len(methods), 1)
     for k, method in enumerate(methods):
         rows = rep[rep["method"] == method].set_index("scenario").reindex(scenarios)
@@ -101,16 +103,29 @@ def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
         x = np.arange(len(scenarios)) + (k - (len(methods) - 1) / 2) * width
         for ax, col in zip(axes, ("normalized_reward", "ego_finish_time_s"), strict=True):
             values = rows[col].fillna(0).to_numpy()
-            bars = ax.bar(x, values, width, label=_label(method))
+            bars = ax.bar(x, values, width, color=f"C{k}")
             for bar, bad in zip(bars, failed, strict=True):
-                if bad:
+                if (
+                    bad
+                ):  # a failure has no finish time and often a zero reward: mark it where the bar would be
                     bar.set_color("0.6")
+                    ax.annotate(
+                        "×",
+                        (bar.get_x() + bar.get_width() / 2, 0.0),
+                        ha="center",
+                        va="bottom",
+                        color="0.35",
+                        fontsize=11,
+                        fontweight="bold",
+                    )
     axes[0].set_ylabel("normalised reward of the merge car")
     axes[1].set_ylabel("merge car finish time, s")
     for ax in axes:
         ax.set_xticks(range(len(scenarios)), scenarios)
-    axes[0].legend(fontsize=8)
-    fig.suptitle("Representative scenarios (grey: failure)")
+    # Legend patches from the method colours: a method whose first bar failed would otherwise show grey.
+    handles = [Patch(color=f"C{k}", label=_label(m)) for k, m in enumerate(methods)]
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(methods), fontsize=8)
+    fig.suptitle("Representative scenarios (grey ×: failure)")
     return _save(fig, path)
 
 
