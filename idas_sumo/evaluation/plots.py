@@ -162,18 +162,34 @@ def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) ->
 
     sweep = episodes[episodes["scenario"].astype(str).str.startswith("s1-btype")]
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8))
-    for method, rows in sweep.groupby("method", sort=False):
-        left.plot(rows["ego_type"], rows["ego_finish_time_s"], "o-", label=_label(method))
+    # Methods often tie exactly; shrinking markers and varied dashes keep every tied line visible.
+    styles = [("o", 10, "-"), ("s", 7, "--"), ("^", 6, ":"), ("D", 4, "-."), ("x", 6, "-")]
+    for k, (method, rows) in enumerate(sweep.groupby("method", sort=False)):
+        marker, size, line = styles[k % len(styles)]
+        left.plot(
+            rows["ego_type"],
+            rows["ego_finish_time_s"],
+            marker=marker,
+            markersize=size,
+            linestyle=line,
+            markerfacecolor="none" if k % 2 == 0 else None,
+            label=_label(method),
+        )
     left.set_xlabel("merge car driver type $b_{type}$")
     left.set_ylabel("merge car finish time, s")
     left.legend(fontsize=8)
     cmap = plt.get_cmap("viridis")
     first_method = sweep["method"].iloc[0] if len(sweep) else None
+    speeds = []
     for _, row in sweep[sweep["method"] == first_method].iterrows():
         run = traj[(traj["scenario"] == row["scenario"]) & (traj["run_method"] == first_method)]
         ego = run[run["vehicle"] == row["ego_id"]]
         color = cmap((row["ego_type"] + 2.0) / 4.0)
         right.plot(ego["time_s"], ego["speed_mps"], color=color, label=f"{row['ego_type']:+.1f}")
+        speeds.append(ego["speed_mps"].to_numpy())
+    if len(speeds) > 1 and all(len(v) == len(speeds[0]) and np.allclose(v, speeds[0]) for v in speeds):
+        # Otherwise only the last colour shows and the figure looks like a single run.
+        right.text(0.03, 0.95, "all profiles coincide", transform=right.transAxes, va="top", fontsize=9)
     right.set_xlabel("time, s")
     right.set_ylabel("merge car speed, m/s")
     right.set_title(f"{_label(first_method)}: velocity by driver type")
