@@ -1,0 +1,121 @@
+"""Ours, experimental: pre-train the actor (and V) by imitating a rule-based baseline under the same masks.
+
+Not part of the paper's method and not used for the shipped policies. It exists because the paper's
+stage 2, started from our short robot-world stage, converges to "drive at the limit and let the masks
+brake", while the masked IDM baseline drives far more smoothly (docs/results.md, "What we tried"). A
+checkpoint written by ``scripts/pretrain_imitation.py`` can start any stage through ``init_from``.
+
+Imitation: masked cross-entropy between the actor and the teacher's actions. V regresses on each
+agent's discounted Monte-Carlo return, so a following RL stage starts with a critic that fits the
+teacher's behaviour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from idas_sumo.agents.learner import Learner
+from idas_sumo.agents.rollout import EpisodeData, collect_episode
+from idas_sumo.env.core import MergeSimulation
+from idas_sumo.env.scenario import TrafficConfig, generate_scenario
+from idas_sumo.evaluation.policies import baseline_policy
+
+__all__ = ["BaselineTeacher", "EpochStats", "collect_demonstrations", "discounted_returns", "imitate"]
+
+
+class BaselineTeacher:
+    """A rule-based baseline ('idm' or 'fsm_idm') behind ``Learner.act``'s signature."""
+
+    def __init__(self, sim: MergeSimulation, name: str) -> None:
+        self._sim = sim
+        self._policy = baseline_policy(name)
+
+    def act(
+        self,
+        obs: npt.NDArray[np.float32],
+        mask: npt.NDArray[np.int8],
+        generator: torch.Generator,
+        deterministic: bool = False,
+    ) -> npt.NDArray[np.int64]:
+        # collect_episode observes exactly the active agents, in this order.
+        return np.asarray(self._policy(self._sim, self._sim.active_agents, obs, mask), dtype=np.int64)
+
+
+def collect_demonstrations(
+    sim: MergeSimulation,
+    teacher: str,
+    traffic: list[TrafficConfig],
+    episodes: int,
+    rng: np.random.Generator,
+) -> list[EpisodeData]:
+    """``episodes`` episodes driven by ``teacher``, cycling through the ``traffic`` configs."""
+    demo = BaselineTeacher(sim, teacher)
+    out = []
+    for k in range(episodes):
+        scenario = generate_scenario(rng, traffic[k % len(traffic)], sim.speed_limits_mps, name=f"demo-{k}")
+        out.append(collect_episode(sim, demo, scenario, torch.Generator()))
+    return out
+
+
+def discounted_returns(
+    rewards: npt.NDArray[np.float32], next_row: npt.NDArray[np.int64], gamma: float
+) -> npt.NDArray[np.float32]:
+    """G_i = r_i + γ·G_next(i) along each agent's own rows (``next_row`` points forward, -1: last)."""
+    g = np.zeros(len(rewards), dtype=np.float64)
+    for i in range(len(rewards) - 1, -1, -1):
+        j = next_row[i]
+        g[i] = rewards[i] + (gamma * g[j] if j >= 0 else 0.0)
+    return g.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class EpochStats:
+    epoch: int
+    cross_entropy: float
+    """Mean masked cross-entropy of the teacher's actions under the actor (nats)."""
+    agreement: float
+    """Fraction of rows where the actor's most probable allowed action is the teacher's."""
+    value_loss: float
+
+
+def imitate(
+    learner: Learner,
+    episodes: list[EpisodeData],
+    epochs: int,
+    generator: torch.Generator,
+    batch_size: int = 512,
+) -> list[EpochStats]:
+    """Fit the actor to the recorded actions and V to the discounted returns; one row per epoch."""
+    obs = torch.from_numpy(np.concatenate([e.obs for e in episodes]))
+    mask = torch.from_numpy(np.concatenate([e.mask for e in episodes])).bool()
+    action = torch.from_numpy(np.concatenate([e.action for e in episodes]))
+    gamma = learner.config.gamma
+    returns = torch.from_numpy(
+        np.concatenate([discounted_returns(e.reward, e.next_row, gamma) for e in episodes])
+    )
+    n = len(action)
+    stats = []
+    for epoch in range(epochs):
+        order = torch.randperm(n, generator=generator)
+        ce_sum = agree = v_sum = 0.0
+        for start in range(0, n, batch_size):
+            rows = order[start : start + batch_size]
+            dist = learner.actor.distribution(obs[rows], mask[rows])
+            ce = -dist.log_prob(action[rows]).mean()
+            learner.opt_actor.zero_grad(set_to_none=True)
+            ce.backward()
+            learner.opt_actor.step()
+            v_loss = 0.5 * (learner.value(obs[rows]) - returns[rows]).pow(2).mean()
+            learner.opt_value.zero_grad(set_to_none=True)
+            v_loss.backward()
+            learner.opt_value.step()
+            ce_sum += float(ce.detach()) * len(rows)
+            v_sum += float(v_loss.detach()) * len(rows)
+            agree += float((dist.probs.argmax(dim=1) == action[rows]).sum())
+        stats.append(EpochStats(epoch, ce_sum / n, agree / n, v_sum / n))
+    learner.value_target.load_state_dict(learner.value.state_dict())
+    return stats

@@ -1,0 +1,75 @@
+"""Experimental (ours, not the paper's): pre-train an actor by imitating the masked IDM baseline.
+
+    python scripts/pretrain_imitation.py --out runs/imitation.pt            # 200 episodes, 15 epochs: ~4 min
+    # then start stage 2 from it: init_from = "runs/imitation.pt" in a copy of scenarios/train_shipped.toml
+
+The demonstrations alternate between the config's intelligent-world traffic and the paper suite's
+generator. docs/results.md ("What we tried") says what stage 2 did with such a start.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from idas_sumo.agents.learner import Learner
+from idas_sumo.env.core import EnvConfig, MergeSimulation
+from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.training.checkpoint import save_checkpoint
+from idas_sumo.training.config import load_train_config
+from idas_sumo.training.imitation import collect_demonstrations, imitate
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--net", type=Path, default=Path("sumo_nets/tjunction.net.xml"))
+    parser.add_argument("--config", type=Path, default=Path("scenarios/train_shipped.toml"))
+    parser.add_argument("--teacher", choices=("idm", "fsm_idm"), default="idm")
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--epochs", type=int, default=15)
+    parser.add_argument("--lr", type=float, default=1e-3, help="actor and V learning rate while imitating")
+    parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+
+    config = load_train_config(args.config)
+    sim = MergeSimulation(args.net, seed=args.seed, config=EnvConfig(max_episode_s=config.max_episode_s))
+    rng = np.random.default_rng(args.seed)
+    started = time.perf_counter()
+    demos = collect_demonstrations(
+        sim, args.teacher, [config.intelligent_traffic, TrafficConfig()], args.episodes, rng
+    )
+    sim.close()
+    print(
+        f"{sum(len(e) for e in demos)} agent-steps from {args.episodes} episodes in {time.perf_counter() - started:.0f} s"
+    )
+    learner = Learner(dataclasses.replace(config.learner, lr_actor=args.lr, lr_value=args.lr), seed=args.seed)
+    for row in imitate(learner, demos, args.epochs, torch.Generator().manual_seed(args.seed)):
+        print(
+            f"epoch {row.epoch}: cross-entropy {row.cross_entropy:.3f}, agreement {row.agreement:.3f}, V loss {row.value_loss:.2f}"
+        )
+    save_checkpoint(
+        args.out,
+        {
+            "learner": learner.state_dict(),
+            "config": config.as_dict(),
+            "stage": f"imitation-{args.teacher}",
+            "stage_index": 0,
+            "episode": 0,
+            "global_episode": 0,
+            "numpy_rng": dict(rng.bit_generator.state),
+            "torch_rng": torch.Generator().manual_seed(args.seed).get_state(),
+        },
+    )
+    print(f"wrote {args.out} (use it as init_from)")
+
+
+if __name__ == "__main__":
+    main()
