@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from idas_sumo.agents.coma import ALPHA, coma_advantage, coma_baseline, combined_policy_loss
-from idas_sumo.agents.returns import GAMMA, discounted_returns, td_advantages, td_targets
+from idas_sumo.agents.returns import GAMMA, discounted_returns, lambda_targets, td_advantages, td_targets
 
 
 def t(*values: float) -> torch.Tensor:
@@ -139,3 +139,23 @@ def test_gae_against_hand_worked_values() -> None:
     torch.testing.assert_close(gae_advantages(delta, next_row, gamma=0.9, lam=0.0), delta)
     with pytest.raises(ValueError, match="point forward"):
         gae_advantages(delta, torch.tensor([0, -1, -1, -1, -1]), gamma=0.9, lam=0.5)
+
+
+def test_lambda_targets_hand_worked() -> None:
+    # One agent, rows 0 -> 1 -> 2 (row 2 ends with done, so its one-step target is r2 alone).
+    # Rewards 1, 2, 3; baseline B = 10, 20, 30; γ = 0.5.
+    # One-step targets y = r + γ·B(next): 1 + 10 = 11, 2 + 15 = 17, 3.
+    y = torch.tensor([11.0, 17.0, 3.0])
+    baseline = torch.tensor([10.0, 20.0, 30.0])
+    next_row = torch.tensor([1, 2, -1])
+    # λ = 0: y itself.
+    torch.testing.assert_close(lambda_targets(y, baseline, next_row, 0.5, 0.0), y)
+    # λ = 1: the discounted reward sums 1 + 0.5·2 + 0.25·3 = 2.75, 2 + 0.5·3 = 3.5, 3.
+    torch.testing.assert_close(
+        lambda_targets(y, baseline, next_row, 0.5, 1.0), torch.tensor([2.75, 3.5, 3.0])
+    )
+    # λ = 0.5: row 2: 3; row 1: B1 + (y1 - B1) + γλ(G2 - B2) = 20 - 3 + 0.25·(3 - 30) = 10.25;
+    # row 0: 10 + 1 + 0.25·(10.25 - 20) = 8.5625.
+    torch.testing.assert_close(
+        lambda_targets(y, baseline, next_row, 0.5, 0.5), torch.tensor([8.5625, 10.25, 3.0])
+    )

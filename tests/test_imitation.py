@@ -11,18 +11,21 @@ import torch
 from conftest import SmallBudget
 
 from idas_sumo.agents.learner import Learner, LearnerConfig
+from idas_sumo.agents.returns import gae_advantages
 from idas_sumo.agents.rollout import EpisodeData
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM
-from idas_sumo.training.imitation import collect_demonstrations, discounted_returns, imitate
+from idas_sumo.training.imitation import collect_demonstrations, imitate
 
 
-def test_discounted_returns_follow_each_agents_own_rows() -> None:
-    # Two agents interleaved: A on rows 0, 2, 4 and B on rows 1, 3. γ = 0.5.
+def test_gae_with_lambda_one_is_each_agents_discounted_return() -> None:
+    # What imitate() fits V to. Two agents interleaved: A on rows 0, 2, 4 and B on rows 1, 3. γ = 0.5.
     # A: G4 = 4, G2 = 2 + 0.5·4 = 4, G0 = 1 + 0.5·4 = 3.  B: G3 = 8, G1 = -1 + 0.5·8 = 3.
-    rewards = np.array([1.0, -1.0, 2.0, 8.0, 4.0], dtype=np.float32)
-    next_row = np.array([2, 3, 4, -1, -1])
-    np.testing.assert_allclose(discounted_returns(rewards, next_row, 0.5), [3.0, 3.0, 4.0, 8.0, 4.0])
+    rewards = torch.tensor([1.0, -1.0, 2.0, 8.0, 4.0])
+    next_row = torch.tensor([2, 3, 4, -1, -1])
+    torch.testing.assert_close(
+        gae_advantages(rewards, next_row, 0.5, 1.0), torch.tensor([3.0, 3.0, 4.0, 8.0, 4.0])
+    )
 
 
 def _synthetic_episode(n: int, rng: np.random.Generator) -> EpisodeData:

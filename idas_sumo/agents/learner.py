@@ -24,7 +24,7 @@ from torch import nn
 
 from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss
 from idas_sumo.agents.networks import Actor, CentralCritic, ValueCritic
-from idas_sumo.agents.returns import GAMMA, gae_advantages, td_advantages, td_targets
+from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
 from idas_sumo.agents.state_layout import STATE_LAYOUT_ID, STATE_SLOTS
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
@@ -60,6 +60,9 @@ class LearnerConfig:
     gae_lambda: float = 0.0
     """λ of generalised advantage estimation for A1 and the V target (ours). 0: the paper's one-step TD
     error and TD(0) target; > 0 needs ``Batch.next_row``."""
+    q_lambda: float = 0.0
+    """λ of the centralised critic's target (ours): 0 is the paper's one-step SARSA target; > 0 gives Q
+    the λ-return of the joint reward along each agent's own steps (needs ``Batch.next_row``)."""
     normalize_advantages: bool = False
     """Standardise A1 and A2 over each batch before the policy gradient (ours; the paper does not)."""
     device: str = "cpu"
@@ -75,8 +78,9 @@ class LearnerConfig:
             raise InputError(f"alpha must lie in [0, 1], got {self.alpha}")
         if not 0.0 < self.target_tau <= 1.0:
             raise InputError(f"target_tau must lie in (0, 1], got {self.target_tau}")
-        if not 0.0 <= self.gae_lambda <= 1.0:
-            raise InputError(f"gae_lambda must lie in [0, 1], got {self.gae_lambda}")
+        for name in ("gae_lambda", "q_lambda"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise InputError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if self.entropy_coef < 0.0:
             raise InputError(f"entropy_coef must be non-negative, got {self.entropy_coef}")
 
@@ -253,6 +257,12 @@ class Learner:
                 q_target = joint_reward + cfg.gamma * next_valid * (1.0 - done) * next_q_taken
             q_all = self.central(state, others, slot)
             q_taken = q_all.gather(1, action.unsqueeze(1)).squeeze(1)
+            if cfg.q_lambda > 0.0:
+                with torch.no_grad():
+                    q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
+                    q_target = lambda_targets(
+                        q_target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
+                    )
             q_loss = 0.5 * (q_target - q_taken).pow(2).mean()
             self.opt_central.zero_grad(set_to_none=True)
             q_loss.backward()

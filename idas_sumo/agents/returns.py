@@ -70,3 +70,18 @@ def gae_advantages(
                 raise ValueError(f"next_row[{i}] = {j} does not point forward")
             values[i] += gamma * lam * values[j]
     return torch.tensor(values, dtype=td_errors.dtype, device=td_errors.device)
+
+
+def lambda_targets(
+    one_step_targets: torch.Tensor,
+    baseline: torch.Tensor,
+    next_row: torch.Tensor,
+    gamma: float = GAMMA,
+    lam: float = 0.95,
+) -> torch.Tensor:
+    """λ-returns from one-step targets y_i = r_i + γ·B(next): B_i + GAE_λ(y - B), along ``next_row``.
+
+    λ = 0 gives the one-step targets back; λ = 1 the discounted reward sum, bootstrapped only where an
+    agent's rows end without ``done``.
+    """
+    return baseline + gae_advantages(one_step_targets - baseline, next_row, gamma, lam)

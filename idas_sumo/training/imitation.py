@@ -19,12 +19,13 @@ import numpy.typing as npt
 import torch
 
 from idas_sumo.agents.learner import Learner
+from idas_sumo.agents.returns import gae_advantages
 from idas_sumo.agents.rollout import EpisodeData, collect_episode
 from idas_sumo.env.core import MergeSimulation
 from idas_sumo.env.scenario import TrafficConfig, generate_scenario
 from idas_sumo.evaluation.policies import baseline_policy
 
-__all__ = ["BaselineTeacher", "EpochStats", "collect_demonstrations", "discounted_returns", "imitate"]
+__all__ = ["BaselineTeacher", "EpochStats", "collect_demonstrations", "imitate"]
 
 
 class BaselineTeacher:
@@ -61,17 +62,6 @@ def collect_demonstrations(
     return out
 
 
-def discounted_returns(
-    rewards: npt.NDArray[np.float32], next_row: npt.NDArray[np.int64], gamma: float
-) -> npt.NDArray[np.float32]:
-    """G_i = r_i + γ·G_next(i) along each agent's own rows (``next_row`` points forward, -1: last)."""
-    g = np.zeros(len(rewards), dtype=np.float64)
-    for i in range(len(rewards) - 1, -1, -1):
-        j = next_row[i]
-        g[i] = rewards[i] + (gamma * g[j] if j >= 0 else 0.0)
-    return g.astype(np.float32)
-
-
 @dataclass(frozen=True)
 class EpochStats:
     epoch: int
@@ -94,8 +84,12 @@ def imitate(
     mask = torch.from_numpy(np.concatenate([e.mask for e in episodes])).bool()
     action = torch.from_numpy(np.concatenate([e.action for e in episodes]))
     gamma = learner.config.gamma
-    returns = torch.from_numpy(
-        np.concatenate([discounted_returns(e.reward, e.next_row, gamma) for e in episodes])
+    # GAE with λ = 1 on the rewards themselves is the discounted return along each agent's own rows.
+    returns = torch.cat(
+        [
+            gae_advantages(torch.from_numpy(e.reward), torch.from_numpy(e.next_row), gamma, 1.0)
+            for e in episodes
+        ]
     )
     n = len(action)
     stats = []
