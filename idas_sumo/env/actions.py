@@ -145,10 +145,11 @@ def safety_mask(
 
     Ours: while IDM asks for no more than the comfortable deceleration (bound >= -b), the strongest
     Δa step stays allowed even if it does not reach the bound yet, so the agent closes in on the bound at
-    the jerk limit (the strongest step within the kinematic range: at a = -2 that is keeping -2). Without this, any bound between a - 0.2 and -2 m/s² left only the hard brake, and dense
-    traffic turned into hard-brake waves (every agent timed out in the intelligent world). When IDM asks
-    for more than -b, only actions under the bound (and the hard brake) remain, except where ``ease_in``
-    is set: there the strongest Δa step stays allowed whatever the bound (see ``MaskInputs.ease_in``).
+    the jerk limit (the strongest step within the kinematic range: at a = -2 that is keeping -2). Without
+    this, any bound between a - 0.2 and -2 m/s² left only the hard brake, and dense traffic turned into
+    hard-brake waves (every agent timed out in the intelligent world). When IDM asks for more than -b, only
+    actions under the bound (and the hard brake) remain, except where ``ease_in`` is set: there the
+    strongest Δa step stays allowed whatever the bound (see ``MaskInputs.ease_in``).
     """
     cand = candidate_accelerations(prev_accel) if cand is None else cand
     bound = safety_bound(speed_mps, gap_m, leader_speed_mps, params)

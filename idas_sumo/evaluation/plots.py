@@ -89,12 +89,11 @@ def summary_bars(episodes: pd.DataFrame, path: Path) -> Path:
 def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
     """Normalised reward and ego finish time per scenario and method; collisions in grey."""
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
     rep = episodes[episodes["scenario"].astype(str).isin(["s1", "s2", "s3", "s4"])]
     methods = list(dict.fromkeys(rep["method"]))
     scenarios = ["s1", "s2", "s3", "s4"]
-    from matplotlib.patches import Patch
-
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
     width = 0.8 / max(len(methods), 1)
     for k, method in enumerate(methods):
@@ -105,9 +104,8 @@ def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
             values = rows[col].fillna(0).to_numpy()
             bars = ax.bar(x, values, width, color=f"C{k}")
             for bar, bad in zip(bars, failed, strict=True):
-                if (
-                    bad
-                ):  # a failure has no finish time and often a zero reward: mark it where the bar would be
+                # A failure has no finish time and often a zero reward: mark it where the bar would be.
+                if bad:
                     bar.set_color("0.6")
                     ax.annotate(
                         "×",
