@@ -269,3 +269,87 @@ def test_resume_without_checkpoint_is_input_error(net_path: Path, tmp_path: Path
 
     with pytest.raises(InputError, match="no checkpoint"):
         run_training(net_path, tiny_config(), tmp_path / "nothing", resume=True, progress=False)
+
+
+# --- validation ----------------------------------------------------------------------------------
+def _stats(parts: dict[str, float], perfect: bool, success: bool, end_s: float) -> Any:
+    from idas_sumo.agents.rollout import EpisodeStats
+
+    return EpisodeStats(
+        agents=2,
+        steps=10,
+        agent_steps=20,
+        sim_time_s=end_s,
+        return_mean=0.0,
+        reward_parts=parts,
+        collisions=0,
+        timed_out=not success,
+        success=success,
+        perfect=perfect,
+    )
+
+
+def test_validation_score_is_the_mean_joint_return() -> None:
+    from idas_sumo.training.validation import score_episodes
+
+    # joint return = every agent's finish + collide + impede, plus flow once per step:
+    # 20 + 0 - 5 - 2 = 13 and 25 + 0 + 0 + 0 = 25, mean 19.
+    score = score_episodes(
+        [
+            _stats({"finish": 20.0, "collide": 0.0, "impede": -5.0, "flow": -2.0}, False, True, 12.0),
+            _stats({"finish": 25.0, "collide": 0.0, "impede": 0.0, "flow": 0.0}, True, True, 14.0),
+        ]
+    )
+    assert score.joint_return == pytest.approx(19.0)
+    assert (score.perfect_rate, score.success_rate, score.mean_end_time_s) == (0.5, 1.0, 13.0)
+    with pytest.raises(ValueError):
+        score_episodes([])
+
+
+def test_validation_settings_are_checked() -> None:
+    with pytest.raises(InputError, match="validate_every"):
+        TrainConfig(validate_every=-1)
+    with pytest.raises(InputError, match="validation_scenarios"):
+        TrainConfig(validation_scenarios=0)
+
+
+@pytest.mark.sumo
+def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
+    net_path: Path, tmp_path: Path
+) -> None:
+    from idas_sumo.env.core import EnvConfig, MergeSimulation
+    from idas_sumo.training.loop import run_training
+    from idas_sumo.training.validation import score_episodes, validation_tasks
+    from idas_sumo.training.workers import InProcessWorkers
+
+    plain = tiny_config(stage="intelligent", intelligent_episodes=3)
+    validated = dataclasses.replace(plain, validate_every=1, validation_scenarios=2)
+    run_training(net_path, plain, tmp_path / "plain", progress=False)
+    run_training(net_path, validated, tmp_path / "validated", progress=False)
+
+    def strip(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+        return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]
+
+    assert strip(read_metrics(tmp_path / "validated")) == strip(read_metrics(tmp_path / "plain"))
+    assert not (tmp_path / "plain" / "validation.csv").exists()
+    with (tmp_path / "validated" / "validation.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["episode"] for r in rows] == ["1", "2", "3"]  # the last round's is the stage end's
+    assert rows[0]["best"] == "1"
+    scores = [float(r["joint_return"]) for r in rows]
+    best_path = tmp_path / "validated" / "intelligent_best.pt"
+    best = load_checkpoint(best_path)
+    assert best["validation"]["joint_return"] == pytest.approx(max(scores), abs=1e-4)
+    assert best["episode"] == int(rows[scores.index(max(scores))]["episode"])
+
+    # The saved weights score the same when validated again from the file.
+    sim = MergeSimulation(net_path, seed=0, config=EnvConfig(max_episode_s=plain.max_episode_s))
+    limits = sim.speed_limits_mps
+    sim.close()
+    tasks = validation_tasks(plain.intelligent_traffic, limits, 2, validated.validation_seed)
+    workers = InProcessWorkers(net_path, EnvConfig(max_episode_s=plain.max_episode_s), seed=0)
+    try:
+        again = score_episodes([e.stats for e in workers.run(load_actor(best_path), tasks)])
+    finally:
+        workers.close()
+    assert again.joint_return == pytest.approx(best["validation"]["joint_return"], abs=1e-4)

@@ -76,6 +76,13 @@ class TrainConfig:
     """Simulated seconds before an episode is cut off (a timeout is not a success; ours)."""
     init_from: str = ""
     """Optional checkpoint whose weights start the first stage (e.g. a robot run for stage 'intelligent')."""
+    validate_every: int = 0
+    """Score the greedy policy on held-out scenarios every this many episodes and keep the best
+    weights as ``<stage>_best.pt``; 0: never (ours, not the paper's)."""
+    validation_scenarios: int = 40
+    """Held-out scenarios per validation, drawn from the stage's traffic generator."""
+    validation_seed: int = 123
+    """Seed of the held-out scenarios: apart from ``seed`` and from evaluation's 2019."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -85,11 +92,13 @@ class TrainConfig:
             "episodes_per_update",
             "checkpoint_every",
             "workers",
+            "validation_scenarios",
         ):
             if getattr(self, name) < 1:
                 raise ConfigValueError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if self.seed < 0:
-            raise ConfigValueError(f"seed must be non-negative, got {self.seed}")
+        for name in ("seed", "validate_every", "validation_seed"):
+            if getattr(self, name) < 0:
+                raise ConfigValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if not self.max_episode_s > 0.0:
             raise ConfigValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
         if self.stage not in STAGES:

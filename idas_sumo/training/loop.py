@@ -10,6 +10,7 @@ every checkpoint, so ``resume`` continues exactly where the last checkpoint left
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import logging
 import sys
@@ -34,7 +35,8 @@ from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
 from idas_sumo.training.config import TrainConfig, train_config_from_dict
 from idas_sumo.training.curriculum import StagePlan, plan_stages
 from idas_sumo.training.metrics import MetricsSink
-from idas_sumo.training.workers import EpisodeTask, make_workers
+from idas_sumo.training.validation import VALIDATION_COLUMNS, score_episodes, validation_tasks
+from idas_sumo.training.workers import EpisodeTask, RolloutWorkers, make_workers
 
 __all__ = ["CHECKPOINT_NAME", "run_training"]
 
@@ -89,6 +91,50 @@ def _episode_row(plan: StagePlan, episode: int, global_episode: int, e: EpisodeD
         "agent_steps": s.agent_steps,
         "sim_time_s": s.sim_time_s,
     }
+
+
+def _validate(
+    workers: RolloutWorkers,
+    learner: Learner,
+    tasks: list[EpisodeTask],
+    sink: MetricsSink,
+    plan: StagePlan,
+    counters: _Counters,
+    best_so_far: float,
+    best_path: Path,
+    payload: dict[str, Any],
+    wall_time_s: float,
+) -> float:
+    """Score the greedy policy; save it as ``best_path`` when it beats ``best_so_far``. Returns the best."""
+    score = score_episodes([e.stats for e in workers.run(learner, tasks)])
+    improved = score.joint_return > best_so_far
+    if improved:
+        save_checkpoint(best_path, {**payload, "validation": dataclasses.asdict(score)})
+    row = {
+        "stage": plan.name,
+        "episode": counters.episode,
+        "global_episode": counters.global_episode,
+        **dataclasses.asdict(score),
+        "best": improved,
+        "wall_time_s": wall_time_s,
+    }
+    sink.write([row])
+    log.info(
+        "validation at episode %d (%s): joint return %.2f, perfect %.0f%%%s",
+        counters.global_episode,
+        plan.name,
+        score.joint_return,
+        100 * score.perfect_rate,
+        " (best so far)" if improved else "",
+    )
+    return max(best_so_far, score.joint_return)
+
+
+def _saved_validation_score(path: Path) -> float:
+    """The joint return a ``<stage>_best.pt`` was saved with (-inf when there is none)."""
+    if not path.exists():
+        return float("-inf")
+    return float(load_checkpoint(path)["validation"]["joint_return"])
 
 
 def _make_progress(enabled: bool) -> Progress:
@@ -174,6 +220,17 @@ def run_training(
     with (
         make_workers(net_path, env_config, config.seed, config.workers, gui=gui) as workers,
         MetricsSink(out_dir, counters.global_episode if resumed else None) as sink,
+        (
+            MetricsSink(
+                out_dir,
+                counters.global_episode if resumed else None,
+                name="validation.csv",
+                columns=VALIDATION_COLUMNS,
+                tensorboard_keys=(),
+            )
+            if config.validate_every
+            else contextlib.nullcontext()
+        ) as validation_sink,
         _make_progress(show) as bar,
     ):
         for stage_index in range(counters.stage_index, len(plans)):
@@ -192,6 +249,14 @@ def run_training(
                 plan.name, total=plan.episodes, completed=counters.episode, eps=0.0, success=0.0
             )
             recent: collections.deque[bool] = collections.deque(maxlen=SUCCESS_WINDOW)
+            held_out = (
+                validation_tasks(plan.traffic, limits, config.validation_scenarios, config.validation_seed)
+                if config.validate_every
+                else []
+            )
+            best_path = out_dir / f"{plan.name}_best.pt"
+            best = _saved_validation_score(best_path) if resumed is not None else float("-inf")
+            validated_at = -1
             stage_start, stage_start_episode = time.perf_counter(), counters.episode
             round_rng = (np_rng.bit_generator.state, torch_rng.get_state())
             try:
@@ -238,6 +303,25 @@ def run_training(
                             ),
                         )
                         log.info("checkpoint at episode %d (%s)", counters.global_episode, plan.name)
+                    if validation_sink is not None and counters.global_episode // config.validate_every > (
+                        before // config.validate_every
+                    ):
+                        payload = _payload(
+                            learner, config, plan, counters, np_rng.bit_generator.state, torch_rng.get_state()
+                        )
+                        best = _validate(
+                            workers,
+                            learner,
+                            held_out,
+                            validation_sink,
+                            plan,
+                            counters,
+                            best,
+                            best_path,
+                            payload,
+                            time.perf_counter() - started,
+                        )
+                        validated_at = counters.episode
             except KeyboardInterrupt:
                 # Save the completed rounds: the RNG as it was before the interrupted round's draws.
                 save_checkpoint(latest, _payload(learner, config, plan, counters, *round_rng))
@@ -246,6 +330,19 @@ def run_training(
             payload = _payload(
                 learner, config, plan, counters, np_rng.bit_generator.state, torch_rng.get_state()
             )
+            if validation_sink is not None and validated_at != counters.episode:
+                _validate(
+                    workers,
+                    learner,
+                    held_out,
+                    validation_sink,
+                    plan,
+                    counters,
+                    best,
+                    best_path,
+                    payload,
+                    time.perf_counter() - started,
+                )
             final = out_dir / f"{plan.name}.pt"
             save_checkpoint(final, payload)
             save_checkpoint(latest, payload)

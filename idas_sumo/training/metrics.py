@@ -37,39 +37,59 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "entropy",
     "wall_time_s",
 )
+TENSORBOARD_KEYS: tuple[str, ...] = (
+    "return_mean",
+    "success",
+    "perfect",
+    "actor_loss",
+    "v_loss",
+    "q_loss",
+    "entropy",
+)
 
 
 class MetricsSink:
-    """Appends rows to ``metrics.csv``; on resume first drops rows past the checkpoint."""
+    """Appends rows to ``metrics.csv`` (or ``name`` with ``columns``); on resume first drops rows
+    past the checkpoint. ``tensorboard_keys`` go to TensorBoard too when it is installed."""
 
-    def __init__(self, out_dir: Path, keep_up_to_global_episode: int | None = None) -> None:
-        self.path = out_dir / "metrics.csv"
+    def __init__(
+        self,
+        out_dir: Path,
+        keep_up_to_global_episode: int | None = None,
+        name: str = "metrics.csv",
+        columns: tuple[str, ...] = METRIC_COLUMNS,
+        tensorboard_keys: tuple[str, ...] = TENSORBOARD_KEYS,
+    ) -> None:
+        self.path = out_dir / name
+        self.columns = columns
+        self.tensorboard_keys = tensorboard_keys
         if keep_up_to_global_episode is not None and self.path.exists():
             self._truncate(keep_up_to_global_episode)
         new = not self.path.exists() or self.path.stat().st_size == 0
         self._file = self.path.open("a", newline="", encoding="utf-8")
-        self._writer = csv.DictWriter(self._file, fieldnames=METRIC_COLUMNS)
+        self._writer = csv.DictWriter(self._file, fieldnames=columns)
         if new:
             self._writer.writeheader()
             self._file.flush()
         self._tb: Any = None
-        try:
-            from torch.utils.tensorboard import SummaryWriter
+        if tensorboard_keys:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
 
-            self._tb = SummaryWriter(log_dir=str(out_dir / "tensorboard"))
-        except Exception:  # tensorboard not installed: CSV only
-            self._tb = None
+                self._tb = SummaryWriter(log_dir=str(out_dir / "tensorboard"))
+            except Exception:  # tensorboard not installed: CSV only
+                self._tb = None
 
     def _truncate(self, keep: int) -> None:
         with self.path.open(newline="", encoding="utf-8") as f:
             rows = []
             for row in csv.DictReader(f):
-                episode = _episode_of(row)
+                episode = _episode_of(row, self.columns)
                 if episode is not None and episode <= keep:
                     rows.append(row)
         fd, tmp = tempfile.mkstemp(prefix=".metrics.", suffix=".tmp", dir=self.path.parent)
         with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
-            w = csv.DictWriter(f, fieldnames=METRIC_COLUMNS)
+            w = csv.DictWriter(f, fieldnames=self.columns)
             w.writeheader()
             w.writerows(rows)
             f.flush()
@@ -78,10 +98,10 @@ class MetricsSink:
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         for row in rows:
-            self._writer.writerow({k: _fmt(row[k]) for k in METRIC_COLUMNS})
+            self._writer.writerow({k: _fmt(row[k]) for k in self.columns})
             if self._tb is not None:
                 step = int(row["global_episode"])
-                for key in ("return_mean", "success", "perfect", "actor_loss", "v_loss", "q_loss", "entropy"):
+                for key in self.tensorboard_keys:
                     self._tb.add_scalar(f"{row['stage']}/{key}", float(row[key]), step)
         self._file.flush()
 
@@ -99,9 +119,9 @@ class MetricsSink:
         self.close()
 
 
-def _episode_of(row: dict[str, Any]) -> int | None:
+def _episode_of(row: dict[str, Any], columns: tuple[str, ...]) -> int | None:
     """The row's global episode, or None for a row cut short (a crash or Ctrl-C mid-write)."""
-    if None in row or any(row.get(k) is None for k in METRIC_COLUMNS):
+    if None in row or any(row.get(k) is None for k in columns):
         return None
     try:
         return int(row["global_episode"])

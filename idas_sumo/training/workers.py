@@ -45,6 +45,8 @@ class EpisodeTask:
 
     scenario: Scenario
     action_seed: int
+    deterministic: bool = False
+    """Take the most probable allowed action instead of sampling (validation)."""
 
 
 def actor_weights(learner: Learner) -> ActorWeights:
@@ -56,7 +58,7 @@ def _run_tasks(sim: MergeSimulation, learner: Learner, tasks: list[EpisodeTask])
     out = []
     for task in tasks:
         generator = torch.Generator().manual_seed(task.action_seed)
-        out.append(collect_episode(sim, learner, task.scenario, generator))
+        out.append(collect_episode(sim, learner, task.scenario, generator, task.deterministic))
     return out
 
 
