@@ -1,7 +1,7 @@
-"""Experimental (ours, not the paper's): pre-train an actor by imitating the masked IDM baseline.
+"""The warm start of the shipped IDAS (ours, not the paper's): an actor that imitates the masked IDM baseline.
 
     python scripts/pretrain_imitation.py --out runs/imitation.pt            # 200 episodes, 15 epochs: ~4 min
-    # then start stage 2 from it: init_from = "runs/imitation.pt" in a copy of scenarios/train_shipped.toml
+    # then: idas-sumo train --config scenarios/train_shipped.toml  (its init_from is runs/imitation.pt)
 
 The demonstrations alternate between the config's intelligent-world traffic and the paper suite's
 generator. docs/results.md ("What we tried") says what stage 2 did with such a start.

@@ -41,12 +41,27 @@ def stage_summaries(metrics: pd.DataFrame) -> dict[str, dict[str, float]]:
     return out
 
 
+def _validation_pick(data: dict) -> dict | None:
+    """For a ``<stage>_best.pt``: the episode it was saved at and its held-out score."""
+    if "validation" not in data:
+        return None
+    config = data["config"]
+    return {
+        "stage_episode": data["episode"],
+        "global_episode": data["global_episode"],
+        "validation_scenarios": config.get("validation_scenarios"),
+        "validation_seed": config.get("validation_seed"),
+        **{k: round(float(v), 4) for k, v in data["validation"].items()},
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("checkpoint", type=Path)
     parser.add_argument("name", choices=("idas", "idas_v", "idas_direct"))
     parser.add_argument("--command", required=True, help="the train command that made the run")
     parser.add_argument("--stages", nargs="*", help="only these stages' metrics (default: all in the run)")
+    parser.add_argument("--note", default="", help="added to the metadata's note (e.g. a warm start's cost)")
     args = parser.parse_args()
     data = load_checkpoint(args.checkpoint)
     metrics = pd.read_csv(args.checkpoint.parent / "metrics.csv")
@@ -65,11 +80,12 @@ def main() -> None:
         "wall_time_s": round(wall_s, 1),
         "machine": f"{platform.machine()}, {platform.python_version()}, 2 CPU cores, no GPU",
         "stages": stage_summaries(metrics),
+        "picked_by_validation": _validation_pick(data),
         "config": data["config"],
         "packages": {**packages, "python": platform.python_version()},
         "shipped_on": dt.date.today().isoformat(),
         "note": "Trained with a budget that fits one laptop session, far below the paper's 20k + 50k episodes; "
-        "see docs/results.md.",
+        "see docs/results.md." + (f" {args.note}" if args.note else ""),
     }
     out = Path(__file__).resolve().parents[1] / "policies"
     out.mkdir(exist_ok=True)
