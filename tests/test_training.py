@@ -216,12 +216,15 @@ def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.sumo
+@pytest.mark.parametrize("validate_every", [0, 1])
 def test_interrupt_then_resume_continues_exactly(
-    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, validate_every: int
 ) -> None:
     from idas_sumo.training.loop import run_training
 
-    config = tiny_config(stage="robot", robot_episodes=3)
+    config = tiny_config(
+        stage="robot", robot_episodes=3, validate_every=validate_every, validation_scenarios=1
+    )
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)
 
@@ -246,6 +249,16 @@ def test_interrupt_then_resume_continues_exactly(
         return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]
 
     assert strip(read_metrics(run)) == strip(read_metrics(straight))
+    if validate_every:
+        validated = [
+            strip(list(csv.DictReader((d / "validation.csv").open(newline="")))) for d in (run, straight)
+        ]
+        assert validated[0] == validated[1] and len(validated[0]) == 3
+        best_run, best_straight = (
+            load_checkpoint(run / "robot_best.pt"),
+            load_checkpoint(straight / "robot_best.pt"),
+        )
+        assert best_run["episode"] == best_straight["episode"]
     a, b = load_checkpoint(run / "robot.pt"), load_checkpoint(straight / "robot.pt")
     for k, v in a["learner"]["actor"].items():
         assert torch.equal(v, b["learner"]["actor"][k])
