@@ -93,41 +93,45 @@ def _episode_row(plan: StagePlan, episode: int, global_episode: int, e: EpisodeD
     }
 
 
-def _validate(
-    workers: RolloutWorkers,
-    learner: Learner,
-    tasks: list[EpisodeTask],
-    sink: MetricsSink,
-    plan: StagePlan,
-    counters: _Counters,
-    best_so_far: float,
-    best_path: Path,
-    payload: dict[str, Any],
-    wall_time_s: float,
-) -> float:
-    """Score the greedy policy; save it as ``best_path`` when it beats ``best_so_far``. Returns the best."""
-    score = score_episodes([e.stats for e in workers.run(learner, tasks)])
-    improved = score.joint_return > best_so_far
-    if improved:
-        save_checkpoint(best_path, {**payload, "validation": dataclasses.asdict(score)})
-    row = {
-        "stage": plan.name,
-        "episode": counters.episode,
-        "global_episode": counters.global_episode,
-        **dataclasses.asdict(score),
-        "best": improved,
-        "wall_time_s": wall_time_s,
-    }
-    sink.write([row])
-    log.info(
-        "validation at episode %d (%s): joint return %.2f, perfect %.0f%%%s",
-        counters.global_episode,
-        plan.name,
-        score.joint_return,
-        100 * score.perfect_rate,
-        " (best so far)" if improved else "",
-    )
-    return max(best_so_far, score.joint_return)
+@dataclasses.dataclass
+class _StageValidation:
+    """One stage's held-out scenarios, its ``validation.csv`` sink and the best score so far."""
+
+    workers: RolloutWorkers
+    tasks: list[EpisodeTask]
+    sink: MetricsSink
+    best_path: Path
+    best: float = float("-inf")
+    validated_at: int = -1
+    """The stage episode of the last validation."""
+
+    def run(
+        self, learner: Learner, plan: StagePlan, counters: _Counters, payload: dict[str, Any], wall_s: float
+    ) -> None:
+        """Score the greedy policy; save ``payload`` as ``best_path`` when it beats the best so far."""
+        score = score_episodes([e.stats for e in self.workers.run(learner, self.tasks)])
+        improved = score.joint_return > self.best
+        if improved:
+            self.best = score.joint_return
+            save_checkpoint(self.best_path, {**payload, "validation": dataclasses.asdict(score)})
+        self.validated_at = counters.episode
+        row = {
+            "stage": plan.name,
+            "episode": counters.episode,
+            "global_episode": counters.global_episode,
+            **dataclasses.asdict(score),
+            "best": improved,
+            "wall_time_s": wall_s,
+        }
+        self.sink.write([row])
+        log.info(
+            "validation at episode %d (%s): joint return %.2f, perfect %.0f%%%s",
+            counters.global_episode,
+            plan.name,
+            score.joint_return,
+            100 * score.perfect_rate,
+            " (best so far)" if improved else "",
+        )
 
 
 def _saved_validation_score(path: Path) -> float:
@@ -249,14 +253,18 @@ def run_training(
                 plan.name, total=plan.episodes, completed=counters.episode, eps=0.0, success=0.0
             )
             recent: collections.deque[bool] = collections.deque(maxlen=SUCCESS_WINDOW)
-            held_out = (
-                validation_tasks(plan.traffic, limits, config.validation_scenarios, config.validation_seed)
-                if config.validate_every
-                else []
-            )
-            best_path = out_dir / f"{plan.name}_best.pt"
-            best = _saved_validation_score(best_path) if resumed is not None else float("-inf")
-            validated_at = -1
+            validation = None
+            if validation_sink is not None:
+                best_path = out_dir / f"{plan.name}_best.pt"
+                validation = _StageValidation(
+                    workers,
+                    validation_tasks(
+                        plan.traffic, limits, config.validation_scenarios, config.validation_seed
+                    ),
+                    validation_sink,
+                    best_path,
+                    best=_saved_validation_score(best_path) if resumed is not None else float("-inf"),
+                )
             stage_start, stage_start_episode = time.perf_counter(), counters.episode
             round_rng = (np_rng.bit_generator.state, torch_rng.get_state())
             try:
@@ -290,38 +298,21 @@ def run_training(
                         time.perf_counter() - stage_start, 1e-9
                     )
                     bar.update(task, completed=counters.episode, eps=rate, success=float(np.mean(recent)))
-                    if counters.global_episode // config.checkpoint_every > before // config.checkpoint_every:
-                        save_checkpoint(
-                            latest,
-                            _payload(
-                                learner,
-                                config,
-                                plan,
-                                counters,
-                                np_rng.bit_generator.state,
-                                torch_rng.get_state(),
-                            ),
-                        )
-                        log.info("checkpoint at episode %d (%s)", counters.global_episode, plan.name)
-                    if validation_sink is not None and counters.global_episode // config.validate_every > (
-                        before // config.validate_every
-                    ):
+                    checkpoint_due = (
+                        counters.global_episode // config.checkpoint_every > before // config.checkpoint_every
+                    )
+                    validation_due = validation is not None and (
+                        counters.global_episode // config.validate_every > before // config.validate_every
+                    )
+                    if checkpoint_due or validation_due:
                         payload = _payload(
                             learner, config, plan, counters, np_rng.bit_generator.state, torch_rng.get_state()
                         )
-                        best = _validate(
-                            workers,
-                            learner,
-                            held_out,
-                            validation_sink,
-                            plan,
-                            counters,
-                            best,
-                            best_path,
-                            payload,
-                            time.perf_counter() - started,
-                        )
-                        validated_at = counters.episode
+                        if checkpoint_due:
+                            save_checkpoint(latest, payload)
+                            log.info("checkpoint at episode %d (%s)", counters.global_episode, plan.name)
+                        if validation is not None and validation_due:
+                            validation.run(learner, plan, counters, payload, time.perf_counter() - started)
             except KeyboardInterrupt:
                 # Save the completed rounds: the RNG as it was before the interrupted round's draws.
                 save_checkpoint(latest, _payload(learner, config, plan, counters, *round_rng))
@@ -330,19 +321,8 @@ def run_training(
             payload = _payload(
                 learner, config, plan, counters, np_rng.bit_generator.state, torch_rng.get_state()
             )
-            if validation_sink is not None and validated_at != counters.episode:
-                _validate(
-                    workers,
-                    learner,
-                    held_out,
-                    validation_sink,
-                    plan,
-                    counters,
-                    best,
-                    best_path,
-                    payload,
-                    time.perf_counter() - started,
-                )
+            if validation is not None and validation.validated_at != counters.episode:
+                validation.run(learner, plan, counters, payload, time.perf_counter() - started)
             final = out_dir / f"{plan.name}.pt"
             save_checkpoint(final, payload)
             save_checkpoint(latest, payload)
