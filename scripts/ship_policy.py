@@ -55,6 +55,20 @@ def _validation_pick(data: dict) -> dict | None:
     }
 
 
+def _validation_curve(path: Path, stages: list[str] | None) -> list[dict] | None:
+    """The run's validation.csv rows (greedy policy on the held-out scenarios), when it has one."""
+    if not path.exists():
+        return None
+    rows = pd.read_csv(path)
+    if stages:
+        rows = rows[rows["stage"].isin(stages)]
+    columns = ["stage", "episode", "joint_return", "perfect_rate", "mean_end_time_s"]
+    return [
+        {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+        for r in rows[columns].to_dict("records")
+    ]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("checkpoint", type=Path)
@@ -81,6 +95,7 @@ def main() -> None:
         "machine": f"{platform.machine()}, {platform.python_version()}, 2 CPU cores, no GPU",
         "stages": stage_summaries(metrics),
         "picked_by_validation": _validation_pick(data),
+        "validation_curve": _validation_curve(args.checkpoint.parent / "validation.csv", args.stages),
         "config": data["config"],
         "packages": {**packages, "python": platform.python_version()},
         "shipped_on": dt.date.today().isoformat(),
