@@ -139,6 +139,24 @@ def test_bad_net_file_for_train(tmp_path: Path) -> None:
     assert_usage_error(result, str(net))
 
 
+@pytest.mark.sumo
+def test_train_with_validation_names_the_best_checkpoint(tmp_path: Path) -> None:
+    config = tmp_path / "tiny.toml"
+    config.write_text(
+        'stage = "intelligent"\nintelligent_episodes = 4\nepisodes_per_update = 2\nmax_episode_s = 12.0\n'
+        "validate_every = 2\nvalidation_scenarios = 1\n"
+        "[intelligent_traffic]\nmin_vehicles_per_road = 2\nmax_vehicles_per_road = 2\n"
+    )
+    out = tmp_path / "run"
+    net = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
+    result = run_cli(
+        "train", "--net", str(net), "--config", str(config), "--out", str(out), "--no-progress", timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert f"wrote {out / 'intelligent_best.pt'}: best on validation at intelligent episode" in result.stdout
+    assert (out / "validation.csv").read_text().count("\nintelligent,") == 2
+
+
 # --- netgen -----------------------------------------------------------------------------------------
 
 

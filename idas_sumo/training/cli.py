@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
 from idas_sumo.training.loop import run_training
 
@@ -42,4 +43,11 @@ def train_from_args(args: argparse.Namespace) -> int:
         gui=bool(getattr(args, "gui", False)),
     )
     print(f"wrote {final}")
+    for best in sorted(Path(out).glob("*_best.pt")):
+        saved = load_checkpoint(best)
+        score = saved["validation"]
+        print(
+            f"wrote {best}: best on validation at {saved['stage']} episode {saved['episode']} "
+            f"(joint return {score['joint_return']:.2f}, perfect {score['perfect_rate']:.0%})"
+        )
     return 0

@@ -148,6 +148,7 @@ def _make_progress(enabled: bool) -> Progress:
         MofNCompleteColumn(),
         TextColumn("{task.fields[eps]:.2f} ep/s"),
         TextColumn("success {task.fields[success]:.0%}"),
+        TextColumn("{task.fields[validation]}"),
         TimeRemainingColumn(),
         disable=not enabled,
         transient=False,
@@ -250,7 +251,12 @@ def run_training(
             if stage_index != counters.stage_index:
                 counters = _Counters(stage_index, 0, counters.global_episode)
             task = bar.add_task(
-                plan.name, total=plan.episodes, completed=counters.episode, eps=0.0, success=0.0
+                plan.name,
+                total=plan.episodes,
+                completed=counters.episode,
+                eps=0.0,
+                success=0.0,
+                validation="",
             )
             recent: collections.deque[bool] = collections.deque(maxlen=SUCCESS_WINDOW)
             validation = None
@@ -313,6 +319,7 @@ def run_training(
                             log.info("checkpoint at episode %d (%s)", counters.global_episode, plan.name)
                         if validation is not None and validation_due:
                             validation.run(learner, plan, counters, payload, time.perf_counter() - started)
+                            bar.update(task, validation=f"best validation {validation.best:.1f}")
             except KeyboardInterrupt:
                 # Save the completed rounds: the RNG as it was before the interrupted round's draws.
                 save_checkpoint(latest, _payload(learner, config, plan, counters, *round_rng))
