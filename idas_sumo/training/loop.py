@@ -198,7 +198,13 @@ def run_training(
     elif latest.exists():
         raise InputError(f"{out_dir}: already holds a training run; pass --resume or choose another --out")
     if config.init_from and resumed is None:
-        init_state = load_checkpoint(config.init_from)["learner"]
+        try:
+            init_state = load_checkpoint(config.init_from)["learner"]
+        except InputError as err:
+            raise InputError(
+                f"init_from: {err} (a path from the working directory; the shipped recipe makes "
+                "runs/imitation.pt with scripts/pretrain_imitation.py)"
+            ) from None
     else:
         init_state = None
     ensure_writable_dir(out_dir)
