@@ -1,4 +1,4 @@
-"""Experimental imitation pre-training: discounted returns by hand, fitting a learnable teacher, IDM demos."""
+"""Imitation pre-training (the shipped warm start): discounted returns by hand, fitting a learnable teacher, IDM demos."""
 
 from __future__ import annotations
 

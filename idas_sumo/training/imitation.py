@@ -1,9 +1,9 @@
-"""Ours, experimental: pre-train the actor (and V) by imitating a rule-based baseline under the same masks.
+"""Ours: pre-train the actor (and V) by imitating a rule-based baseline under the same masks.
 
-Not part of the paper's method and not used for the shipped policies. It exists because the paper's
-stage 2, started from our short robot-world stage, converges to "drive at the limit and let the masks
-brake", while the masked IDM baseline drives far more smoothly (docs/results.md, "What we tried"). A
-checkpoint written by ``scripts/pretrain_imitation.py`` can start any stage through ``init_from``.
+Not part of the paper's method; the warm start of the shipped IDAS and IDAS-V. It exists because the
+paper's curriculum from random weights, in our budget, converges to "drive at the limit and let the
+masks brake", while the masked IDM baseline drives far more smoothly (docs/results.md, "What we tried").
+A checkpoint written by ``scripts/pretrain_imitation.py`` can start any stage through ``init_from``.
 
 Imitation: masked cross-entropy between the actor and the teacher's actions. V regresses on each
 agent's discounted Monte-Carlo return, so a following RL stage starts with a critic that fits the
