@@ -39,8 +39,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from idas_sumo.env.parallel import DEFAULT_NET, MergeParallelEnv  # noqa: E402
+from idas_sumo.env.parallel import MergeParallelEnv  # noqa: E402
 from idas_sumo.env.scenario import ROADS, Scenario, VehicleSpec  # noqa: E402
+from idas_sumo.resources import DEFAULT_NET  # noqa: E402
 from idas_sumo.sim.backend import SumoBackend  # noqa: E402
 from idas_sumo.sim.netgen import MergeNet, NetParams, generate_net, read_merge_net  # noqa: E402
 

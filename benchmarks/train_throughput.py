@@ -20,10 +20,9 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
 from idas_sumo.training.config import TrainConfig
 from idas_sumo.training.loop import run_training
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def measure(net: Path, stage: str, workers: int, episodes: int) -> tuple[float, float]:
@@ -44,7 +43,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--net", type=Path, default=REPO / "sumo_nets" / "tjunction.net.xml")
+    parser.add_argument("--net", type=resolve_user_path, default=DEFAULT_NET_NAME)
     parser.add_argument("--episodes", type=int, default=16, help="episodes per measurement")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     args = parser.parse_args()

@@ -10,8 +10,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from idas_sumo.errors import IdasError, InputError
-
-DEFAULT_NET = "sumo_nets/tjunction.net.xml"
+from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG_NAME, resolve_user_path
 
 
 class _Parser(argparse.ArgumentParser):
@@ -36,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     net = sub.add_parser("netgen", help="generate the two-road merge network with netconvert")
-    net.add_argument("--out", default=DEFAULT_NET, help="output .net.xml (default: %(default)s)")
+    net.add_argument("--out", default=DEFAULT_NET_NAME, help="output .net.xml (default: %(default)s)")
     net.add_argument(
         "--main-length", type=float, default=250.0, help="main road length to the merge point, m"
     )
@@ -50,9 +49,13 @@ def build_parser() -> argparse.ArgumentParser:
     net.add_argument("--angle", type=float, default=30.0, help="angle between the two roads, degrees")
 
     train = sub.add_parser("train", help="train IDAS (robot world, intelligent world, or both)")
-    train.add_argument("--net", default=DEFAULT_NET, help="merge network (default: %(default)s)")
     train.add_argument(
-        "--config", type=Path, help="training config TOML (default: scenarios/train_default.toml)"
+        "--net", type=resolve_user_path, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
+    )
+    train.add_argument(
+        "--config",
+        type=resolve_user_path,
+        help=f"training config TOML (default: {DEFAULT_TRAIN_CONFIG_NAME})",
     )
     train.add_argument(
         "--stage", choices=("robot", "intelligent", "direct", "curriculum"), help="what to train"
@@ -73,13 +76,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser("evaluate", help="evaluate a method with the paper's protocol; write CSVs")
     ev.add_argument("--baseline", required=True, help="idas | idas_v | idas_direct | idm | fsm_idm | all")
-    ev.add_argument("--net", default=DEFAULT_NET, help="merge network (default: %(default)s)")
+    ev.add_argument(
+        "--net", type=resolve_user_path, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
+    )
     ev.add_argument("--suite", default="paper", choices=("paper", "representative", "driver-types"))
     ev.add_argument("--scenarios", type=_positive_int, default=100, help="random scenarios (paper suite)")
-    ev.add_argument("--config", type=Path, help="TOML: [traffic] and max_episode_s for the paper suite")
+    ev.add_argument(
+        "--config", type=resolve_user_path, help="TOML: [traffic] and max_episode_s for the paper suite"
+    )
     ev.add_argument(
         "--scenario",
-        type=Path,
+        type=resolve_user_path,
         action="append",
         default=[],
         help="evaluate this scenario TOML instead of a suite (repeatable; ego = its first vehicle)",
@@ -91,7 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--others", help="method for every non-ego vehicle (default: shipped IDAS if present, else idm)"
     )
     ev.add_argument(
-        "--policy", type=Path, help="checkpoint for the learned method instead of the shipped one"
+        "--policy",
+        type=resolve_user_path,
+        help="checkpoint for the learned method instead of the shipped one",
     )
     ev.add_argument(
         "--out", type=Path, default=Path("results"), help="output directory (default: %(default)s)"

@@ -20,6 +20,7 @@ import torch
 from idas_sumo.agents.learner import Learner
 from idas_sumo.env.core import EnvConfig, MergeSimulation
 from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
 from idas_sumo.training.checkpoint import save_checkpoint
 from idas_sumo.training.config import load_train_config
 from idas_sumo.training.imitation import collect_demonstrations, imitate
@@ -29,8 +30,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--net", type=Path, default=Path("sumo_nets/tjunction.net.xml"))
-    parser.add_argument("--config", type=Path, default=Path("scenarios/train_shipped.toml"))
+    parser.add_argument("--net", type=resolve_user_path, default=DEFAULT_NET_NAME)
+    parser.add_argument("--config", type=resolve_user_path, default="scenarios/train_shipped.toml")
     parser.add_argument("--teacher", choices=("idm", "fsm_idm"), default="idm")
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--epochs", type=int, default=15)

@@ -1,9 +1,9 @@
-"""Copy a training checkpoint into policies/ and write the metadata that says how it was made.
+"""Copy a training checkpoint into the package's idas_sumo/policies/ and write the metadata that says how it was made.
 
     python scripts/ship_policy.py runs/idas/intelligent.pt idas --command "idas-sumo train ..."
 
-Writes policies/NAME.pt (the checkpoint, loadable by ``idas-sumo evaluate --baseline NAME``) and
-policies/NAME.json: config, episodes per stage, seed, wall time, end-of-stage learning-curve numbers,
+Writes idas_sumo/policies/NAME.pt (the checkpoint, loadable by ``idas-sumo evaluate --baseline NAME``)
+and idas_sumo/policies/NAME.json: config, episodes per stage, seed, wall time, end-of-stage learning-curve numbers,
 package versions.
 """
 
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from idas_sumo.resources import POLICY_DIR
 from idas_sumo.training.checkpoint import load_checkpoint
 
 CURVE_WINDOW = 200  # episodes averaged for the end-of-stage numbers
@@ -102,7 +103,7 @@ def main() -> None:
         "note": "Trained with a budget that fits one laptop session, far below the paper's 20k + 50k episodes; "
         "see docs/results.md." + (f" {args.note}" if args.note else ""),
     }
-    out = Path(__file__).resolve().parents[1] / "policies"
+    out = POLICY_DIR
     out.mkdir(exist_ok=True)
     shutil.copyfile(args.checkpoint, out / f"{args.name}.pt")
     (out / f"{args.name}.json").write_text(json.dumps(meta, indent=2, default=str) + "\n")

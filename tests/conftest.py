@@ -11,8 +11,9 @@ from typing import Any
 
 import pytest
 
+from idas_sumo.resources import DEFAULT_NET
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_NET = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,7 @@ def small_budget() -> SmallBudget:
 
 @pytest.fixture(scope="session")
 def net_path() -> Path:
-    """The committed default network."""
+    """The shipped default network."""
     return DEFAULT_NET
 
 

@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 from conftest import interrupt_when, run_cli
 
+from idas_sumo.resources import DEFAULT_NET
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -148,7 +150,7 @@ def test_train_with_validation_names_the_best_checkpoint(tmp_path: Path) -> None
         "[intelligent_traffic]\nmin_vehicles_per_road = 2\nmax_vehicles_per_road = 2\n"
     )
     out = tmp_path / "run"
-    net = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
+    net = DEFAULT_NET
     result = run_cli(
         "train", "--net", str(net), "--config", str(config), "--out", str(out), "--no-progress", timeout=120
     )

@@ -23,6 +23,7 @@ from idas_sumo.evaluation.metrics import (
     merge_crossings,
     summary_rows,
 )
+from idas_sumo.resources import shipped
 
 # The column lists exactly as DESIGN.md section 4 spells them (not imported: this is the contract).
 DESIGN_EPISODE_COLUMNS = [
@@ -397,7 +398,7 @@ def test_outputs_get_the_usual_file_permissions(tmp_path: Path, net_path: Path) 
 
 @pytest.mark.sumo
 def test_scenario_files_are_evaluated_with_their_first_vehicle_as_ego(tmp_path: Path, net_path: Path) -> None:
-    s4 = Path(__file__).resolve().parents[1] / "scenarios" / "representative" / "s4.toml"
+    s4 = shipped("scenarios/representative/s4.toml")
     evaluate(tmp_path / "f", net_path, "--baseline", "idm", "--scenario", str(s4), "--scenario", str(s4))
     episodes = pd.read_csv(tmp_path / "f" / "episodes.csv")
     assert episodes["scenario"].tolist() == ["s4", "s4"]

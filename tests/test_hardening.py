@@ -24,8 +24,9 @@ import numpy as np
 import pytest
 from conftest import checkpoint_payload, interrupt_when, run_cli
 
+from idas_sumo.resources import DEFAULT_NET as NET
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
-NET = REPO_ROOT / "sumo_nets" / "tjunction.net.xml"
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 
 TINY_TRAIN_TOML = """\

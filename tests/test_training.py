@@ -17,11 +17,10 @@ from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.errors import InputError
+from idas_sumo.resources import DEFAULT_TRAIN_CONFIG
 from idas_sumo.training.checkpoint import load_actor, load_checkpoint, save_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
 from idas_sumo.training.curriculum import plan_stages
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def tiny_config(**changes: Any) -> TrainConfig:
@@ -54,7 +53,7 @@ def test_defaults_are_the_papers_and_the_shipped_toml_matches() -> None:
     assert (c.robot_episodes, c.intelligent_episodes, c.direct_episodes) == (20_000, 50_000, 70_000)
     assert c.learner.alpha == 0.7 and c.learner.gamma == 0.9
     assert c.robot_traffic.max_controlled == 1
-    assert load_train_config(REPO / "scenarios" / "train_default.toml") == c
+    assert load_train_config(DEFAULT_TRAIN_CONFIG) == c
 
 
 def test_bad_values_name_the_key(tmp_path: Path) -> None:

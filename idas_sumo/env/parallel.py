@@ -14,9 +14,8 @@ from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.core import EnvConfig, MergeSimulation, StepOutcome, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
+from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.netgen import MergeNet
-
-DEFAULT_NET = Path(__file__).resolve().parents[2] / "sumo_nets" / "tjunction.net.xml"
 
 
 def observation_space() -> spaces.Dict:

@@ -13,13 +13,13 @@ import numpy.typing as npt
 from idas_sumo.baselines.policies import BASELINES
 from idas_sumo.env.core import MergeSimulation
 from idas_sumo.errors import InputError
+from idas_sumo.resources import POLICY_DIR
 
 PolicyFn = Callable[
     [MergeSimulation, list[str], npt.NDArray[np.float32], npt.NDArray[np.int8]], npt.NDArray[np.int64]
 ]
 """(sim, agent ids, observations (n, 1605), masks (n, 7)) -> actions (n,)."""
 
-POLICY_DIR = Path(__file__).resolve().parents[2] / "policies"
 LEARNED_METHODS: dict[str, str] = {"idas": "idas.pt", "idas_v": "idas_v.pt", "idas_direct": "idas_direct.pt"}
 METHODS: tuple[str, ...] = (*LEARNED_METHODS, *BASELINES)
 METHOD_LABELS: dict[str, str] = {

@@ -18,10 +18,10 @@ from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, generat
 from idas_sumo.env.snapshot import ROAD_NAMES
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
 from idas_sumo.evaluation.policies import PolicyFn
+from idas_sumo.resources import SCENARIO_DIR
 
 Suite = Literal["paper", "representative", "driver-types"]
 SUITES: tuple[str, ...] = ("paper", "representative", "driver-types")
-SCENARIO_DIR = Path(__file__).resolve().parents[2] / "scenarios"
 REPRESENTATIVE = ("s1", "s2", "s3", "s4")
 DRIVER_TYPE_SWEEP = tuple(float(x) for x in np.linspace(-2.0, 2.0, 9))
 

@@ -5,13 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from idas_sumo.resources import DEFAULT_TRAIN_CONFIG
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
 from idas_sumo.training.loop import run_training
 
-__all__ = ["DEFAULT_TRAIN_CONFIG", "config_from_args", "train_from_args"]
-
-DEFAULT_TRAIN_CONFIG = Path(__file__).resolve().parents[2] / "scenarios" / "train_default.toml"
+__all__ = ["config_from_args", "train_from_args"]
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
