@@ -272,3 +272,27 @@ def test_gym_env_with_policy_driven_others(small_budget: Any) -> None:
             assert info["end_reason"] in ("finished", "collided", "timeout", "removed")
     finally:
         env.close()
+
+
+def test_action_masks_method_through_the_wrappers(small_budget: Any) -> None:
+    # MaskablePPO reads the mask with get_wrapper_attr("action_masks"); it must equal info["action_mask"]
+    # after reset and every step, including the placeholder handed back with the last observation.
+    env = gymnasium.make("idas_sumo/Merge-v0", **_small(small_budget))
+    try:
+        assert env is not env.unwrapped  # gymnasium's wrappers are in between
+        masks = env.get_wrapper_attr("action_masks")
+        _, info = env.reset(seed=4)
+        forbidding = 0
+        done = False
+        while not done:
+            mask = masks()
+            assert mask.dtype == bool and mask.shape == (N_ACTIONS,)
+            np.testing.assert_array_equal(mask, info["action_mask"].astype(bool))
+            forbidding += int(not mask.all())
+            action = int(np.flatnonzero(mask)[-1])  # the highest allowed index: brakes when it may
+            _, _, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+        np.testing.assert_array_equal(masks(), info["action_mask"].astype(bool))
+        assert forbidding > 0  # the episode met the safety mask, so equality above is not trivial
+    finally:
+        env.close()

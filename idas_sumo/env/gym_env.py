@@ -34,7 +34,13 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
     """One ego vehicle learns; the others are robot cars (``others=None``) or follow ``others``.
 
     ``info["action_mask"]`` carries the ego's mask each step (also the raw physical values and the
-    named reward parts). The reward is the ego's own (finish + collide + impede).
+    named reward parts); ``action_masks()`` returns the same mask as a bool array, the method
+    sb3-contrib's ``MaskablePPO`` looks for (it reaches it through gymnasium's wrappers and SB3's vector
+    envs). The reward is the ego's own (finish + collide + impede).
+
+    Several environments may live in one process: libsumo runs one simulation per process, so the
+    second and later ones run their SUMO in a child process (see ``idas_sumo.sim.backend``); no
+    ``if __name__ == "__main__":`` guard is needed.
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # sumo-gui: pass gui=True
@@ -63,6 +69,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32)
         self.action_space: spaces.Space[Any] = spaces.Discrete(N_ACTIONS)
         self.ego = ""
+        self._mask = placeholder_mask()
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -76,8 +83,9 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         self.ego = ego
         self.sim.reset(with_controlled(scenario, controlled))
         self._advance_until_ego()
-        obs, mask = self.sim.observe([self.ego])
-        return obs[0], self._info(mask[0])
+        obs, masks = self.sim.observe([self.ego])
+        self._mask = masks[0]
+        return obs[0], self._info(self._mask)
 
     def _advance_until_ego(self) -> None:
         while self.ego not in self.sim.active_agents and not self.sim.episode_over:
@@ -91,6 +99,14 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         obs, masks = self.sim.observe(others)
         actions = self.others(obs, masks)
         return {a: int(act) for a, act in zip(others, actions, strict=True)}
+
+    def action_masks(self) -> npt.NDArray[np.bool_]:
+        """The ego's current action mask (True = allowed): ``info["action_mask"]`` of the last reset/step.
+
+        After the episode ended (before the next reset) it is the placeholder mask handed back with the
+        last observation.
+        """
+        return self._mask.astype(bool)
 
     def _info(self, mask: npt.NDArray[np.int8], **extra: Any) -> dict[str, Any]:
         return {"action_mask": mask, "ego": self.ego, **self.sim.agent_info(self.ego), **extra}
@@ -106,16 +122,17 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         if self.ego in outcome.end_reason:
             extra["end_reason"] = outcome.end_reason[self.ego]
         if terminated or truncated:
-            mask = placeholder_mask()
+            self._mask = placeholder_mask()
             return (
                 self.sim.last_observation(self.ego),
                 reward,
                 terminated,
                 truncated,
-                self._info(mask, **extra),
+                self._info(self._mask, **extra),
             )
         obs, masks = self.sim.observe([self.ego])
-        return obs[0], reward, False, False, self._info(masks[0], **extra)
+        self._mask = masks[0]
+        return obs[0], reward, False, False, self._info(self._mask, **extra)
 
     def close(self) -> None:
         self.sim.close()
