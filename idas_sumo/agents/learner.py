@@ -30,7 +30,7 @@ from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
 from idas_sumo.errors import InputError
 
-__all__ = ["Batch", "Learner", "LearnerConfig"]
+__all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "UpdateRecord"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -124,6 +124,66 @@ class Batch:
         return Batch(**moved)
 
 
+@dataclass(frozen=True)
+class CriticStep:
+    """One critic's part of an update; tensors (B,), detached, from the critic before its step."""
+
+    prediction: torch.Tensor
+    """V(o), or Q(s, a) for the action taken."""
+    target: torch.Tensor
+    """What the prediction was regressed to."""
+    advantage: torch.Tensor
+    """A1 (TD error or GAE) or A2 (COMA), before any standardisation."""
+    loss: float
+    """0.5 · mean (target - prediction)²."""
+
+
+@dataclass(frozen=True)
+class ActorStep:
+    """The actor's part of an update."""
+
+    loss: float
+    """-mean((α A1 + (1-α) A2) log π(a|o)) - entropy_coef · mean entropy."""
+    entropy: float
+    """Mean entropy of the masked policy before the step."""
+    grad_norm: float
+    """Global L2 norm of the actor's gradient before clipping."""
+
+
+@dataclass(frozen=True)
+class UpdateRecord:
+    """What the last ``Learner.update`` regressed its critics to and stepped its actor with."""
+
+    value: CriticStep
+    central: CriticStep | None
+    """None in stage 1, where Q is neither trained nor used."""
+    actor: ActorStep
+
+    def stats(self) -> dict[str, float]:
+        """The scalar metrics ``update`` returns (one row of metrics.csv columns)."""
+        central = self.central
+        return {
+            "actor_loss": self.actor.loss,
+            "v_loss": self.value.loss,
+            "q_loss": 0.0 if central is None else central.loss,
+            "entropy": self.actor.entropy,
+            "adv_v_mean": float(self.value.advantage.mean().item()),
+            "adv_q_mean": 0.0 if central is None else float(central.advantage.mean().item()),
+            "v_mean": float(self.value.prediction.mean().item()),
+            "q_mean": 0.0 if central is None else float(central.prediction.mean().item()),
+            "actor_grad_norm": self.actor.grad_norm,
+        }
+
+
+@dataclass(frozen=True)
+class _Policy:
+    """The masked policy on a batch, with gradients: log π(a|o) (B,), entropy (B,), π (B, A)."""
+
+    log_prob: torch.Tensor
+    entropy: torch.Tensor
+    probs: torch.Tensor
+
+
 def _standardised(adv: torch.Tensor) -> torch.Tensor:
     """Zero mean, unit variance over the batch (a batch of one is only centred)."""
     centred = adv - adv.mean()
@@ -167,6 +227,8 @@ class Learner:
         self.opt_actor = torch.optim.Adam(self.actor.parameters(), lr=config.lr_actor)
         self.opt_value = torch.optim.Adam(self.value.parameters(), lr=config.lr_value)
         self.opt_central = torch.optim.Adam(self.central.parameters(), lr=config.lr_central)
+        self.last_update: UpdateRecord | None = None
+        """What the last ``update`` regressed to and stepped with; None before the first."""
 
     def act(
         self,
@@ -203,108 +265,137 @@ class Learner:
 
         Losses are means over the batch (the paper writes sums; a mean keeps the step size
         independent of B). Critics step before the actor, but both advantages are computed from the
-        critics as they were before their step.
+        critics as they were before their step. What each part regressed to and handed on is kept in
+        ``last_update``.
+        """
+        b = self._checked(batch)
+        value_step = self._update_value_critic(b)
+        policy = self._policy(b)
+        central_step = (
+            self._update_central_critic(b, policy.probs.detach()) if self.config.use_central_critic else None
+        )
+        actor_step = self._update_actor(
+            policy, value_step.advantage, None if central_step is None else central_step.advantage
+        )
+        self._update_targets()
+        self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
+        return self.last_update.stats()
+
+    def _checked(self, batch: Batch) -> Batch:
+        """The batch on this learner's device, refused when an action breaks its own mask."""
+        b = batch.to(self.device)
+        if not bool(b.mask.bool().gather(1, b.action.long().unsqueeze(1)).all()):
+            raise ValueError("batch holds an action its own mask forbids")
+        return b
+
+    def _update_value_critic(self, b: Batch) -> CriticStep:
+        """L(φ1): V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the λ-return.
+
+        The advantage A1 handed to the actor uses the online V on both ends (paper eq. for ∇J1).
         """
         cfg = self.config
-        b = batch.to(self.device)
-        mask = b.mask.bool()
-        action = b.action.long()
-        if not bool(mask.gather(1, action.unsqueeze(1)).all()):
-            raise ValueError("batch holds an action its own mask forbids")
-        reward = b.reward.float()
-        done = b.done.float()
-
-        # --- decentralised critic V: L(φ1) with the target network V̂ in the bootstrap.
+        reward, done = b.reward.float(), b.done.float()
         values = self.value(b.obs)
         with torch.no_grad():
-            v_target = td_targets(reward, self.value_target(b.next_obs), done, cfg.gamma)
-            # A1 uses the online critic on both ends (paper eq. for ∇J1).
-            adv_v = td_advantages(reward, values.detach(), self.value(b.next_obs), done, cfg.gamma)
+            target = td_targets(reward, self.value_target(b.next_obs), done, cfg.gamma)
+            advantage = td_advantages(reward, values.detach(), self.value(b.next_obs), done, cfg.gamma)
             if cfg.gae_lambda > 0.0:
-                adv_v = gae_advantages(adv_v, _require(b.next_row, "next_row"), cfg.gamma, cfg.gae_lambda)
-                v_target = adv_v + values.detach()  # the λ-return
-        v_loss = 0.5 * (v_target - values).pow(2).mean()
+                advantage = gae_advantages(
+                    advantage, _require(b.next_row, "next_row"), cfg.gamma, cfg.gae_lambda
+                )
+                target = advantage + values.detach()  # the λ-return
+        loss = 0.5 * (target - values).pow(2).mean()
         self.opt_value.zero_grad(set_to_none=True)
-        v_loss.backward()
+        loss.backward()
         nn.utils.clip_grad_norm_(self.value.parameters(), cfg.max_grad_norm)
         self.opt_value.step()
+        return CriticStep(
+            prediction=values.detach(), target=target, advantage=advantage, loss=float(loss.item())
+        )
 
-        # --- policy, needed by the COMA baseline before the actor step.
-        dist = self.actor.distribution(b.obs, mask)
-        log_probs = dist.log_prob(action)
-        entropy = dist.entropy()
-
-        # --- centralised critic Q: L(φ2), SARSA bootstrap from the actions taken at t+1.
-        q_loss_value = 0.0
-        adv_q: torch.Tensor | None = None
-        q_mean = 0.0
-        if cfg.use_central_critic:
-            state = _require(b.state, "state")
-            others = _require(b.others_actions, "others_actions")
-            slot = _require(b.slot, "slot").long()
-            joint_reward = _require(b.joint_reward, "joint_reward").float()
-            next_valid = _require(b.next_valid, "next_valid").float()
+    def _update_central_critic(self, b: Batch, probs: torch.Tensor) -> CriticStep:
+        """L(φ2): Q(s, a) regressed to R + γ·Q̂(s', a')·(1 - done), a' the action taken at t+1 (SARSA),
+        or to the λ-return along each agent's steps; the advantage A2 is COMA's
+        Q(s, a) - Σ_a' π(a'|o) Q(s, a') from the Q before its step.
+        """
+        cfg = self.config
+        action = b.action.long()
+        done = b.done.float()
+        state = _require(b.state, "state")
+        others = _require(b.others_actions, "others_actions")
+        slot = _require(b.slot, "slot").long()
+        joint_reward = _require(b.joint_reward, "joint_reward").float()
+        next_valid = _require(b.next_valid, "next_valid").float()
+        with torch.no_grad():
+            # Rows without a next step carry arbitrary slot/action; clamp so gather stays in range,
+            # the factor next_valid then zeroes them.
+            next_q = self.central_target(
+                _require(b.next_state, "next_state"),
+                _require(b.next_others_actions, "next_others_actions"),
+                _require(b.next_slot, "next_slot").long().clamp(0, STATE_SLOTS - 1),
+            )
+            next_a = _require(b.next_action, "next_action").long().clamp(0, N_ACTIONS - 1)
+            next_q_taken = next_q.gather(1, next_a.unsqueeze(1)).squeeze(1)
+            target = joint_reward + cfg.gamma * next_valid * (1.0 - done) * next_q_taken
+        q_all = self.central(state, others, slot)
+        q_taken = q_all.gather(1, action.unsqueeze(1)).squeeze(1)
+        if cfg.q_lambda > 0.0:
             with torch.no_grad():
-                # Rows without a next step carry arbitrary slot/action; clamp so gather stays in range,
-                # the factor next_valid then zeroes them.
-                next_q = self.central_target(
-                    _require(b.next_state, "next_state"),
-                    _require(b.next_others_actions, "next_others_actions"),
-                    _require(b.next_slot, "next_slot").long().clamp(0, STATE_SLOTS - 1),
+                q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
+                target = lambda_targets(
+                    target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
                 )
-                next_a = _require(b.next_action, "next_action").long().clamp(0, N_ACTIONS - 1)
-                next_q_taken = next_q.gather(1, next_a.unsqueeze(1)).squeeze(1)
-                q_target = joint_reward + cfg.gamma * next_valid * (1.0 - done) * next_q_taken
-            q_all = self.central(state, others, slot)
-            q_taken = q_all.gather(1, action.unsqueeze(1)).squeeze(1)
-            if cfg.q_lambda > 0.0:
-                with torch.no_grad():
-                    q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
-                    q_target = lambda_targets(
-                        q_target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
-                    )
-            q_loss = 0.5 * (q_target - q_taken).pow(2).mean()
-            self.opt_central.zero_grad(set_to_none=True)
-            q_loss.backward()
-            nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
-            self.opt_central.step()
-            q_loss_value = float(q_loss.item())
-            q_mean = float(q_taken.detach().mean().item())
-            adv_q = coma_advantage(q_all.detach(), dist.probs.detach(), action)
+        loss = 0.5 * (target - q_taken).pow(2).mean()
+        self.opt_central.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
+        self.opt_central.step()
+        return CriticStep(
+            prediction=q_taken.detach(),
+            target=target,
+            advantage=coma_advantage(q_all.detach(), probs, action),
+            loss=float(loss.item()),
+        )
 
-        # --- actor: ∇J = α∇J1 + (1-α)∇J2.
-        policy_adv_v, policy_adv_q = adv_v, adv_q
+    def _policy(self, b: Batch) -> _Policy:
+        """The masked policy before the actor's step, as both the COMA baseline and ∇J need it."""
+        dist = self.actor.distribution(b.obs, b.mask.bool())
+        # Built in this order (log π, entropy, then the probabilities the entropy created): autograd
+        # sums gradients in creation order, and this one keeps the float results bit for bit.
+        log_prob = dist.log_prob(b.action.long())
+        entropy = dist.entropy()
+        return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs)
+
+    def _update_actor(self, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None) -> ActorStep:
+        """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus."""
+        cfg = self.config
+        log_probs, entropy = policy.log_prob, policy.entropy
         if cfg.normalize_advantages:
-            policy_adv_v = _standardised(adv_v)
-            policy_adv_q = None if adv_q is None else _standardised(adv_q)
-        actor_loss = combined_policy_loss(
+            adv_v = _standardised(adv_v)
+            adv_q = None if adv_q is None else _standardised(adv_q)
+        loss = combined_policy_loss(
             log_probs,
-            policy_adv_v,
-            policy_adv_q,
+            adv_v,
+            adv_q,
             cfg.effective_alpha,
             entropy=entropy,
             entropy_coef=cfg.entropy_coef,
         )
         self.opt_actor.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        actor_grad_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
+        loss.backward()
+        grad_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
         self.opt_actor.step()
+        return ActorStep(
+            loss=float(loss.item()),
+            entropy=float(entropy.detach().mean().item()),
+            grad_norm=float(grad_norm.item()),
+        )
 
-        _soft_update(self.value_target, self.value, cfg.target_tau)
-        if cfg.use_central_critic:
-            _soft_update(self.central_target, self.central, cfg.target_tau)
-
-        return {
-            "actor_loss": float(actor_loss.item()),
-            "v_loss": float(v_loss.item()),
-            "q_loss": q_loss_value,  # 0.0 in stage 1
-            "entropy": float(entropy.detach().mean().item()),
-            "adv_v_mean": float(adv_v.mean().item()),
-            "adv_q_mean": 0.0 if adv_q is None else float(adv_q.mean().item()),
-            "v_mean": float(values.detach().mean().item()),
-            "q_mean": q_mean,
-            "actor_grad_norm": float(actor_grad_norm.item()),
-        }
+    def _update_targets(self) -> None:
+        """Soft-update the critics' target networks; Q̂ only where Q was trained."""
+        _soft_update(self.value_target, self.value, self.config.target_tau)
+        if self.config.use_central_critic:
+            _soft_update(self.central_target, self.central, self.config.target_tau)
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume: nets, targets, optimisers, config and layout ids.
