@@ -12,17 +12,18 @@ from idas_sumo.baselines.fsm_idm import (
     real_leader_idm_acceleration,
     virtual_leaders,
 )
-from idas_sumo.baselines.idm import IDMParams, idm_acceleration
-from idas_sumo.baselines.policies import BASELINES, closest_allowed_action, fsm_idm_actions, idm_actions
+from idas_sumo.baselines.policies import BASELINES, fsm_idm_actions, idm_actions
 from idas_sumo.env.actions import (
     HARD_BRAKE,
     HARD_BRAKE_MPS2,
     N_ACTIONS,
     RELEASE_BRAKE,
     candidate_accelerations,
+    closest_allowed_action,
     kinematic_mask,
 )
 from idas_sumo.env.snapshot import MAIN, MERGE, NO_LEADER, OUT, TrafficSnapshot
+from idas_sumo.physics.idm import IDMParams, idm_acceleration
 
 # Default IDM throughout: a = 2, b = 2 (so 2·sqrt(ab) = 4), s0 = 2 m, T = 1 s, delta = 4.
 IDM = IDMParams()

@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.baselines.idm import DEFAULT_IDM, IDMParams, idm_acceleration
 from idas_sumo.env.snapshot import TrafficSnapshot, leader_speeds, leaders, other_road_leaders
+from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

@@ -4,7 +4,8 @@ An agent's acceleration persists between steps; the five Δa actions change it b
 step, hard brake sets it to -4 m/s², and release brake sets it to 0 m/s² (allowed only directly
 after a hard brake). A mask entry of 1 means the action may be taken. The final mask is the
 intersection of the three allowed sets (the paper's union of the masked-out sets). Hard brake is
-never masked, so every agent always has at least one action.
+never masked, so every agent always has at least one action. ``closest_allowed_action`` turns a wanted
+acceleration (a masked request, a rule-based baseline's target) into the allowed action nearest to it.
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.baselines.idm import DEFAULT_IDM, IDMParams, idm_acceleration
+from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.int64]
 
 STEP_LENGTH_S = 0.2  # 5 Hz decisions
 DELTA_ACCEL_MPS2: tuple[float, ...] = (-0.2, -0.1, 0.0, 0.1, 0.2)
@@ -34,6 +36,8 @@ MAX_ACCEL_MPS2 = 2.0
 MERGE_EXEMPTION_M = 100.0  # the merge car may exceed its road's limit this close to the merge point
 _TOLERANCE = 1e-6
 _DELTAS = np.asarray(DELTA_ACCEL_MPS2)
+# Candidate accelerations lie on a 1e-6-rounded grid, so distances closer than this are the same.
+_TIE_TOLERANCE_MPS2 = 1e-9
 
 
 def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> FloatArray:
@@ -55,6 +59,42 @@ def candidate_accelerations(prev_accel: npt.ArrayLike) -> FloatArray:
     cand[:, HARD_BRAKE] = HARD_BRAKE_MPS2
     cand[:, RELEASE_BRAKE] = RELEASE_BRAKE_MPS2
     return cand
+
+
+def closest_allowed_action(
+    target_accel: npt.ArrayLike, prev_accel: npt.ArrayLike, mask: npt.ArrayLike
+) -> IntArray:
+    """(n,) int64: the allowed action whose acceleration is closest to ``target_accel`` (m/s²).
+
+    ``mask`` is (n, 7), nonzero = allowed. Ties go to the lower acceleration (the safer choice), then
+    to the lower action index so the result is deterministic. A row with no allowed action is an
+    error: hard brake is never masked, so such a mask is a bug upstream.
+    """
+    target = np.atleast_1d(np.asarray(target_accel, dtype=np.float64))
+    prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
+    allowed = np.asarray(mask) != 0
+    if allowed.ndim == 1 and target.shape[0] == 1:
+        allowed = allowed[None, :]
+    n = target.shape[0]
+    if target.ndim != 1 or prev.shape != (n,) or allowed.shape != (n, N_ACTIONS):
+        raise ValueError(
+            f"expected target_accel (n,), prev_accel (n,), mask (n, {N_ACTIONS}); got "
+            f"{target.shape}, {prev.shape}, {allowed.shape}"
+        )
+    if not np.all(np.isfinite(target)):
+        raise ValueError(f"target_accel must be finite, got {target.tolist()}")
+    if n == 0:
+        return np.empty(0, dtype=np.int64)
+    if not np.all(allowed.any(axis=1)):
+        bad = np.flatnonzero(~allowed.any(axis=1)).tolist()
+        raise ValueError(f"mask rows {bad} allow no action (hard brake is never masked)")
+    cand = candidate_accelerations(prev)
+    distance = np.where(allowed, np.abs(cand - target[:, None]), np.inf)
+    best = distance.min(axis=1, keepdims=True)
+    tied = allowed & (distance <= best + _TIE_TOLERANCE_MPS2)
+    # Among the tied actions take the lowest acceleration; argmin returns the first (lowest index)
+    # of equal values, which settles actions that produce the same acceleration.
+    return np.argmin(np.where(tied, cand, np.inf), axis=1).astype(np.int64)
 
 
 def kinematic_mask(prev_accel: npt.ArrayLike, cand: FloatArray | None = None) -> BoolArray:

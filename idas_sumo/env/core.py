@@ -15,8 +15,6 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.agents.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
-from idas_sumo.baselines.idm import DEFAULT_IDM
-from idas_sumo.baselines.policies import closest_allowed_action
 from idas_sumo.env.actions import (
     HARD_BRAKE,
     N_ACTIONS,
@@ -24,6 +22,7 @@ from idas_sumo.env.actions import (
     MaskInputs,
     action_masks,
     candidate_accelerations,
+    closest_allowed_action,
     effective_speed_limit,
     next_acceleration,
     safety_bound,
@@ -59,6 +58,7 @@ from idas_sumo.env.snapshot import (
     other_road_leaders,
 )
 from idas_sumo.errors import SimulationError
+from idas_sumo.physics.idm import DEFAULT_IDM
 from idas_sumo.sim.backend import Backend, VehicleStates, make_backend
 from idas_sumo.sim.netgen import MergeNet, read_merge_net
 

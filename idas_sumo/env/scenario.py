@@ -15,9 +15,9 @@ from typing import Literal
 
 import numpy as np
 
-from idas_sumo.baselines.idm import DEFAULT_IDM
 from idas_sumo.config import from_dict, load_toml
 from idas_sumo.errors import InputError
+from idas_sumo.physics.idm import DEFAULT_IDM
 
 Road = Literal["main", "merge"]
 ROADS: tuple[Road, ...] = ("main", "merge")
