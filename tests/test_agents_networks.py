@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_onehot
 from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
 from idas_sumo.agents.networks import (
     CENTRAL_INPUT_DIM,
@@ -18,9 +19,9 @@ from idas_sumo.agents.networks import (
     GridEncoder,
     ValueCritic,
 )
-from idas_sumo.agents.state_layout import OTHERS_ACTIONS_DIM, STATE_SLOTS, others_actions_onehot
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
+from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
 B = 16

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
-from idas_sumo.agents.state_layout import STATE_DIM
 from idas_sumo.env import MergeEnv, MergeParallelEnv
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.core import EnvConfig
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec
+from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import slot_taken
 

@@ -23,11 +23,12 @@ import torch
 from torch import nn
 
 from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss
+from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
 from idas_sumo.agents.networks import Actor, CentralCritic, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
-from idas_sumo.agents.state_layout import STATE_LAYOUT_ID, STATE_SLOTS
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
+from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
 __all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "UpdateRecord"]

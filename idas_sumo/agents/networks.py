@@ -13,9 +13,10 @@ import torch
 from torch import nn
 from torch.distributions import Categorical
 
-from idas_sumo.agents.state_layout import OTHERS_ACTIONS_DIM, STATE_DIM, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import GRID_CELLS, N_CHANNELS, N_LANES, N_SCALARS, OBS_DIM
+from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
 
 __all__ = [
     "CENTRAL_INPUT_DIM",

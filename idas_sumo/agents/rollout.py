@@ -19,13 +19,14 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_onehot
 from idas_sumo.agents.learner import Batch
-from idas_sumo.agents.state_layout import OTHERS_ACTIONS_DIM, STATE_DIM, STATE_SLOTS, others_actions_onehot
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.core import MergeSimulation
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.scenario import Scenario
+from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
 
 __all__ = ["ActPolicy", "EpisodeData", "EpisodeStats", "batch_from_episodes", "collect_episode"]
 

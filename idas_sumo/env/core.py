@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.agents.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.env.actions import (
     HARD_BRAKE,
     N_ACTIONS,
@@ -57,6 +56,7 @@ from idas_sumo.env.snapshot import (
     leaders,
     other_road_leaders,
 )
+from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.errors import SimulationError
 from idas_sumo.physics.idm import DEFAULT_IDM
 from idas_sumo.sim.backend import Backend, VehicleStates, make_backend
@@ -353,7 +353,7 @@ class MergeSimulation:
         return self._slot.get(vehicle_id, -1)
 
     def state(self) -> npt.NDArray[np.float32]:
-        """Global state for the centralised critic (layout in ``agents/state_layout.py``)."""
+        """Global state for the centralised critic (layout in ``env/state_layout.py``)."""
         state = np.zeros((STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
         snap = self.snapshot
         prio = self.b_prio(snap.road)

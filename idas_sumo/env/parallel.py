@@ -9,11 +9,11 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from idas_sumo.agents.state_layout import STATE_DIM
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.core import EnvConfig, MergeSimulation, StepOutcome, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
+from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.netgen import MergeNet
 

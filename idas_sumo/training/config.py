@@ -12,10 +12,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
-from idas_sumo.agents.state_layout import STATE_SLOTS
 from idas_sumo.config import from_dict, load_toml
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
 __all__ = ["STAGES", "Stage", "TrainConfig", "load_train_config", "train_config_from_dict"]

@@ -1,14 +1,8 @@
-"""The global state the centralised critic Q sees, and how the other agents' actions are encoded.
+"""What the centralised critic Q gets besides the global state (``env/state_layout.py``).
 
-The state is a fixed number of vehicle slots (STATE_SLOTS), each a row of STATE_FEATURES floats::
-
-    [present, on_main, on_merge, on_out, dist_to_merge / 250 m, speed / 20 m/s, accel / 4 m/s²,
-     b_prio, b_type / 2, controlled]
-
-flattened row-major into a vector of STATE_DIM floats. Empty slots are all zeros (``present`` = 0).
-The critic also gets the other agents' actions one-hot (STATE_SLOTS × N_ACTIONS, the own slot and
-absent or uncontrolled slots zeroed) and the own slot one-hot (STATE_SLOTS), so one shared network
-answers for every agent (COMA's agent-id input).
+The other agents' actions one-hot (STATE_SLOTS × N_ACTIONS, the own slot and absent or uncontrolled
+slots zeroed) and the own slot one-hot (STATE_SLOTS), so one shared network answers for every agent
+(COMA's agent-id input).
 """
 
 from __future__ import annotations
@@ -17,33 +11,9 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.layout import ACCEL_SCALE_MPS2, B_TYPE_SCALE, DIST_SCALE_M, SPEED_SCALE_MPS
+from idas_sumo.env.state_layout import STATE_FEATURES, STATE_SLOTS
 
-# 8 learning agents in stage 2 plus room for SUMO's own cars in stage 1 (2 to 8 per road).
-STATE_SLOTS = 16
-STATE_FEATURE_NAMES: tuple[str, ...] = (
-    "present",
-    "on_main",
-    "on_merge",
-    "on_out",
-    "dist_to_merge",
-    "speed",
-    "accel",
-    "b_prio",
-    "b_type",
-    "controlled",
-)
-STATE_FEATURES = len(STATE_FEATURE_NAMES)  # 10
-STATE_DIM = STATE_SLOTS * STATE_FEATURES  # 160
 OTHERS_ACTIONS_DIM = STATE_SLOTS * N_ACTIONS  # 112
-
-# Scales shared with the observation so both critics see the same units.
-STATE_DIST_SCALE_M = DIST_SCALE_M
-STATE_SPEED_SCALE_MPS = SPEED_SCALE_MPS
-STATE_ACCEL_SCALE_MPS2 = ACCEL_SCALE_MPS2
-STATE_B_TYPE_SCALE = B_TYPE_SCALE
-
-FEATURE_INDEX: dict[str, int] = {name: i for i, name in enumerate(STATE_FEATURE_NAMES)}
 
 # Recorded in checkpoints so a critic trained on another state layout is refused on load.
 STATE_LAYOUT_ID = f"slots{STATE_SLOTS}-features{STATE_FEATURES}-actions{N_ACTIONS}-v1"
