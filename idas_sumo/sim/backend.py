@@ -16,15 +16,14 @@ import typing
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from idas_sumo.env.scenario import Scenario
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.sim.netgen import MergeNet
 
-STEP_LENGTH_S = 0.2
+STEP_LENGTH_S = 0.2  # SUMO's step, also the agents' decision period (5 Hz)
 CONTROLLED_SPEED_MODE = 32  # every check off, right of way inside the junction ignored too (bit 5 inverted)
 SUMO_DEFAULT_SPEED_MODE = 31
 CONTROLLED_TYPE = "agent"
@@ -34,7 +33,34 @@ CONTROLLED_MAX_SPEED_MPS = 40.0
 CONTROLLED_DECEL_MPS2 = 4.5
 ROBOT_ACCEL_MPS2 = 2.0
 ROBOT_DECEL_MPS2 = 2.0  # comfortable; a robot braking harder than HARD_BRAKE_DETECT counts as hard braking
-VEHICLE_LENGTH_M = 5.0
+VEHICLE_LENGTH_M = 5.0  # every car, controlled or not (the route file's vTypes)
+
+
+class RouteVehicle(Protocol):
+    """What the route file needs of one vehicle (``env.scenario.VehicleSpec`` has it)."""
+
+    @property
+    def id(self) -> str: ...
+    @property
+    def road(self) -> str: ...  # 'main' or 'merge': the incoming road it starts on
+    @property
+    def depart_s(self) -> float: ...
+    @property
+    def start_pos_m(self) -> float: ...
+    @property
+    def speed_mps(self) -> float: ...
+    @property
+    def controlled(self) -> bool: ...
+
+
+class RouteScenario(Protocol):
+    """What SUMO needs of a scenario (``env.scenario.Scenario`` has it): sim knows no env types."""
+
+    @property
+    def vehicles(self) -> Sequence[RouteVehicle]: ...
+    @property
+    def controlled_ids(self) -> tuple[str, ...]: ...
+
 
 _active: SumoBackend | None = None
 
@@ -69,7 +95,7 @@ def _sumo_message(err: BaseException, stderr_lines: Sequence[str]) -> str:
     return text or type(err).__name__
 
 
-def _route_xml(scenario: Scenario, net: MergeNet) -> str:
+def _route_xml(scenario: RouteScenario, net: MergeNet) -> str:
     edge = {"main": net.main.edge_id, "merge": net.merge.edge_id}
     lines = [
         "<routes>",
@@ -164,7 +190,7 @@ class SumoBackend:
             *self.extra_args,
         ]
 
-    def reset(self, scenario: Scenario, extra_args: Sequence[str] = ()) -> None:
+    def reset(self, scenario: RouteScenario, extra_args: Sequence[str] = ()) -> None:
         """(Re)load the network with this scenario's vehicles (the insertion step is ``step``'s job).
 
         ``extra_args`` are SUMO options for this run only (e.g. ``--tripinfo-output FILE``).
@@ -294,16 +320,6 @@ class SumoBackend:
             accel[i] = vehicle.getAcceleration(vid)
         return VehicleStates(ids, tuple(edges), lane_pos, speed, accel)
 
-    def internal_lane_lengths(self) -> dict[str, float]:
-        """Length of each junction-internal edge, keyed by edge id (to measure distance past the merge)."""
-        import libsumo
-
-        lengths: dict[str, float] = {}
-        for lane in libsumo.lane.getIDList():
-            if lane.startswith(":"):
-                lengths[libsumo.lane.getEdgeID(lane)] = float(libsumo.lane.getLength(lane))
-        return lengths
-
     def raw_call(self, domain: str, method: str, *args: Any) -> Any:
         """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args)."""
         import libsumo
@@ -369,7 +385,7 @@ class SubprocessBackend:
             raise value
         return value
 
-    def reset(self, scenario: Scenario, extra_args: Sequence[str] = ()) -> None:
+    def reset(self, scenario: RouteScenario, extra_args: Sequence[str] = ()) -> None:
         self._call("reset", scenario, list(extra_args))
 
     def step(self) -> StepEvents:
