@@ -271,8 +271,8 @@ def test_evaluate_bad_policy_is_exit_2_naming_the_file(
 
 
 def test_pickled_code_is_refused_through_the_python_api(tmp_path: Path) -> None:
+    from idas_sumo.agents.checkpoint_file import load_actor
     from idas_sumo.errors import InputError
-    from idas_sumo.training.checkpoint import load_actor
 
     marker = tmp_path / "CODE_WAS_RUN"
     for damage in ("pickle", "torch-pickle"):
@@ -349,7 +349,7 @@ def test_resume_drops_a_metrics_row_cut_short(tmp_path: Path) -> None:
     row = ",".join(["robot", "{e}", "{e}", *["0"] * (len(METRIC_COLUMNS) - 3)])
     text = ",".join(METRIC_COLUMNS) + "\n" + "".join(row.format(e=e) + "\n" for e in range(3))
     (tmp_path / "metrics.csv").write_text(text + "robot,3,")  # cut off mid-row
-    with MetricsSink(tmp_path, keep_up_to_global_episode=1):
+    with MetricsSink(tmp_path, keep_below_global_episode=2):
         pass
     lines = (tmp_path / "metrics.csv").read_text().splitlines()
     assert lines == text.splitlines()[:3]  # header + episodes 0 and 1

@@ -7,7 +7,7 @@ parts. Both environments (PettingZoo and Gymnasium) are thin wrappers around it.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -503,6 +503,13 @@ class MergeSimulation:
         if self._backend is not None:
             self._backend.close()
         self._closed = True
+
+
+PolicyFn = Callable[
+    [MergeSimulation, list[str], npt.NDArray[np.float32], npt.NDArray[np.int8]], npt.NDArray[np.int64]
+]
+"""How a method picks actions in a ``MergeSimulation`` (a rule-based baseline, a learned actor):
+(sim, agent ids, observations (n, OBS_DIM), masks (n, N_ACTIONS)) -> actions (n,)."""
 
 
 def _checked_action(agent: str, action: object, time_s: float) -> int:

@@ -4,21 +4,15 @@ their actions. Baselines read the traffic snapshot; learned policies read observ
 from __future__ import annotations
 
 import difflib
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.baselines.policies import BASELINES
-from idas_sumo.env.core import MergeSimulation
+from idas_sumo.baselines.policies import BASELINES, baseline_policy
+from idas_sumo.env.core import MergeSimulation, PolicyFn
 from idas_sumo.errors import InputError
 from idas_sumo.resources import POLICY_DIR
-
-PolicyFn = Callable[
-    [MergeSimulation, list[str], npt.NDArray[np.float32], npt.NDArray[np.int8]], npt.NDArray[np.int64]
-]
-"""(sim, agent ids, observations (n, 1605), masks (n, 7)) -> actions (n,)."""
 
 LEARNED_METHODS: dict[str, str] = {"idas": "idas.pt", "idas_v": "idas_v.pt", "idas_direct": "idas_direct.pt"}
 METHODS: tuple[str, ...] = (*LEARNED_METHODS, *BASELINES)
@@ -31,30 +25,20 @@ METHOD_LABELS: dict[str, str] = {
 }
 
 
-def check_method(name: str, flag: str = "--baseline") -> str:
-    if name not in METHODS:
-        close = difflib.get_close_matches(name, METHODS, n=1, cutoff=0.4)
+def check_method(name: str, flag: str = "--baseline", also: tuple[str, ...] = ()) -> str:
+    """``name`` if it is a method (or one of ``also``, e.g. "all"); else an InputError with a hint."""
+    choices = (*METHODS, *also)
+    if name not in choices:
+        # Lower case first, so that "IDAS" is pointed to "idas" (difflib compares case-sensitively).
+        close = difflib.get_close_matches(name.lower(), choices, n=1, cutoff=0.4)
         hint = f' (did you mean "{close[0]}"?)' if close else ""
-        raise InputError(f"{flag}: unknown method {name!r}{hint}; choose from {', '.join(METHODS)}")
+        raise InputError(f"{flag}: unknown method {name!r}{hint}; choose from {', '.join(choices)}")
     return name
-
-
-def baseline_policy(name: str) -> PolicyFn:
-    act = BASELINES[name]
-
-    def policy(
-        sim: MergeSimulation, agents: list[str], obs: npt.NDArray[np.float32], masks: npt.NDArray[np.int8]
-    ) -> npt.NDArray[np.int64]:
-        egos = sim.snapshot.index(agents)
-        prev = np.array([sim.prev_accel(a) for a in agents])
-        return act(sim.snapshot, egos, prev, masks)
-
-    return policy
 
 
 def learned_policy(path: Path, seed: int = 0) -> PolicyFn:
     """A shipped or trained actor, acting greedily (the most probable allowed action)."""
-    from idas_sumo.training.checkpoint import load_actor
+    from idas_sumo.agents.checkpoint_file import load_actor  # lazy: torch only for learned methods
 
     actor = load_actor(path)
     import torch

@@ -21,9 +21,9 @@ import torch
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.returns import gae_advantages
 from idas_sumo.agents.rollout import EpisodeData, collect_episode
+from idas_sumo.baselines.policies import baseline_policy
 from idas_sumo.env.core import MergeSimulation
 from idas_sumo.env.scenario import TrafficConfig, generate_scenario
-from idas_sumo.evaluation.policies import baseline_policy
 
 __all__ = ["BaselineTeacher", "EpochStats", "collect_demonstrations", "imitate"]
 
