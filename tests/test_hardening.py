@@ -349,7 +349,7 @@ def test_resume_drops_a_metrics_row_cut_short(tmp_path: Path) -> None:
     row = ",".join(["robot", "{e}", "{e}", *["0"] * (len(METRIC_COLUMNS) - 3)])
     text = ",".join(METRIC_COLUMNS) + "\n" + "".join(row.format(e=e) + "\n" for e in range(3))
     (tmp_path / "metrics.csv").write_text(text + "robot,3,")  # cut off mid-row
-    with MetricsSink(tmp_path, keep_below_global_episode=2):
+    with MetricsSink(tmp_path, keep_up_to_global_episode=1):
         pass
     lines = (tmp_path / "metrics.csv").read_text().splitlines()
     assert lines == text.splitlines()[:3]  # header + episodes 0 and 1
