@@ -16,12 +16,12 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration
+from idas_sumo.sim.backend import STEP_LENGTH_S  # one decision per SUMO step (5 Hz)
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
 
-STEP_LENGTH_S = 0.2  # 5 Hz decisions
 DELTA_ACCEL_MPS2: tuple[float, ...] = (-0.2, -0.1, 0.0, 0.1, 0.2)
 HARD_BRAKE_MPS2 = -4.0
 RELEASE_BRAKE_MPS2 = 0.0
@@ -29,7 +29,6 @@ N_DELTA_ACTIONS = len(DELTA_ACCEL_MPS2)
 HARD_BRAKE = N_DELTA_ACTIONS  # action index 5
 RELEASE_BRAKE = N_DELTA_ACTIONS + 1  # action index 6
 N_ACTIONS = N_DELTA_ACTIONS + 2
-ACTION_NAMES: tuple[str, ...] = ("da-0.2", "da-0.1", "da0", "da+0.1", "da+0.2", "hard_brake", "release_brake")
 
 MIN_ACCEL_MPS2 = -2.0  # kinematic range outside hard braking
 MAX_ACCEL_MPS2 = 2.0

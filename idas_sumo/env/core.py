@@ -17,7 +17,6 @@ import numpy.typing as npt
 from idas_sumo.env.actions import (
     HARD_BRAKE,
     N_ACTIONS,
-    STEP_LENGTH_S,
     MaskInputs,
     action_masks,
     candidate_accelerations,
@@ -30,6 +29,7 @@ from idas_sumo.env.layout import (
     ACCEL_SCALE_MPS2,
     B_TYPE_SCALE,
     DIST_SCALE_M,
+    OBS_DIM,
     SPEED_SCALE_MPS,
     VISIBILITY_M,
 )
@@ -59,7 +59,7 @@ from idas_sumo.env.snapshot import (
 from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.errors import SimulationError
 from idas_sumo.physics.idm import DEFAULT_IDM
-from idas_sumo.sim.backend import Backend, VehicleStates, make_backend
+from idas_sumo.sim.backend import STEP_LENGTH_S, VEHICLE_LENGTH_M, Backend, VehicleStates, make_backend
 from idas_sumo.sim.netgen import MergeNet, read_merge_net
 
 FloatArray = npt.NDArray[np.float64]
@@ -240,7 +240,7 @@ class MergeSimulation:
             dist_to_merge_m=dist,
             speed_mps=states.speed_mps.copy(),
             accel_mps2=states.accel_mps2.copy(),
-            length_m=np.full(n, 5.0),
+            length_m=np.full(n, VEHICLE_LENGTH_M),
             speed_limit_mps=limit,
         )
 
@@ -257,7 +257,7 @@ class MergeSimulation:
         """(observations, action masks) for the given active agents (default: all), in that order."""
         ids = self._active if agent_ids is None else agent_ids
         if not ids:
-            return np.zeros((0, 1605), dtype=np.float32), np.zeros((0, 7), dtype=np.int8)
+            return np.zeros((0, OBS_DIM), dtype=np.float32), np.zeros((0, N_ACTIONS), dtype=np.int8)
         egos = self.snapshot.index(ids)
         prev_accel = np.array([self._accel[a] for a in ids])
         b_type = np.array([self._spec[a].b_type for a in ids])

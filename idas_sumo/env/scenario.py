@@ -18,11 +18,11 @@ import numpy as np
 from idas_sumo.config import from_dict, load_toml
 from idas_sumo.errors import InputError
 from idas_sumo.physics.idm import DEFAULT_IDM
+from idas_sumo.sim.backend import VEHICLE_LENGTH_M
 
 Road = Literal["main", "merge"]
 ROADS: tuple[Road, ...] = ("main", "merge")
 B_TYPE_RANGE = (-2.0, 2.0)
-VEHICLE_LENGTH_M = 5.0
 
 
 @dataclass(frozen=True)

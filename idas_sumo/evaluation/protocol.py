@@ -12,9 +12,16 @@ import numpy as np
 import pandas as pd
 
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.core import MergeSimulation
+from idas_sumo.env.core import DEFAULT_MAX_EPISODE_S, MergeSimulation
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
-from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, generate_scenario, load_scenario
+from idas_sumo.env.scenario import (
+    B_TYPE_RANGE,
+    Scenario,
+    TrafficConfig,
+    VehicleSpec,
+    generate_scenario,
+    load_scenario,
+)
 from idas_sumo.env.snapshot import ROAD_NAMES
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
 from idas_sumo.evaluation.policies import PolicyFn
@@ -23,7 +30,7 @@ from idas_sumo.resources import SCENARIO_DIR
 Suite = Literal["paper", "representative", "driver-types"]
 SUITES: tuple[str, ...] = ("paper", "representative", "driver-types")
 REPRESENTATIVE = ("s1", "s2", "s3", "s4")
-DRIVER_TYPE_SWEEP = tuple(float(x) for x in np.linspace(-2.0, 2.0, 9))
+DRIVER_TYPE_SWEEP = tuple(float(x) for x in np.linspace(*B_TYPE_RANGE, 9))
 
 
 @dataclass(frozen=True)
@@ -41,7 +48,7 @@ class EvalConfig:
     """``evaluate --config FILE.toml``: how the paper suite's random scenarios are drawn, and the timeout."""
 
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
-    max_episode_s: float = 60.0
+    max_episode_s: float = DEFAULT_MAX_EPISODE_S
     """Simulated seconds before an episode is cut off (a timeout is not a success)."""
 
     def __post_init__(self) -> None:

@@ -13,6 +13,7 @@ from typing import Any, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
 from idas_sumo.config import from_dict, load_toml
+from idas_sumo.env.core import DEFAULT_MAX_EPISODE_S
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -72,7 +73,7 @@ class TrainConfig:
     """Rollout processes; 1 collects in the training process. Results do not depend on it."""
     seed: int = 0
     """Seeds network initialisation, scenarios and action sampling."""
-    max_episode_s: float = 60.0
+    max_episode_s: float = DEFAULT_MAX_EPISODE_S
     """Simulated seconds before an episode is cut off (a timeout is not a success; ours)."""
     init_from: str = ""
     """Optional checkpoint whose weights start the first stage (e.g. a robot run for stage 'intelligent')."""
