@@ -7,7 +7,14 @@ import pytest
 
 from idas_sumo.env.actions import HARD_BRAKE
 from idas_sumo.env.core import EnvConfig, MergeSimulation, _impeding_vehicles
-from idas_sumo.env.rewards import RewardConfig, collide_reward, finish_reward, flow_penalty
+from idas_sumo.env.rewards import (
+    FLOW_PENALTY_PER_HARD_BRAKE,
+    RewardConfig,
+    collide_reward,
+    finish_reward,
+    flow_penalty,
+    hard_brakes_in_merge_zone,
+)
 from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot
 
@@ -36,6 +43,14 @@ def test_flow_counts_hard_brakes_within_50_m() -> None:
     # Hard brakes at these distances to the merge point; |d| <= 50 counts: 10, -30, 50, -50 -> -4.
     assert flow_penalty([10.0, -30.0, 50.0, -50.0, 50.1, -60.0, 200.0]) == -4.0
     assert flow_penalty([]) == 0.0
+
+
+def test_flow_penalty_is_minus_one_per_merge_zone_hard_brake() -> None:
+    # StepOutcome.hard_brakes_merge_zone counts these brakes; the paper's flow penalty is -1 for each.
+    distances = [10.0, -30.0, 50.0, -50.0, 50.1, -60.0, 200.0]
+    assert hard_brakes_in_merge_zone(distances) == 4
+    assert FLOW_PENALTY_PER_HARD_BRAKE == -1.0
+    assert flow_penalty(distances) == -hard_brakes_in_merge_zone(distances)
 
 
 def _snapshot(rows: list[tuple[str, int, float]]) -> TrafficSnapshot:
@@ -115,6 +130,29 @@ def test_step_assigns_impede_and_flow(net_path) -> None:  # type: ignore[no-unty
         out = sim.step({"back": 2, "front": 2})
         assert out.hard_brakes == []
         assert all(p["impede"] == 0.0 and p["flow"] == 0.0 for p in out.reward_parts.values())
+    finally:
+        sim.close()
+
+
+@pytest.mark.sumo
+def test_merge_zone_hard_brakes_are_counted_not_read_off_the_flow_penalty(
+    net_path, monkeypatch: pytest.MonkeyPatch
+) -> None:  # type: ignore[no-untyped-def]
+    """Both cars brake hard within 50 m of the merge point: two merge-zone hard brakes, flow -2. The count
+    is the count: a flow penalty of another size changes flow, not the number of brakes."""
+    sim = MergeSimulation(net_path, config=EnvConfig(max_episode_s=10.0))
+    try:
+        sim.reset(_two_on_main(220.0, gap_m=15.0))
+        out = sim.step({"back": HARD_BRAKE, "front": HARD_BRAKE})
+        assert sorted(out.hard_brakes) == ["back", "front"]
+        assert out.hard_brakes_merge_zone == 2
+        assert out.reward_parts["back"]["flow"] == -out.hard_brakes_merge_zone
+
+        monkeypatch.setattr("idas_sumo.env.rewards.FLOW_PENALTY_PER_HARD_BRAKE", -3.0)
+        sim.reset(_two_on_main(220.0, gap_m=15.0))
+        out = sim.step({"back": HARD_BRAKE, "front": HARD_BRAKE})
+        assert out.reward_parts["back"]["flow"] == -6.0
+        assert out.hard_brakes_merge_zone == 2
     finally:
         sim.close()
 

@@ -43,6 +43,7 @@ from idas_sumo.env.rewards import (
     collide_reward,
     finish_reward,
     flow_penalty,
+    hard_brakes_in_merge_zone,
 )
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.env.snapshot import (
@@ -395,6 +396,7 @@ class MergeSimulation:
 
     # -- stepping ------------------------------------------------------------------------------
     def step(self, actions: Mapping[str, object]) -> StepOutcome:
+        """Apply one action per active agent, advance SUMO one step, score it and end whoever is done."""
         if self._closed:
             raise SimulationError("step() after close(); create a new environment")
         if self.scenario is None:
@@ -404,97 +406,117 @@ class MergeSimulation:
         if missing:
             raise ValueError(f"no action for active agents {missing}")
         before = self.snapshot
-        replaced: dict[str, int] = {}
-        hard_brakers: list[str] = []
-        if acting:
-            requested = np.array(
-                [_checked_action(a, actions[a], self.time_s) for a in acting], dtype=np.int64
-            )
-            masks = self.masks(acting)
-            prev = np.array([self._accel[a] for a in acting])
-            allowed = masks[np.arange(len(requested)), requested].astype(bool)
-            # A masked request becomes the allowed action with the closest (then lower) acceleration.
-            wanted = candidate_accelerations(prev)[np.arange(len(requested)), requested]
-            applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
-            for a, req, app in zip(acting, requested, applied, strict=True):
-                if req != app:
-                    replaced[a] = int(app)
-            new_accel = next_acceleration([self._accel[a] for a in acting], applied)
-            egos = before.index(acting)
-            next_speed = np.maximum(before.speed_mps[egos] + new_accel * STEP_LENGTH_S, 0.0)
-            self.backend.set_speeds({a: float(v) for a, v in zip(acting, next_speed, strict=True)})
-            for a, acc, act in zip(acting, new_accel, applied, strict=True):
-                self._accel[a] = float(acc)
-                if act == HARD_BRAKE:
-                    hard_brakers.append(a)
+        replaced, hard_brakers = self._apply_actions(acting, actions) if acting else ({}, [])
         events = self.backend.step()
         self._time_s = events.time_s
         self._read_snapshot()
-        after = self.snapshot
-
-        # SUMO-driven cars (robots, finished agents handed back) brake hard on their own.
-        present_before = set(before.ids)
-        for i, vid in enumerate(after.ids):
-            if (
-                vid not in self._active
-                and vid in present_before
-                and after.accel_mps2[i] <= HARD_BRAKE_DETECT_MPS2
-            ):
-                hard_brakers.append(vid)
-        brake_idx = [int(before.index([v])[0]) for v in hard_brakers]
-        merge_zone_brakes = before.dist_to_merge_m[brake_idx] if brake_idx else np.zeros(0)
-        flow = flow_penalty(merge_zone_brakes)
-        culprits = _impeding_vehicles(before, brake_idx)
-
-        parts = {a: dict.fromkeys(REWARD_PART_NAMES, 0.0) for a in acting}
-        terminated = dict.fromkeys(acting, False)
-        truncated = dict.fromkeys(acting, False)
-        end_reason: dict[str, str] = {}
-        in_sim = set(after.ids)
-        for a in acting:
-            parts[a]["flow"] = flow
-            parts[a]["impede"] = IMPEDE_PENALTY * culprits.count(a)
-            spec = self._spec[a]
-            if a in events.collided:
-                # The priority of the road the car came from: collisions happen on the junction or
-                # after it, where the snapshot's road is the outgoing one (priority max of both).
-                assert self.scenario is not None
-                prio = float(self.scenario.prio(spec.road))
-                parts[a]["collide"] = float(collide_reward(prio, self.config.reward.collision_sign))
-                end_reason[a] = "collided"
-            elif a not in in_sim:
-                end_reason[a] = "removed"
-            elif after.dist_to_merge_m[after.index([a])[0]] <= -FINISH_DISTANCE_PAST_MERGE_M:
-                parts[a]["finish"] = float(finish_reward(spec.b_type))
-                end_reason[a] = "finished"
-            if a in end_reason:
-                terminated[a] = True
-        timeout = self.time_s >= self.config.max_episode_s - 1e-9
-        for a in acting:
-            if a not in end_reason and timeout:
-                truncated[a] = True
-                end_reason[a] = "timeout"
+        hard_brakers += self._sumo_hard_brakes(before, self.snapshot)
+        end_reason = self._end_reasons(acting, events.collided)
+        parts, flow, merge_zone_brakes = self._reward_parts(acting, before, hard_brakers, end_reason)
         rewards = {a: parts[a]["finish"] + parts[a]["collide"] + parts[a]["impede"] for a in acting}
-        joint = float(sum(rewards.values()) + flow)
-        for a, reason in end_reason.items():
-            self._done[a] = reason
-            self._active.remove(a)
-            if reason == "finished":
-                self.backend.release(a)
+        self._end_agents(end_reason)
         self._admit(events.departed)
         self._run_until_an_agent_enters()
         return StepOutcome(
             rewards=rewards,
             reward_parts=parts,
-            joint_reward=joint,
-            terminated=terminated,
-            truncated=truncated,
+            joint_reward=float(sum(rewards.values()) + flow),
+            terminated={a: a in end_reason and end_reason[a] != "timeout" for a in acting},
+            truncated={a: end_reason.get(a) == "timeout" for a in acting},
             end_reason=end_reason,
             hard_brakes=hard_brakers,
-            hard_brakes_merge_zone=int(-flow),
+            hard_brakes_merge_zone=merge_zone_brakes,
             collisions=events.collision_pairs,
             replaced_actions=replaced,
         )
+
+    def _apply_actions(
+        self, acting: list[str], actions: Mapping[str, object]
+    ) -> tuple[dict[str, int], list[str]]:
+        """Command the next speeds of ``acting`` (non-empty) from their actions.
+
+        A masked request becomes the allowed action with the closest (then lower) acceleration.
+        Returns (agents whose action was replaced -> the action applied, agents that brake hard).
+        """
+        requested = np.array([_checked_action(a, actions[a], self.time_s) for a in acting], dtype=np.int64)
+        masks = self.masks(acting)
+        prev = np.array([self._accel[a] for a in acting])
+        rows = np.arange(len(requested))
+        allowed = masks[rows, requested].astype(bool)
+        wanted = candidate_accelerations(prev)[rows, requested]
+        applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
+        replaced = {a: int(app) for a, req, app in zip(acting, requested, applied, strict=True) if req != app}
+        new_accel = next_acceleration(prev, applied)
+        egos = self.snapshot.index(acting)
+        next_speed = np.maximum(self.snapshot.speed_mps[egos] + new_accel * STEP_LENGTH_S, 0.0)
+        self.backend.set_speeds({a: float(v) for a, v in zip(acting, next_speed, strict=True)})
+        hard_brakers: list[str] = []
+        for a, acc, act in zip(acting, new_accel, applied, strict=True):
+            self._accel[a] = float(acc)
+            if act == HARD_BRAKE:
+                hard_brakers.append(a)
+        return replaced, hard_brakers
+
+    def _sumo_hard_brakes(self, before: TrafficSnapshot, after: TrafficSnapshot) -> list[str]:
+        """SUMO-driven cars (robots, finished agents handed back) that braked hard on their own this step."""
+        present_before = set(before.ids)
+        return [
+            vid
+            for i, vid in enumerate(after.ids)
+            if vid not in self._active
+            and vid in present_before
+            and after.accel_mps2[i] <= HARD_BRAKE_DETECT_MPS2
+        ]
+
+    def _end_reasons(self, acting: list[str], collided: set[str]) -> dict[str, str]:
+        """Why each agent's episode ended this step: collided, removed, finished, else timeout (if time is up)."""
+        after = self.snapshot
+        in_sim = set(after.ids)
+        end_reason: dict[str, str] = {}
+        for a in acting:
+            if a in collided:
+                end_reason[a] = "collided"
+            elif a not in in_sim:
+                end_reason[a] = "removed"
+            elif after.dist_to_merge_m[after.index([a])[0]] <= -FINISH_DISTANCE_PAST_MERGE_M:
+                end_reason[a] = "finished"
+        if self.timed_out():
+            end_reason.update({a: "timeout" for a in acting if a not in end_reason})
+        return end_reason
+
+    def _reward_parts(
+        self, acting: list[str], before: TrafficSnapshot, hard_brakers: list[str], end_reason: dict[str, str]
+    ) -> tuple[dict[str, dict[str, float]], float, int]:
+        """(each agent's named reward parts, the shared flow penalty, hard brakes in the merging zone).
+
+        Hard brakes are placed where the braking car was when it decided (the step's start).
+        """
+        assert self.scenario is not None
+        brake_idx = [int(before.index([v])[0]) for v in hard_brakers]
+        brake_dist = before.dist_to_merge_m[brake_idx] if brake_idx else np.zeros(0)
+        flow = flow_penalty(brake_dist)
+        culprits = _impeding_vehicles(before, brake_idx)
+        parts = {a: dict.fromkeys(REWARD_PART_NAMES, 0.0) for a in acting}
+        for a in acting:
+            parts[a]["flow"] = flow
+            parts[a]["impede"] = IMPEDE_PENALTY * culprits.count(a)
+            spec = self._spec[a]
+            if end_reason.get(a) == "collided":
+                # The priority of the road the car came from: collisions happen on the junction or
+                # after it, where the snapshot's road is the outgoing one (priority max of both).
+                prio = float(self.scenario.prio(spec.road))
+                parts[a]["collide"] = float(collide_reward(prio, self.config.reward.collision_sign))
+            elif end_reason.get(a) == "finished":
+                parts[a]["finish"] = float(finish_reward(spec.b_type))
+        return parts, flow, hard_brakes_in_merge_zone(brake_dist)
+
+    def _end_agents(self, end_reason: dict[str, str]) -> None:
+        """Agents whose episode ended stop acting; finished cars are handed back to SUMO's driver model."""
+        for a, reason in end_reason.items():
+            self._done[a] = reason
+            self._active.remove(a)
+            if reason == "finished":
+                self.backend.release(a)
 
     def timed_out(self) -> bool:
         return self.time_s >= self.config.max_episode_s - 1e-9

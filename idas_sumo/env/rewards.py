@@ -34,10 +34,15 @@ def collide_reward(b_prio: npt.ArrayLike, sign: CollisionSign = "paper") -> Floa
     return np.asarray(-5.0 * prio - 5.0)
 
 
+def hard_brakes_in_merge_zone(hard_brake_dist_to_merge_m: npt.ArrayLike) -> int:
+    """How many of these hard brakes (distances to the merge point, m) lie within the merging zone."""
+    d = np.asarray(hard_brake_dist_to_merge_m, dtype=np.float64)
+    return int(np.count_nonzero(np.abs(d) <= MERGE_ZONE_RADIUS_M))
+
+
 def flow_penalty(hard_brake_dist_to_merge_m: npt.ArrayLike) -> float:
     """r_flow: -1 per hard brake within the merging zone; shared, enters only the joint reward."""
-    d = np.asarray(hard_brake_dist_to_merge_m, dtype=np.float64)
-    return float(FLOW_PENALTY_PER_HARD_BRAKE * np.count_nonzero(np.abs(d) <= MERGE_ZONE_RADIUS_M))
+    return float(FLOW_PENALTY_PER_HARD_BRAKE * hard_brakes_in_merge_zone(hard_brake_dist_to_merge_m))
 
 
 @dataclass(frozen=True)
