@@ -1,4 +1,4 @@
-"""The project's exception types. The CLI maps them onto exit codes (DESIGN.md section 4)."""
+"""The project's exception types. The CLI maps them onto exit codes (docs/design-notes.md, "Command line and exit codes")."""
 
 from __future__ import annotations
 

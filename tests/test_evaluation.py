@@ -1,4 +1,4 @@
-"""`idas-sumo evaluate`: the CSV contract (DESIGN.md section 4), determinism, numbers that agree with the
+"""`idas-sumo evaluate`: the CSV contract (docs/design-notes.md, "Evaluation output"), determinism, numbers that agree with the
 trajectories, the suites, and the metric functions on hand-computed trajectories."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from idas_sumo.evaluation.metrics import (
 )
 from idas_sumo.resources import shipped
 
-# The column lists exactly as DESIGN.md section 4 spells them (not imported: this is the contract).
+# The column lists exactly as docs/design-notes.md ("Evaluation output") spells them (not imported: this is the contract).
 DESIGN_EPISODE_COLUMNS = [
     "scenario", "seed", "method", "ego_id", "ego_road", "ego_prio", "ego_type", "success", "perfect",
     "collisions", "hard_brakes", "hard_brakes_merge_zone", "ego_finish_time_s", "ego_mean_speed_mps",

@@ -48,7 +48,7 @@ class ActPolicy(Protocol):
 
 @dataclass
 class EpisodeStats:
-    """What one episode amounted to (DESIGN.md section 2 for success and perfect)."""
+    """What one episode amounted to (success and perfect: docs/design-notes.md, "Definitions")."""
 
     agents: int
     """Learning agents that acted."""

@@ -1,6 +1,6 @@
 """Scenarios: which vehicles start where, how fast, with which driver type and road priority.
 
-A scenario is either drawn by ``generate_scenario`` from a seed (DESIGN.md section 2) or read from a
+A scenario is either drawn by ``generate_scenario`` from a seed (docs/design-notes.md, "Definitions") or read from a
 TOML file in ``scenarios/`` with ``load_scenario``. Positions are measured from each road's start;
 the merge point lies at the end of each incoming road.
 """
@@ -96,7 +96,7 @@ class Scenario:
 
 @dataclass(frozen=True)
 class TrafficConfig:
-    """How random scenarios are drawn (DESIGN.md section 2, ours where the paper is silent)."""
+    """How random scenarios are drawn (docs/design-notes.md, "Definitions"; ours where the paper is silent)."""
 
     min_vehicles_per_road: int = 2
     max_vehicles_per_road: int = 8
