@@ -15,7 +15,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -197,7 +197,10 @@ def _soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
             t_param.lerp_(o_param, tau)
 
 
-def _frozen_copy(net: nn.Module) -> nn.Module:
+_Net = TypeVar("_Net", bound=nn.Module)
+
+
+def _frozen_copy(net: _Net) -> _Net:
     target = copy.deepcopy(net)
     for p in target.parameters():
         p.requires_grad_(False)
@@ -225,9 +228,11 @@ class Learner:
             self.central = CentralCritic().to(self.device)
         self.value_target = _frozen_copy(self.value)
         self.central_target = _frozen_copy(self.central)
-        self.opt_actor = torch.optim.Adam(self.actor.parameters(), lr=config.lr_actor)
-        self.opt_value = torch.optim.Adam(self.value.parameters(), lr=config.lr_value)
-        self.opt_central = torch.optim.Adam(self.central.parameters(), lr=config.lr_central)
+        self.opt_actor: torch.optim.Optimizer = torch.optim.Adam(self.actor.parameters(), lr=config.lr_actor)
+        self.opt_value: torch.optim.Optimizer = torch.optim.Adam(self.value.parameters(), lr=config.lr_value)
+        self.opt_central: torch.optim.Optimizer = torch.optim.Adam(
+            self.central.parameters(), lr=config.lr_central
+        )
         self.last_update: UpdateRecord | None = None
         """What the last ``update`` regressed to and stepped with; None before the first."""
 

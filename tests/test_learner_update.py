@@ -1,0 +1,342 @@
+"""``Learner.update`` against hand-worked targets, losses and parameter steps, through the real update.
+
+The batch is two agents over three decision steps (rows time-major: A0 B0 A1 B1 A2 B2). Agent A finishes
+at its third step (done: no bootstrap); agent B is cut off by the timeout (V still bootstraps; Q has no
+next joint action to bootstrap from). Expected values are worked out here with plain floats and the
+paper's formulas written out (γ = 0.9, α = 0.7), never with the module's own helpers; the optimisers are
+swapped for plain SGD so one step is Δθ = -lr·∇L, and the gradient clip is set out of reach.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from typing import TypeVar
+
+import pytest
+import torch
+from torch import nn
+
+from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
+from idas_sumo.agents.networks import STATE_DIM, STATE_SLOTS, Actor, CentralCritic, ValueCritic
+from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
+from idas_sumo.env.layout import OBS_DIM
+
+GAMMA = 0.9  # the paper's values, written out rather than imported: the test checks the defaults too
+ALPHA = 0.7
+LR = 0.1
+NO_CLIP = 1e6  # max_grad_norm out of reach, so an SGD step is exactly -lr·∇L
+
+# --- the batch ---------------------------------------------------------------------------------------
+
+ROWS = 6
+ALLOWED: list[set[int]] = [
+    {1, 2, 3, HARD_BRAKE},
+    {2, HARD_BRAKE},
+    {1, 2, 3, HARD_BRAKE},
+    {HARD_BRAKE, RELEASE_BRAKE},
+    {0, 1, 2, HARD_BRAKE},
+    {2, 3, 4, HARD_BRAKE},
+]
+ACTION = [2, HARD_BRAKE, 1, RELEASE_BRAKE, 0, 3]
+REWARD = [0.0, -1.0, -1.0, 0.0, 12.5, 0.0]  # A: 0, -1, finish 12.5; B: -1, 0, 0
+DONE = [0.0, 0.0, 0.0, 0.0, 1.0, 0.0]  # A finishes at its last row; B's last row is a timeout
+JOINT_REWARD = [REWARD[2 * (i // 2)] + REWARD[2 * (i // 2) + 1] for i in range(ROWS)]  # Σ agents at t
+NEXT_ROW = [2, 3, 4, 5, -1, -1]
+NEXT_VALID = [1.0, 1.0, 1.0, 1.0, 0.0, 0.0]
+# The action the same agent took at t+1 (rows without a next step: any value, here out of range on
+# purpose, which the learner must clamp and then zero out).
+NEXT_ACTION = [ACTION[j] if j >= 0 else N_ACTIONS + 3 for j in NEXT_ROW]
+SLOT = [0, 1, 0, 1, 0, 1]
+NEXT_SLOT = [SLOT[j] if j >= 0 else STATE_SLOTS + 5 for j in NEXT_ROW]
+
+
+def make_batch(seed: int = 0) -> Batch:
+    """The batch above; observations and states are random, and consistent along each agent's rows."""
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.rand(ROWS, OBS_DIM, generator=g)
+    state = torch.rand(ROWS, STATE_DIM, generator=g)
+    others = (torch.rand(ROWS, STATE_SLOTS * N_ACTIONS, generator=g) < 0.1).float()
+    last_obs = torch.rand(ROWS, OBS_DIM, generator=g)  # B's timeout observation (and A's, unused)
+    nxt = torch.tensor(NEXT_ROW)
+    has_next = nxt >= 0
+    next_obs = torch.where(has_next[:, None], obs[nxt.clamp(min=0)], last_obs)
+    next_state = torch.where(has_next[:, None], state[nxt.clamp(min=0)], torch.zeros_like(state))
+    next_others = torch.where(has_next[:, None], others[nxt.clamp(min=0)], torch.zeros_like(others))
+    mask = torch.zeros(ROWS, N_ACTIONS, dtype=torch.bool)
+    for i, allowed in enumerate(ALLOWED):
+        mask[i, sorted(allowed)] = True
+    return Batch(
+        obs=obs,
+        mask=mask,
+        action=torch.tensor(ACTION),
+        reward=torch.tensor(REWARD),
+        next_obs=next_obs,
+        done=torch.tensor(DONE),
+        state=state,
+        others_actions=others,
+        slot=torch.tensor(SLOT),
+        joint_reward=torch.tensor(JOINT_REWARD),
+        next_state=next_state,
+        next_others_actions=next_others,
+        next_slot=torch.tensor(NEXT_SLOT),
+        next_action=torch.tensor(NEXT_ACTION),
+        next_valid=torch.tensor(NEXT_VALID),
+        next_row=nxt,
+    )
+
+
+def sgd_learner(central: bool, gae_lambda: float = 0.0, q_lambda: float = 0.0) -> Learner:
+    """Otherwise the default (paper) config; plain SGD instead of Adam."""
+    config = LearnerConfig(
+        use_central_critic=central, gae_lambda=gae_lambda, q_lambda=q_lambda, max_grad_norm=NO_CLIP
+    )
+    learner = Learner(config, seed=3)
+    learner.opt_actor = torch.optim.SGD(learner.actor.parameters(), lr=LR)
+    learner.opt_value = torch.optim.SGD(learner.value.parameters(), lr=LR)
+    learner.opt_central = torch.optim.SGD(learner.central.parameters(), lr=LR)
+    return learner
+
+
+# --- networks with known outputs ---------------------------------------------------------------------
+
+V_ONLINE = 2.0  # V(o) for every o
+V_TARGET = 1.0  # V̂(o) for every o: differs, so the test sees which one each formula used
+Q_ONLINE = [0.5, 1.0, -1.0, 2.0, 0.0, -3.0, 4.0]  # Q(s, a) for every s
+Q_TARGET = [1.0, 0.5, 0.0, -2.0, 1.5, -1.0, 3.0]  # Q̂(s, a) for every s
+
+
+def pin_head(head: nn.Linear, bias: list[float]) -> None:
+    """Zero weight, given bias: the network then outputs ``bias`` whatever its input."""
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.copy_(torch.tensor(bias))
+
+
+def pinned_learner(central: bool, gae_lambda: float = 0.0, q_lambda: float = 0.0) -> Learner:
+    """Critics with constant outputs and a uniform policy over each row's allowed actions."""
+    learner = sgd_learner(central, gae_lambda, q_lambda)
+    pin_head(learner.value.head, [V_ONLINE])
+    pin_head(learner.value_target.head, [V_TARGET])
+    pin_head(learner.central.head, Q_ONLINE)
+    pin_head(learner.central_target.head, Q_TARGET)
+    pin_head(learner.actor.head, [0.0] * N_ACTIONS)
+    return learner
+
+
+def pi(i: int, a: int) -> float:
+    """The pinned policy: uniform over row i's allowed actions."""
+    return 1.0 / len(ALLOWED[i]) if a in ALLOWED[i] else 0.0
+
+
+def floats(t: torch.Tensor) -> list[float]:
+    return [float(x) for x in t.detach().reshape(-1)]
+
+
+def approx(values: list[float]) -> object:
+    return pytest.approx(values, rel=1e-5, abs=1e-5)
+
+
+# --- the paper's path with hand-known networks -------------------------------------------------------
+
+
+@pytest.mark.parametrize("central", [True, False], ids=["stage2", "stage1"])
+def test_update_hand_worked_targets_losses_and_sgd_steps(central: bool) -> None:
+    learner = pinned_learner(central)
+    q_head_before = copy.deepcopy(learner.central.head)
+    stats = learner.update(make_batch())
+    record = learner.last_update
+    assert record is not None
+
+    # V: regressed to y = r + γ·V̂(o')·(1 - done), V̂ the target network.
+    v_target = [REWARD[i] + GAMMA * V_TARGET * (1.0 - DONE[i]) for i in range(ROWS)]
+    assert v_target == approx([0.9, -0.1, -0.1, 0.9, 12.5, 0.9])  # done row 4 has no bootstrap
+    assert floats(record.value.target) == approx(v_target)
+    assert floats(record.value.prediction) == approx([V_ONLINE] * ROWS)
+    v_loss = 0.5 * sum((y - V_ONLINE) ** 2 for y in v_target) / ROWS
+    assert v_loss == pytest.approx(10.225)
+    assert stats["v_loss"] == pytest.approx(v_loss, rel=1e-6)
+    # A1 = r + γ·V(o')·(1 - done) - V(o): the online critic on both ends.
+    adv_v = [REWARD[i] + GAMMA * V_ONLINE * (1.0 - DONE[i]) - V_ONLINE for i in range(ROWS)]
+    assert adv_v == approx([-0.2, -1.2, -1.2, -0.2, 10.5, -0.2])
+    assert floats(record.value.advantage) == approx(adv_v)
+    assert stats["adv_v_mean"] == pytest.approx(sum(adv_v) / ROWS, rel=1e-6)
+
+    # Q: regressed to y = R + γ·Q̂(s', a')·(1 - done), a' the action taken at t+1 (SARSA); no bootstrap
+    # where the batch holds no next step.
+    q_target = [
+        JOINT_REWARD[i] + GAMMA * (1.0 - DONE[i]) * (Q_TARGET[NEXT_ACTION[i]] if NEXT_VALID[i] else 0.0)
+        for i in range(ROWS)
+    ]
+    assert q_target == approx([-0.55, 1.7, -0.1, -2.8, 12.5, 12.5])
+    q_taken = [Q_ONLINE[ACTION[i]] for i in range(ROWS)]
+    q_loss = 0.5 * sum((q_target[i] - q_taken[i]) ** 2 for i in range(ROWS)) / ROWS
+    assert q_loss == pytest.approx(26.999375)
+    # A2, COMA's counterfactual advantage: Q(s, a) - Σ_a' π(a'|o)·Q(s, a').
+    adv_q = [q_taken[i] - sum(pi(i, a) * Q_ONLINE[a] for a in range(N_ACTIONS)) for i in range(ROWS)]
+    assert adv_q == approx([-0.75, -1.0, 1.25, 3.5, 1.125, 2.5])
+    if central:
+        assert record.central is not None
+        assert floats(record.central.target) == approx(q_target)
+        assert floats(record.central.prediction) == approx(q_taken)
+        assert floats(record.central.advantage) == approx(adv_q)
+        assert stats["q_loss"] == pytest.approx(q_loss, rel=1e-6)
+        assert stats["adv_q_mean"] == pytest.approx(sum(adv_q) / ROWS, rel=1e-6)
+        assert stats["q_mean"] == pytest.approx(sum(q_taken) / ROWS, rel=1e-6)
+    else:
+        assert record.central is None
+        assert (stats["q_loss"], stats["adv_q_mean"], stats["q_mean"]) == (0.0, 0.0, 0.0)
+
+    # Actor: L = -mean((α·A1 + (1-α)·A2)·log π(a|o)); α is 1 in stage 1 (no Q).
+    alpha = ALPHA if central else 1.0
+    weight = [alpha * adv_v[i] + (1.0 - alpha) * (adv_q[i] if central else 0.0) for i in range(ROWS)]
+    log_pi = [math.log(pi(i, ACTION[i])) for i in range(ROWS)]
+    actor_loss = -sum(weight[i] * log_pi[i] for i in range(ROWS)) / ROWS
+    assert stats["actor_loss"] == pytest.approx(actor_loss, rel=1e-6)
+    assert stats["entropy"] == pytest.approx(sum(math.log(len(s)) for s in ALLOWED) / ROWS, rel=1e-6)
+
+    # One SGD step on each head bias, with ∂L/∂bias written out:
+    # V: ∂/∂b 0.5·mean((y - b)²) = mean(b - y).
+    v_bias = V_ONLINE - LR * sum(V_ONLINE - y for y in v_target) / ROWS
+    assert floats(learner.value.head.bias) == approx([v_bias])
+    # Q: ∂/∂b_a = mean over rows that took a of (Q(s, a) - y).
+    q_bias = [
+        Q_ONLINE[a] - LR * sum(q_taken[i] - q_target[i] for i in range(ROWS) if ACTION[i] == a) / ROWS
+        for a in range(N_ACTIONS)
+    ]
+    assert floats(learner.central.head.bias) == approx(q_bias if central else Q_ONLINE)
+    if not central:
+        assert torch.equal(learner.central.head.weight, q_head_before.weight)
+    # Actor: ∂(-w·log π(a))/∂logit_j = -w·(1[j = a] - π(j)); masked logits get no gradient.
+    actor_bias = [
+        LR * sum(weight[i] * ((1.0 if j == ACTION[i] else 0.0) - pi(i, j)) for i in range(ROWS)) / ROWS
+        for j in range(N_ACTIONS)
+    ]
+    assert floats(learner.actor.head.bias) == approx(actor_bias)
+
+    # Targets follow by τ = 0.01 after the step: V̂ ← 0.99·V̂ + 0.01·V.
+    assert floats(learner.value_target.head.bias) == approx([0.99 * V_TARGET + 0.01 * v_bias])
+    expected_q_hat = (
+        [0.99 * qt + 0.01 * qb for qt, qb in zip(Q_TARGET, q_bias, strict=True)] if central else Q_TARGET
+    )
+    assert floats(learner.central_target.head.bias) == approx(expected_q_hat)
+
+
+def test_lambda_targets_hand_worked() -> None:
+    """q_lambda > 0 (and gae_lambda > 0): λ-returns G = r + γ·((1-λ)·bootstrap + λ·G_next) per agent."""
+    lam_v, lam_q = 0.5, 0.8
+    learner = pinned_learner(True, gae_lambda=lam_v, q_lambda=lam_q)
+    learner.update(make_batch())
+    record = learner.last_update
+    assert record is not None and record.central is not None
+
+    # Each agent's rows from last to first; an agent's last row bootstraps one step, or not at all.
+    g_v = [0.0] * ROWS
+    g_q = [0.0] * ROWS
+    for i in reversed(range(ROWS)):
+        j = NEXT_ROW[i]
+        if j < 0:
+            # V's λ-return uses the online V (GAE's baseline), not V̂.
+            g_v[i] = REWARD[i] + GAMMA * (1.0 - DONE[i]) * V_ONLINE
+            g_q[i] = JOINT_REWARD[i]  # no next joint action in the batch: nothing to bootstrap from
+        else:
+            g_v[i] = REWARD[i] + GAMMA * ((1.0 - lam_v) * V_ONLINE + lam_v * g_v[j])
+            g_q[i] = JOINT_REWARD[i] + GAMMA * ((1.0 - lam_q) * Q_TARGET[ACTION[j]] + lam_q * g_q[j])
+    # Agent A: G4 = 12.5; G2 = -1 + 0.9·(0.5·2 + 0.5·12.5) = 5.525; G0 = 0 + 0.9·(1 + 0.5·5.525) = 3.38625.
+    assert [g_v[4], g_v[2], g_v[0]] == approx([12.5, 5.525, 3.38625])
+    # Agent A's Q: G4 = 12.5; G2 = -1 + 0.9·(0.2·Q̂[0] + 0.8·12.5) = 8.18; G0 = -1 + 0.9·(0.2·Q̂[1] + 0.8·8.18).
+    assert [g_q[4], g_q[2], g_q[0]] == approx([12.5, 8.18, -1 + 0.9 * (0.2 * 0.5 + 0.8 * 8.18)])
+    assert floats(record.value.target) == approx(g_v)
+    assert floats(record.value.advantage) == approx([g - V_ONLINE for g in g_v])
+    assert floats(record.central.target) == approx(g_q)
+
+
+# --- the paper's path with networks at their initial weights -----------------------------------------
+
+
+Net = TypeVar("Net", bound=nn.Module)
+
+
+def sgd_step_of(net: Net, loss_of: Callable[[Net], torch.Tensor]) -> list[torch.Tensor]:
+    """The parameters one SGD step on ``loss_of(copy of net)`` would give."""
+    twin = copy.deepcopy(net)
+    loss = loss_of(twin)
+    grads = torch.autograd.grad(loss, list(twin.parameters()), allow_unused=True)
+    return [
+        p.detach() - LR * (torch.zeros_like(p) if g is None else g)
+        for p, g in zip(twin.parameters(), grads, strict=True)
+    ]
+
+
+def assert_params(net: nn.Module, expected: list[torch.Tensor]) -> None:
+    for p, e in zip(net.parameters(), expected, strict=True):
+        torch.testing.assert_close(p.detach(), e, rtol=1e-5, atol=1e-6)
+
+
+def test_update_follows_the_hand_worked_losses_at_initial_weights() -> None:
+    """The same formulas on the real networks' outputs; every parameter moves by -lr·∇(that loss)."""
+    learner = sgd_learner(True)
+    batch = make_batch(seed=1)
+    state, others, slot = batch.state, batch.others_actions, batch.slot
+    next_state, next_others, next_slot = batch.next_state, batch.next_others_actions, batch.next_slot
+    assert state is not None and others is not None and slot is not None
+    assert next_state is not None and next_others is not None and next_slot is not None
+    with torch.no_grad():
+        v = floats(learner.value(batch.obs))
+        v_next = floats(learner.value(batch.next_obs))
+        v_hat_next = floats(learner.value_target(batch.next_obs))
+        q = learner.central(state, others, slot).tolist()
+        # Q̂(s', a') only where there is a next step; the other rows' slot and action are meaningless.
+        q_hat_next = [0.0] * ROWS
+        for i in range(ROWS):
+            if NEXT_VALID[i]:
+                row = slice(i, i + 1)
+                q_hat = learner.central_target(next_state[row], next_others[row], next_slot[row])
+                q_hat_next[i] = float(q_hat[0, NEXT_ACTION[i]])
+        probs = torch.softmax(learner.actor.masked_logits(batch.obs, batch.mask), dim=1).tolist()
+
+    v_target = [REWARD[i] + GAMMA * v_hat_next[i] * (1.0 - DONE[i]) for i in range(ROWS)]
+    adv_v = [REWARD[i] + GAMMA * v_next[i] * (1.0 - DONE[i]) - v[i] for i in range(ROWS)]
+    q_target = [JOINT_REWARD[i] + GAMMA * (1.0 - DONE[i]) * q_hat_next[i] for i in range(ROWS)]
+    adv_q = [q[i][ACTION[i]] - sum(probs[i][a] * q[i][a] for a in range(N_ACTIONS)) for i in range(ROWS)]
+    weight = [ALPHA * adv_v[i] + (1.0 - ALPHA) * adv_q[i] for i in range(ROWS)]
+    actor_loss = -sum(weight[i] * math.log(probs[i][ACTION[i]]) for i in range(ROWS)) / ROWS
+
+    def v_loss_of(net: ValueCritic) -> torch.Tensor:
+        return 0.5 * ((torch.tensor(v_target) - net(batch.obs)) ** 2).mean()
+
+    def q_loss_of(net: CentralCritic) -> torch.Tensor:
+        q_taken = net(state, others, slot).gather(1, batch.action[:, None])[:, 0]
+        return 0.5 * ((torch.tensor(q_target) - q_taken) ** 2).mean()
+
+    def actor_loss_of(net: Actor) -> torch.Tensor:
+        log_pi = torch.log_softmax(net.masked_logits(batch.obs, batch.mask), dim=1)
+        return -(torch.tensor(weight) * log_pi.gather(1, batch.action[:, None])[:, 0]).mean()
+
+    expected_value = sgd_step_of(learner.value, v_loss_of)
+    expected_central = sgd_step_of(learner.central, q_loss_of)
+    expected_actor = sgd_step_of(learner.actor, actor_loss_of)
+    before = {name: [p.detach().clone() for p in net.parameters()] for name, net in nets(learner).items()}
+
+    stats = learner.update(batch)
+    record = learner.last_update
+    assert record is not None and record.central is not None
+    assert floats(record.value.target) == approx(v_target)
+    assert floats(record.value.advantage) == approx(adv_v)
+    assert floats(record.central.target) == approx(q_target)
+    assert floats(record.central.advantage) == approx(adv_q)
+    assert stats["actor_loss"] == pytest.approx(actor_loss, rel=1e-5)
+    for name, expected in (
+        ("value", expected_value),
+        ("central", expected_central),
+        ("actor", expected_actor),
+    ):
+        # The expected step is a real one (a zero gradient would make the comparison vacuous) ...
+        assert any(not torch.allclose(e, b) for e, b in zip(expected, before[name], strict=True)), name
+        # ... and the update took exactly it.
+        assert_params(nets(learner)[name], expected)
+
+
+def nets(learner: Learner) -> dict[str, nn.Module]:
+    return {"value": learner.value, "central": learner.central, "actor": learner.actor}
