@@ -1,4 +1,4 @@
-"""Returns, TD targets, COMA baseline/advantage and the combined loss against hand-worked numbers."""
+"""TD targets, GAE and λ-returns, COMA baseline/advantage and the combined loss against hand-worked numbers."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from idas_sumo.agents.coma import ALPHA, coma_advantage, coma_baseline, combined_policy_loss
-from idas_sumo.agents.returns import GAMMA, discounted_returns, lambda_targets, td_advantages, td_targets
+from idas_sumo.agents.returns import GAMMA, lambda_targets, td_advantages, td_targets
 
 
 def t(*values: float) -> torch.Tensor:
@@ -16,30 +16,6 @@ def t(*values: float) -> torch.Tensor:
 def test_paper_constants() -> None:
     assert GAMMA == 0.9
     assert ALPHA == 0.7
-
-
-def test_discounted_returns_with_bootstrap() -> None:
-    # G2 = 3 + 0.9·10 = 12; G1 = 2 + 0.9·12 = 12.8; G0 = 1 + 0.9·12.8 = 12.52
-    out = discounted_returns(t(1, 2, 3), t(0, 0, 0), 0.9, bootstrap=10.0)
-    torch.testing.assert_close(out, t(12.52, 12.8, 12.0))
-
-
-def test_discounted_returns_done_cuts_the_sum() -> None:
-    # done at t=1: G2 = 3 + 0.9·10 = 12 (next episode); G1 = 2; G0 = 1 + 0.9·2 = 2.8
-    out = discounted_returns(t(1, 2, 3), t(0, 1, 0), 0.9, bootstrap=10.0)
-    torch.testing.assert_close(out, t(2.8, 2.0, 12.0))
-
-
-def test_discounted_returns_carries_agent_axis() -> None:
-    # two agents side by side, no bootstrap: agent 0 [1, 1] -> [1.9, 1]; agent 1 [0, 5] -> [4.5, 5]
-    rewards = torch.tensor([[1.0, 0.0], [1.0, 5.0]], dtype=torch.float64)
-    out = discounted_returns(rewards, torch.zeros_like(rewards), 0.9)
-    torch.testing.assert_close(out, torch.tensor([[1.9, 4.5], [1.0, 5.0]], dtype=torch.float64))
-
-
-def test_discounted_returns_rejects_shape_mismatch() -> None:
-    with pytest.raises(ValueError):
-        discounted_returns(t(1, 2), t(0, 0, 0))
 
 
 def test_td_targets_and_advantages() -> None:

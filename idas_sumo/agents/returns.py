@@ -1,4 +1,4 @@
-"""Discounted returns and one-step TD targets and advantages (pure tensor functions).
+"""One-step TD targets and advantages, GAE and λ-returns (pure tensor functions).
 
 ``dones`` is 1 where the agent's episode ended by finishing or colliding at that step: nothing
 follows, so no bootstrap. A timeout is not a done here: the state still has a value.
@@ -9,28 +9,6 @@ from __future__ import annotations
 import torch
 
 GAMMA = 0.9  # discount per 0.2 s decision step (paper Sec. IV-C)
-
-
-def discounted_returns(
-    rewards: torch.Tensor,
-    dones: torch.Tensor,
-    gamma: float = GAMMA,
-    bootstrap: torch.Tensor | float = 0.0,
-) -> torch.Tensor:
-    """G_t = r_t + γ (1 - done_t) G_{t+1}, with G_T = ``bootstrap`` (the value after the last step).
-
-    Time is axis 0; any trailing axes (e.g. agents) are carried along. A done cuts the sum, so
-    several episodes may be laid end to end.
-    """
-    if rewards.shape != dones.shape:
-        raise ValueError(f"rewards {tuple(rewards.shape)} and dones {tuple(dones.shape)} differ in shape")
-    out = torch.empty_like(rewards)
-    running = torch.as_tensor(bootstrap, dtype=rewards.dtype, device=rewards.device).expand(rewards.shape[1:])
-    not_done = 1.0 - dones.to(rewards.dtype)
-    for t in range(rewards.shape[0] - 1, -1, -1):
-        running = rewards[t] + gamma * not_done[t] * running
-        out[t] = running
-    return out
 
 
 def td_targets(
