@@ -230,8 +230,8 @@ def test_help_exits_zero() -> None:
 
 def test_console_script_is_installed() -> None:
     script = Path(sys.executable).parent / "idas-sumo"
-    if not script.exists():
-        pytest.skip("idas-sumo console script not installed in this environment")
+    # The console script is part of the install contract ([project.scripts]): missing is a failure.
+    assert script.is_file(), f"{script} is missing: the idas-sumo console script is not installed"
     result = subprocess.run(
         [str(script), "evaluate", "--scenarios", "0", "--baseline", "idm"], capture_output=True, text=True
     )
