@@ -39,8 +39,8 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
     envs). The reward is the ego's own (finish + collide + impede).
 
     Several environments may live in one process: libsumo runs one simulation per process, so the
-    second and later ones run their SUMO in a child process (see ``idas_sumo.sim.backend``); no
-    ``if __name__ == "__main__":`` guard is needed.
+    second and later ones run their SUMO in a child Python process (``SubprocessBackend``, started with
+    ``subprocess``, so no ``if __name__ == "__main__":`` guard is needed); ``close()`` ends it.
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # sumo-gui: pass gui=True

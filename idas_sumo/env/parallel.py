@@ -36,6 +36,10 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
     ``reward_parts``; ``state()`` is the centralised critic's input. The shared flow penalty is not in
     ``rewards`` (the paper counts it only in the joint reward): read it from ``reward_parts["flow"]``
     or ``infos[agent]["joint_reward"]``.
+
+    Several environments may live in one process: libsumo runs one simulation per process, so the
+    second and later ones run their SUMO in a child Python process (``SubprocessBackend``, started with
+    ``subprocess``, so no ``if __name__ == "__main__":`` guard is needed); ``close()`` ends it.
     """
 
     metadata: ClassVar[dict[str, Any]] = {

@@ -338,37 +338,182 @@ def slot_taken() -> bool:
     return _active is not None
 
 
-def _serve(conn: Any, net: MergeNet, seed: int, gui: bool) -> None:
-    """Subprocess side of ``SubprocessBackend``: run calls on a local backend until told to close."""
-    backend = SumoBackend(net, seed=seed, gui=gui)
+# -- a second simulation: SUMO in a child process --------------------------------------------------
+#
+# The child is a fresh interpreter started with subprocess, not multiprocessing: "spawn" would re-import
+# the user's __main__ there, so a script without an ``if __name__ == "__main__":`` guard that opens two
+# environments would run itself again in the child and crash. Messages are pickled over a loopback
+# socket (multiprocessing.connection, authenticated with a one-time key) rather than the child's
+# stdout, where libsumo prints; the child runs in its own session (process group on Windows) so a
+# Ctrl-C in the terminal reaches only the parent, which then closes the child.
+
+_CHILD_CODE = (
+    "import sys; sys.path.append(sys.argv[1]); from idas_sumo.sim.backend import _child_main; _child_main()"
+)
+_CHILD_START_TIMEOUT_S = 60.0
+_CHILD_CLOSE_TIMEOUT_S = 5.0
+
+
+def _child_main() -> None:
+    """Entry point of the SUMO child: read the parent's address and key on stdin, connect, serve."""
+    import signal
+    import sys
+    from multiprocessing.connection import Client
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns Ctrl-C and closes us
+    try:
+        port, key = sys.stdin.readline().split()
+        sys.stdin.close()
+        conn = Client(("127.0.0.1", int(port)), family="AF_INET", authkey=bytes.fromhex(key))
+    except (ValueError, OSError):  # the parent gave up on us before we connected: nobody to tell
+        sys.exit(1)
+    _serve(conn)
+
+
+def _portable_error(err: Exception) -> Exception:
+    """``err`` if it survives pickling (to be re-raised in the parent as is), else a SimulationError."""
+    import pickle
+
+    try:
+        pickle.loads(pickle.dumps(err))
+    except Exception:
+        return SimulationError(f"{type(err).__name__} in the SUMO subprocess: {err}")
+    return err
+
+
+def _serve(conn: Any) -> None:
+    """Child side of ``SubprocessBackend``: run calls on a local backend until told to close."""
+    import pickle
+
+    backend: SumoBackend | None = None
     try:
         while True:
-            method, args = conn.recv()
+            try:
+                method, args = conn.recv()
+            except Exception:  # the parent is gone, or was interrupted mid-message: nobody to answer
+                return
             if method == "close":
-                backend.close()
                 conn.send(("ok", None))
                 return
             try:
-                conn.send(("ok", getattr(backend, method)(*args)))
+                if method == "open":
+                    backend = SumoBackend(*args)
+                    result = None
+                else:
+                    assert backend is not None, "'open' comes first"
+                    result = getattr(backend, method)(*args)
             except Exception as err:  # sent back and re-raised in the parent
-                conn.send(("error", err))
-    except (EOFError, KeyboardInterrupt):
-        backend.close()
+                conn.send(("error", _portable_error(err)))
+                continue
+            try:  # send() pickles before it writes: a result that cannot travel leaves the channel intact
+                conn.send(("ok", result))
+            except (pickle.PicklingError, TypeError, AttributeError) as err:
+                conn.send(
+                    ("error", SimulationError(f"the result of {method} cannot leave the subprocess: {err}"))
+                )
+    except OSError:  # the parent went away while we answered
+        pass
+    finally:
+        if backend is not None:
+            backend.close()
+
+
+def _stop_child(proc: Any, conn: Any) -> None:
+    """Ask the child to close SUMO and exit; kill it when it does not within the timeout (stuck)."""
+    import subprocess
+
+    with contextlib.suppress(Exception):
+        conn.send(("close", ()))
+        conn.poll(_CHILD_CLOSE_TIMEOUT_S)
+    with contextlib.suppress(Exception):
+        conn.close()
+    try:
+        proc.wait(timeout=_CHILD_CLOSE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 class SubprocessBackend:
     """The same interface as ``SumoBackend``, with SUMO in a child process (for a second simulation)."""
 
     def __init__(self, net: MergeNet, seed: int = 0, gui: bool = False) -> None:
-        import multiprocessing as mp
+        import weakref
 
-        ctx = mp.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child, net, seed, gui), daemon=True)
-        self._proc.start()
-        child.close()
         self.net = net
         self._closed = False
+        self._proc, self._conn = self._start_child()
+        # Closes the child when this object is collected or the interpreter exits without close().
+        self._finalizer = weakref.finalize(self, _stop_child, self._proc, self._conn)
+        try:
+            self._call("open", net, seed, gui)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start_child(self) -> tuple[Any, Any]:
+        import secrets
+        import socket
+        import subprocess
+        import sys
+
+        key = secrets.token_bytes(32)
+        # The directory holding this idas_sumo, for a parent that found it through its own sys.path edits.
+        package_root = str(Path(__file__).resolve().parents[2])
+        new_group: dict[str, Any] = {"start_new_session": True}
+        if sys.platform == "win32":
+            new_group = {"creationflags": subprocess.CREATE_NEW_PROCESS_GROUP}
+        with socket.create_server(("127.0.0.1", 0)) as server:
+            port = server.getsockname()[1]
+            # -P: the user's working directory must not shadow modules in the child.
+            proc = subprocess.Popen(
+                [sys.executable, "-P", "-c", _CHILD_CODE, package_root], stdin=subprocess.PIPE, **new_group
+            )
+            try:
+                conn = self._connect(proc, server, port, key)
+            except BaseException:  # a Ctrl-C included: leave no child behind
+                proc.kill()
+                proc.wait()
+                raise
+        return proc, conn
+
+    @staticmethod
+    def _connect(proc: Any, server: Any, port: int, key: bytes) -> Any:
+        """Hand the child the address and key, accept its connection and check the key both ways."""
+        import time
+        from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
+
+        assert proc.stdin is not None
+        with contextlib.suppress(OSError):  # a child that died at once is reported below
+            proc.stdin.write(f"{port} {key.hex()}\n".encode())
+            proc.stdin.close()
+        server.settimeout(0.5)
+        deadline = time.monotonic() + _CHILD_START_TIMEOUT_S
+        while True:
+            try:
+                sock, _ = server.accept()
+                break
+            except TimeoutError:
+                if proc.poll() is not None:
+                    raise SimulationError(f"the SUMO subprocess died (exit code {proc.returncode})") from None
+                if time.monotonic() > deadline:
+                    raise SimulationError("the SUMO subprocess did not start within a minute") from None
+        sock.setblocking(True)
+        conn = Connection(sock.detach())
+        try:  # what multiprocessing's Listener.accept does: each side proves it knows the key
+            deliver_challenge(conn, key)
+            answer_challenge(conn, key)
+        except BaseException:
+            conn.close()
+            raise
+        return conn
+
+    def _died(self) -> SimulationError:
+        import subprocess
+
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._proc.wait(timeout=_CHILD_CLOSE_TIMEOUT_S)  # the channel breaks just before the exit
+        return SimulationError(f"the SUMO subprocess died (exit code {self._proc.returncode})")
 
     def _call(self, method: str, *args: Any) -> Any:
         if self._closed:
@@ -376,11 +521,14 @@ class SubprocessBackend:
         try:
             self._conn.send((method, args))
             while not self._conn.poll(1.0):
-                if not self._proc.is_alive():
-                    raise SimulationError(f"the SUMO subprocess died (exit code {self._proc.exitcode})")
+                if self._proc.poll() is not None:
+                    raise self._died()
             status, value = self._conn.recv()
-        except (EOFError, BrokenPipeError, ConnectionResetError):
-            raise SimulationError(f"the SUMO subprocess died (exit code {self._proc.exitcode})") from None
+        except (EOFError, OSError):
+            raise self._died() from None
+        except KeyboardInterrupt:  # the channel may hold half a message now: this simulation is over
+            self.close()
+            raise
         if status == "error":
             raise value
         return value
@@ -407,15 +555,9 @@ class SubprocessBackend:
         return self._call("raw_call", domain, method, *args)
 
     def close(self) -> None:
-        if self._closed:
-            return
-        with contextlib.suppress(Exception):
-            self._conn.send(("close", ()))
-            self._conn.poll(5.0)
+        """Close SUMO and end the child (killed if it does not answer); a second call does nothing."""
         self._closed = True
-        self._proc.join(timeout=5.0)
-        if self._proc.is_alive():
-            self._proc.kill()
+        self._finalizer()
 
 
 Backend = SumoBackend | SubprocessBackend
