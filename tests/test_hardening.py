@@ -582,7 +582,7 @@ def test_sumo_subprocess_dying_is_a_prompt_simulation_error() -> None:
         backend.reset(_one_car())
         backend.step()
         os.kill(backend._proc.pid, signal.SIGKILL)
-        backend._proc.join(timeout=10)
+        backend._proc.wait(timeout=10)
         started = time.monotonic()
         with pytest.raises(SimulationError, match="died"):
             backend.step()
