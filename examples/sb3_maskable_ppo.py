@@ -17,6 +17,7 @@ import numpy as np
 from sb3_contrib import MaskablePPO
 from sb3_contrib.common.maskable.evaluation import evaluate_policy
 from sb3_contrib.common.maskable.utils import get_action_masks
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.monitor import Monitor
 
 import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
@@ -33,6 +34,7 @@ def main() -> None:
     # 30 s episodes keep the demo short; the paper's horizon is the default EnvConfig().
     env = Monitor(gymnasium.make("idas_sumo/Merge-v0", config=EnvConfig(max_episode_s=30.0)))
     model = MaskablePPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=2, seed=args.seed, verbose=0)
+    model.set_logger(Logger(folder=None, output_formats=[]))  # no empty SB3-<date> folder in the temp dir
     model.learn(total_timesteps=args.timesteps)
     print(f"trained {model.num_timesteps} steps")
 

@@ -56,6 +56,7 @@ def _probs(dist: Any) -> torch.Tensor:
 def test_maskable_ppo_trains_on_the_registered_env(small_budget: Any) -> None:
     from sb3_contrib import MaskablePPO
     from sb3_contrib.common.maskable.utils import get_action_masks, is_masking_supported
+    from stable_baselines3.common.logger import Logger
 
     made = gymnasium.make("idas_sumo/Merge-v0", config=EnvConfig(max_episode_s=small_budget.max_episode_s))
     assert isinstance(made.unwrapped, MergeEnv)
@@ -72,6 +73,8 @@ def test_maskable_ppo_trains_on_the_registered_env(small_budget: Any) -> None:
             seed=0,
             device="cpu",
         )
+        # SB3 otherwise makes an empty SB3-<date> folder in the temp dir for every run.
+        model.set_logger(Logger(folder=None, output_formats=[]))
         model.learn(total_timesteps=TRAIN_STEPS)
         assert model.num_timesteps == TRAIN_STEPS
         assert len(env.steps) == TRAIN_STEPS
