@@ -1,0 +1,414 @@
+"""K merge scenarios in one in-process SUMO run, over a K-copy network (sim/multinet.py).
+
+One ``libsumo.simulationStep()`` advances every copy. Copies share nothing, and SUMO drives without
+randomness here, so each copy's vehicles move exactly as in a ``SumoBackend`` run of that scenario
+alone (tests/test_sim_batch.py checks it vehicle by vehicle). Everything SUMO-facing is
+``SumoBackend``'s: the route file's vTypes and vehicle lines, the SUMO options, the controlled
+vehicles' speed mode, the stderr capture and error wrapping, and the one-simulation-per-process guard
+(a ``BatchBackend`` occupies the same slot as a ``SumoBackend``).
+
+Ids: copy ``k``'s vehicles and edges carry the prefix ``MultiNet.prefix(k)`` (``c{k}_``) in SUMO;
+events and states come back with copy-local ids plus the copy index, and commands take either.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.sim import backend as _backend
+from idas_sumo.sim.backend import (
+    CONTROLLED_SPEED_MODE,
+    SUMO_DEFAULT_SPEED_MODE,
+    RouteScenario,
+    StepEvents,
+    SumoBackend,
+    VehicleStates,
+    _route_xml,
+)
+from idas_sumo.sim.multinet import MultiNet, multi_net
+from idas_sumo.sim.netgen import MergeNet
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+# -- the route file ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _CopyVehicle:
+    """A scenario vehicle as copy k sees it: global id, road named after copy k's route."""
+
+    id: str
+    road: str
+    depart_s: float
+    start_pos_m: float
+    speed_mps: float
+    controlled: bool
+
+
+@dataclass(frozen=True)
+class _Vehicles:
+    vehicles: Sequence[_CopyVehicle]
+    controlled_ids: tuple[str, ...] = ()
+
+
+def batch_route_xml(scenarios: Sequence[RouteScenario], net: MultiNet) -> str:
+    """One route file for all copies: ``SumoBackend``'s vTypes and vehicle lines, ids and routes per copy.
+
+    Vehicles are sorted by departure (SUMO reads route files in time order); within one copy they keep
+    ``SumoBackend``'s order (departure, then id), so each copy inserts its cars in the same order.
+    """
+    vtypes = [ln for ln in _route_xml(_Vehicles(()), net.source).splitlines() if "<vType " in ln]
+    routes: list[str] = []
+    keyed: list[tuple[float, int, int, str]] = []
+    for k, scenario in enumerate(scenarios):
+        p = net.prefix(k)
+        copy = net.copy_net(k)
+        for road, edge in (("main", copy.main.edge_id), ("merge", copy.merge.edge_id)):
+            routes.append(f'  <route id="{p}{road}_route" edges="{edge} {copy.out.edge_id}"/>')
+        views = [
+            _CopyVehicle(p + v.id, p + v.road, v.depart_s, v.start_pos_m, v.speed_mps, v.controlled)
+            for v in scenario.vehicles
+        ]
+        # _route_xml writes the vehicles sorted by (depart, id): the same sort here pairs keys with lines.
+        order = sorted(views, key=lambda v: (v.depart_s, v.id))
+        lines = [ln for ln in _route_xml(_Vehicles(views), copy).splitlines() if "<vehicle " in ln]
+        assert len(lines) == len(order), "one vehicle line per vehicle"
+        keyed += [(v.depart_s, k, i, ln) for i, (v, ln) in enumerate(zip(order, lines, strict=True))]
+    keyed.sort(key=lambda t: (t[0], t[1], t[2]))
+    return "\n".join(["<routes>", *vtypes, *routes, *(t[3] for t in keyed), "</routes>"]) + "\n"
+
+
+# -- results ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class BatchStepEvents:
+    """What happened in one step, per copy (copy-local ids; each copy's ``time_s`` is ``time_s``)."""
+
+    time_s: float
+    copies: list[StepEvents] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class BatchStates:
+    """Every vehicle of every copy, grouped by copy in ascending order (arrays align with ``ids``).
+
+    Within one copy the order is ``SumoBackend.vehicle_states``'s for that scenario alone.
+    """
+
+    ids: tuple[str, ...]
+    """Copy-local vehicle ids."""
+    copy: IntArray
+    edge: tuple[str, ...]
+    """Copy-local edge ids (``main``, ``:merge_point_0``, ...)."""
+    edge_index: IntArray
+    """Index of ``edge`` in ``MultiNet.edge_ids`` (-1 for an edge not in the source net)."""
+    lane_pos_m: FloatArray
+    speed_mps: FloatArray
+    accel_mps2: FloatArray
+    bounds: IntArray
+    """Copy k's vehicles are rows ``bounds[k]:bounds[k + 1]`` (len = copies + 1)."""
+
+    def of_copy(self, k: int) -> VehicleStates:
+        """Copy ``k``'s vehicles as ``SumoBackend.vehicle_states`` gives them for its scenario alone."""
+        lo, hi = int(self.bounds[k]), int(self.bounds[k + 1])
+        return VehicleStates(
+            self.ids[lo:hi],
+            self.edge[lo:hi],
+            self.lane_pos_m[lo:hi],
+            self.speed_mps[lo:hi],
+            self.accel_mps2[lo:hi],
+        )
+
+
+# -- the backend ------------------------------------------------------------------------------------
+
+
+class BatchBackend:
+    """Up to ``copies`` scenarios in the one SUMO simulation of this process."""
+
+    def __init__(
+        self,
+        net: MergeNet | MultiNet,
+        copies: int | None = None,
+        seed: int = 0,
+        extra_args: Sequence[str] = (),
+        cache_dir: str | Path | None = None,
+    ) -> None:
+        """``net``: a ``MultiNet``, or a ``MergeNet`` to copy ``copies`` times (built once, cached)."""
+        if isinstance(net, MultiNet):
+            if copies is not None and copies != net.copies:
+                raise InputError(f"copies: {copies} given with a {net.copies}-copy net")
+            self.net = net
+        else:
+            if copies is None:
+                raise InputError("copies: needed to build a multi-copy net from a MergeNet")
+            self.net = multi_net(net, copies, cache_dir)
+        self.copies = self.net.copies
+        # SumoBackend's own option list, on the K-copy file: one home for SUMO's options.
+        self._options = SumoBackend(
+            _replace_path(self.net.source, self.net.path), seed=seed, extra_args=extra_args
+        )
+        self._prefixes = tuple(self.net.prefix(k) for k in range(self.copies))
+        self._edges = self.net.edge_table()
+        self._running = False
+        self._workdir: Path | None = None
+        self._split: dict[str, tuple[int, str]] = {}
+        """Global vehicle id -> (copy, local id), for every vehicle of the loaded scenarios."""
+        self._controlled: set[str] = set()
+        self._released: set[str] = set()
+        self._active_copies = 0
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def reset(self, scenarios: Sequence[RouteScenario], extra_args: Sequence[str] = ()) -> None:
+        """(Re)load the K-copy net with scenario k in copy k (the insertion step is ``step``'s job).
+
+        Fewer scenarios than copies leave the last copies empty. ``extra_args`` are SUMO options for
+        this run only.
+        """
+        import tempfile
+
+        import libsumo
+
+        if not 1 <= len(scenarios) <= self.copies:
+            raise InputError(f"{len(scenarios)} scenarios for a {self.copies}-copy net (1 to {self.copies})")
+        if _backend._active is not None and _backend._active is not cast(Any, self):
+            raise SimulationError(
+                "another SUMO simulation is already open in this process (libsumo allows one); "
+                "close it before opening a BatchBackend"
+            )
+        if self._workdir is None:
+            self._workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_batch_"))
+        route_file = self._workdir / "batch.rou.xml"
+        route_file.write_text(batch_route_xml(scenarios, self.net))
+        args = [*self._options._args(route_file), *extra_args]
+        failure: BaseException | None = None
+        with _backend._captured_stderr() as stderr_lines:
+            try:
+                if self._running:
+                    libsumo.load(args[1:])
+                else:
+                    libsumo.start(args)
+            except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
+                failure = err
+        if failure is not None:  # SUMO's reason arrives in the captured lines on leaving the block
+            self._running = False
+            _backend._active = None
+            raise _backend.SumoRefusedInput(
+                f"SUMO could not load {self.net.path}: {_backend._sumo_message(failure, stderr_lines)}"
+            )
+        self._running = True
+        # The shared slot: SumoBackend and make_backend see this process's simulation as taken.
+        _backend._active = cast(SumoBackend, self)
+        self._split = {
+            self._prefixes[k] + v.id: (k, v.id) for k, s in enumerate(scenarios) for v in s.vehicles
+        }
+        self._controlled = {
+            self._prefixes[k] + vid for k, s in enumerate(scenarios) for vid in s.controlled_ids
+        }
+        self._released = set()
+        self._active_copies = len(scenarios)
+
+    def close(self) -> None:
+        import shutil
+
+        if self._running:
+            import contextlib
+
+            import libsumo
+
+            with contextlib.suppress(Exception):
+                libsumo.close()
+            self._running = False
+        if _backend._active is cast(Any, self):
+            _backend._active = None
+        if self._workdir is not None:
+            shutil.rmtree(self._workdir, ignore_errors=True)
+            self._workdir = None
+
+    @property
+    def running(self) -> bool:
+        return self._running
+
+    @property
+    def active_copies(self) -> int:
+        """How many copies the last reset filled (copies 0 .. active_copies - 1)."""
+        return self._active_copies
+
+    def global_id(self, copy: int, vehicle_id: str) -> str:
+        return self._prefixes[copy] + vehicle_id
+
+    def _local(self, global_id: str) -> tuple[int, str]:
+        found = self._split.get(global_id)
+        if found is not None:
+            return found
+        # A vehicle not from the scenarios (added by a tool): its copy is in its prefix.
+        for k in range(self.copies - 1, -1, -1):
+            if global_id.startswith(self._prefixes[k]):
+                return k, global_id[len(self._prefixes[k]) :]
+        raise SimulationError(f"vehicle {global_id!r} belongs to no copy of the net")
+
+    # -- stepping --------------------------------------------------------------------------------
+    def time_s(self) -> float:
+        import libsumo
+
+        return float(libsumo.simulation.getTime())
+
+    def step(self) -> BatchStepEvents:
+        """Advance every copy by one step; events per copy, with copy-local ids."""
+        import libsumo
+
+        simulation = libsumo.simulation
+        try:
+            libsumo.simulationStep()
+        except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
+            raise SimulationError(f"SUMO failed during a step: {err}") from None
+        time_s = float(simulation.getTime())
+        events = [StepEvents(time_s=time_s) for _ in range(self._active_copies)]
+        collided_global: set[str] = set()
+        for collision in simulation.getCollisions():
+            k, collider = self._local(collision.collider)
+            k2, victim = self._local(collision.victim)
+            if k != k2:
+                raise SimulationError(
+                    f"collision across copies ({collision.collider} and {collision.victim}): the net's "
+                    "copies overlap"
+                )
+            events[k].collision_pairs.append((collider, victim))
+            events[k].collided.update((collider, victim))
+            collided_global.update((collision.collider, collision.victim))
+        departed = simulation.getDepartedIDList()
+        for vid in departed:
+            if vid in self._controlled:
+                libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
+            k, local = self._local(vid)
+            events[k].departed.append(local)
+        for vid in simulation.getArrivedIDList():
+            if vid not in collided_global:
+                k, local = self._local(vid)
+                events[k].arrived.append(local)
+        for vid in simulation.getStartingTeleportIDList():
+            k, local = self._local(vid)
+            events[k].teleported.append(local)
+        return BatchStepEvents(time_s, events)
+
+    def vehicle_states(self) -> BatchStates:
+        """Every vehicle's copy, edge, lane position, speed and acceleration.
+
+        Read with plain getters in one tight loop: benchmarks/sumo_read.py measured them the cheapest
+        way (see the table in that file's docstring); subscriptions also slow down simulationStep.
+        """
+        import libsumo
+
+        vehicle = libsumo.vehicle
+        get_road, get_pos = vehicle.getRoadID, vehicle.getLanePosition
+        get_speed, get_accel = vehicle.getSpeed, vehicle.getAcceleration
+        gids = vehicle.getIDList()
+        n = len(gids)
+        lane_pos = np.empty(n)
+        speed = np.empty(n)
+        accel = np.empty(n)
+        roads: list[str] = []
+        for i, vid in enumerate(gids):
+            roads.append(get_road(vid))
+            lane_pos[i] = get_pos(vid)
+            speed[i] = get_speed(vid)
+            accel[i] = get_accel(vid)
+        split = self._split
+        local = [split.get(v) or self._local(v) for v in gids]
+        copy = np.fromiter((c for c, _ in local), dtype=np.int64, count=n)
+        ids = tuple(vid for _, vid in local)
+        edges = self._edges
+        edge_index = np.fromiter((edges.get(r, (0, -1))[1] for r in roads), dtype=np.int64, count=n)
+        local_edge = self.net.edge_ids
+        edge = tuple(local_edge[j] if j >= 0 else r for j, r in zip(edge_index.tolist(), roads, strict=True))
+        if n > 1 and bool(np.any(copy[1:] < copy[:-1])):  # SUMO lists by id; keep copies contiguous anyway
+            order = np.argsort(copy, kind="stable")
+            copy, lane_pos, speed, accel, edge_index = (
+                copy[order],
+                lane_pos[order],
+                speed[order],
+                accel[order],
+                edge_index[order],
+            )
+            ids = tuple(ids[i] for i in order.tolist())
+            edge = tuple(edge[i] for i in order.tolist())
+        bounds = np.searchsorted(copy, np.arange(self.copies + 1), side="left").astype(np.int64)
+        return BatchStates(ids, copy, edge, edge_index, lane_pos, speed, accel, bounds)
+
+    def set_speeds(
+        self,
+        vehicle_ids: Sequence[str],
+        speeds_mps: npt.ArrayLike,
+        copy: npt.ArrayLike | None = None,
+    ) -> None:
+        """Command the next step's speed of controlled vehicles (validated: finite, >= 0).
+
+        ``copy`` None: ``vehicle_ids`` are global (prefixed) ids; else copy-local ids, ``copy[i]`` the
+        copy of ``vehicle_ids[i]``.
+        """
+        import libsumo
+
+        speeds = np.asarray(speeds_mps, dtype=np.float64)
+        if speeds.shape != (len(vehicle_ids),):
+            raise SimulationError(f"{speeds.shape} speeds for {len(vehicle_ids)} vehicles (a bug)")
+        bad = ~np.isfinite(speeds) | (speeds < 0)
+        if bool(bad.any()):
+            i = int(np.flatnonzero(bad)[0])
+            raise SimulationError(
+                f"invalid speed command {speeds[i]!r} for vehicle {vehicle_ids[i]!r} (a bug, not an input)"
+            )
+        if copy is None:
+            gids = list(vehicle_ids)
+        else:
+            prefixes = self._prefixes
+            gids = [prefixes[k] + v for k, v in zip(np.asarray(copy).tolist(), vehicle_ids, strict=True)]
+        set_speed = libsumo.vehicle.setSpeed
+        for vid, v in zip(gids, speeds.tolist(), strict=True):
+            try:
+                set_speed(vid, v)
+            except libsumo.TraCIException as err:
+                if vid in libsumo.vehicle.getIDList():
+                    raise SimulationError(f"SUMO refused the speed of vehicle {vid!r}: {err}") from None
+                # Removed by SUMO since the last step: that step reported it (collided or arrived).
+
+    def set_speed_map(self, speeds_mps: Mapping[str, float]) -> None:
+        """``set_speeds`` from {global id: speed}."""
+        self.set_speeds(list(speeds_mps), np.fromiter(speeds_mps.values(), dtype=np.float64))
+
+    def release(self, vehicle_id: str, copy: int | None = None) -> None:
+        """Hand a controlled vehicle back to SUMO's own driver model (after it finished).
+
+        ``copy`` None: ``vehicle_id`` is global; else copy-local in that copy.
+        """
+        import libsumo
+
+        vid = vehicle_id if copy is None else self._prefixes[copy] + vehicle_id
+        if vid in self._controlled and vid not in self._released:
+            libsumo.vehicle.setSpeedMode(vid, SUMO_DEFAULT_SPEED_MODE)
+            libsumo.vehicle.setSpeed(vid, -1)
+            self._released.add(vid)
+
+    def raw_call(self, domain: str, method: str, *args: Any) -> Any:
+        """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args) (global ids)."""
+        import libsumo
+
+        return getattr(getattr(libsumo, domain), method)(*args)
+
+
+def _replace_path(net: MergeNet, path: Path) -> MergeNet:
+    import dataclasses
+
+    return dataclasses.replace(net, path=path)
+
+
+__all__ = ["BatchBackend", "BatchStates", "BatchStepEvents", "batch_route_xml"]

@@ -1,0 +1,310 @@
+"""K disjoint copies of one SUMO network in one network file, so one SUMO run steps K scenarios at once.
+
+libsumo holds one simulation per process. Instead of K processes, ``BatchBackend`` (sim/batch.py) runs
+one simulation over a network made of K copies of the merge network, one scenario per copy. The copies
+share no junction and no lane, and SUMO's driving here has no randomness (sigma 0, speedDev 0), so
+every copy moves exactly as its scenario alone on the source network.
+
+How a copy is made, for any ``.net.xml``: netconvert reads the source with ``--prefix c{k}_`` (every
+edge and junction id, hence every lane and junction-internal id, gets the prefix) and ``--offset.y``
+(copy k lies k spacings above the source, the spacing larger than the source's bounding box), then one
+more netconvert merges the K copies. Normalisation is off in both steps so copy 0 keeps the source's
+coordinates. The result is checked with sumolib against the source: every edge of every copy, the
+junction-internal ones included, has the source's lanes with the same lengths and speed limits, the
+same priority and function, and the same connections. Any difference is a ``SimulationError``.
+
+Built nets are cached by (source file content, K, SUMO version) in ``IDAS_SUMO_CACHE`` (else
+``$XDG_CACHE_HOME/idas_sumo/nets``, else ``~/.cache/idas_sumo/nets``); a net is checked before it
+enters the cache and is written atomically, so concurrent workers building the same net are safe
+(the last rename wins, both files are the same).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.io_utils import atomic_path
+from idas_sumo.sim.netgen import MergeNet, RoadInfo, read_merge_net, sumo_binary
+
+CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
+CACHE_FORMAT = 1
+"""Bump when the way copies are built changes: older cached nets are then not reused."""
+COPY_MARGIN_M = 100.0
+"""Free space between two copies' bounding boxes (copies never touch, and sumo-gui shows them apart)."""
+MAX_COPIES = 4096
+
+
+def copy_prefix(k: int, copies: int) -> str:
+    """The id prefix of copy ``k`` of ``copies``: ``c{k}_``, k zero-padded to the width of ``copies - 1``.
+
+    Zero-padding keeps string order equal to copy order (SUMO lists vehicles sorted by id), and gives
+    the plain ``c{k}_`` for up to 10 copies.
+    """
+    width = len(str(max(copies - 1, 0)))
+    return f"c{k:0{width}d}_"
+
+
+def global_edge_id(prefix: str, local_edge_id: str) -> str:
+    """The id of a source edge in the copy with ``prefix``.
+
+    netconvert prefixes junction ids, and a junction-internal edge is named ``:JUNCTION_n``: its
+    prefix goes after the colon.
+    """
+    if local_edge_id.startswith(":"):
+        return f":{prefix}{local_edge_id[1:]}"
+    return prefix + local_edge_id
+
+
+def default_cache_dir() -> Path:
+    """Where built multi-copy nets are kept (``IDAS_SUMO_CACHE`` overrides)."""
+    explicit = os.environ.get(CACHE_ENV_VAR)
+    if explicit:
+        return Path(explicit).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
+    return base / "idas_sumo" / "nets"
+
+
+def _sumo_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("eclipse-sumo")
+    except PackageNotFoundError:  # SUMO from elsewhere: its netconvert path still identifies it
+        return str(sumo_binary("netconvert"))
+
+
+def cache_key(source: Path, copies: int) -> str:
+    """Hex digest naming the K-copy net of ``source`` (its bytes, K, SUMO version, build format)."""
+    h = hashlib.sha256()
+    h.update(source.read_bytes())
+    h.update(f"\0copies={copies}\0sumo={_sumo_version()}\0format={CACHE_FORMAT}".encode())
+    return h.hexdigest()
+
+
+# -- reading a net for the check --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _EdgeFacts:
+    function: str
+    priority: int
+    lanes: tuple[tuple[float, float], ...]
+    """(length m, speed limit m/s) per lane, by index."""
+    connections: tuple[tuple[int, str, int, str], ...]
+    """(from lane, to edge, to lane, via lane) per outgoing connection, sorted."""
+
+
+def _edge_facts(path: Path) -> dict[str, _EdgeFacts]:
+    """Every edge (junction-internal ones included) of a net file, as the check compares them."""
+    import sumolib
+
+    try:
+        net = sumolib.net.readNet(str(path), withInternal=True)
+    except Exception as err:  # sumolib raises many types on broken nets
+        raise InputError(f"{path}: sumolib cannot read the network ({err})") from None
+    facts: dict[str, _EdgeFacts] = {}
+    for edge in net.getEdges(withInternal=True):
+        lanes = tuple((float(lane.getLength()), float(lane.getSpeed())) for lane in edge.getLanes())
+        connections = sorted(
+            (
+                int(c.getFromLane().getIndex()),
+                str(c.getTo().getID()),
+                int(c.getToLane().getIndex()),
+                str(c.getViaLaneID() or ""),
+            )
+            for targets in edge.getOutgoing().values()
+            for c in targets
+        )
+        facts[str(edge.getID())] = _EdgeFacts(
+            str(edge.getFunction()), int(edge.getPriority()), lanes, tuple(connections)
+        )
+    return facts
+
+
+def _bounding_box(path: Path) -> tuple[float, float, float, float]:
+    import sumolib
+
+    net = sumolib.net.readNet(str(path), withInternal=True)
+    xmin, ymin, xmax, ymax = net.getBoundary()
+    return float(xmin), float(ymin), float(xmax), float(ymax)
+
+
+def _renamed(facts: _EdgeFacts, prefix: str) -> _EdgeFacts:
+    def via(lane_id: str) -> str:
+        return global_edge_id(prefix, lane_id) if lane_id else ""
+
+    return dataclasses.replace(
+        facts,
+        connections=tuple(
+            (fl, global_edge_id(prefix, to), tl, via(v)) for fl, to, tl, v in facts.connections
+        ),
+    )
+
+
+def check_copies(source: Path, built: Path, copies: int) -> None:
+    """Raise ``SimulationError`` unless ``built`` holds exactly ``copies`` faithful copies of ``source``."""
+    want = _edge_facts(source)
+    got = _edge_facts(built)
+    problems: list[str] = []
+    if len(got) != copies * len(want):
+        problems.append(f"{len(got)} edges, expected {copies} x {len(want)}")
+    for k in range(copies):
+        prefix = copy_prefix(k, copies)
+        for edge_id, facts in want.items():
+            gid = global_edge_id(prefix, edge_id)
+            if gid not in got:
+                problems.append(f"edge {gid!r} missing")
+            elif got[gid] != _renamed(facts, prefix):
+                problems.append(f"edge {gid!r} differs from {edge_id!r}: {got[gid]} vs {facts}")
+    if problems:
+        shown = "; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else "")
+        raise SimulationError(f"the {copies}-copy net of {source} is not faithful: {shown}")
+
+
+# -- building ---------------------------------------------------------------------------------------
+
+
+def _netconvert(args: list[str]) -> None:
+    cmd = [str(sumo_binary("netconvert")), *args, "--no-warnings", "true"]
+    result = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        reason = (result.stderr.strip().splitlines() or ["no message"])[-1]
+        raise SimulationError(f"netconvert failed: {reason}")
+
+
+def _build(source: Path, copies: int, out: Path, workdir: Path) -> None:
+    xmin, ymin, xmax, ymax = _bounding_box(source)
+    del xmin, xmax
+    spacing = float(int((ymax - ymin + COPY_MARGIN_M) / 100.0) + 1) * 100.0  # whole hundreds of metres
+    parts: list[str] = []
+    for k in range(copies):
+        part = workdir / f"copy{k}.net.xml"
+        _netconvert(
+            [
+                "--sumo-net-file",
+                str(source),
+                "--prefix",
+                copy_prefix(k, copies),
+                "--offset.y",
+                f"{k * spacing:.2f}",
+                "--offset.disable-normalization",
+                "true",
+                "--output-file",
+                str(part),
+            ]
+        )
+        parts.append(str(part))
+    _netconvert(
+        [
+            "--sumo-net-file",
+            ",".join(parts),
+            "--offset.disable-normalization",
+            "true",
+            "--output-file",
+            str(out),
+        ]
+    )
+
+
+def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None = None) -> Path:
+    """The path of a checked net file holding ``copies`` disjoint copies of ``source`` (built or cached)."""
+    src = Path(source)
+    if not isinstance(copies, int) or not 1 <= copies <= MAX_COPIES:
+        raise InputError(f"copies: {copies!r} is not a whole number in [1, {MAX_COPIES}]")
+    if not src.is_file():
+        raise InputError(f"{src}: net file not found")
+    cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"{cache}: cannot create the net cache directory ({err.strerror})") from None
+    out = cache / f"{cache_key(src, copies)[:24]}-k{copies}.net.xml"
+    if out.is_file():
+        return out
+    workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_multinet_"))
+    try:
+        with atomic_path(out) as tmp:
+            _build(src, copies, tmp, workdir)
+            check_copies(src, tmp, copies)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+    return out
+
+
+# -- the merge network, K times ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MultiNet:
+    """K copies of one validated merge network in one net file."""
+
+    path: Path
+    """The K-copy net file (in the cache)."""
+    source: MergeNet
+    """The one-copy merge network, as read from its own file: copy-local ids and lengths."""
+    copies: int
+    edge_ids: tuple[str, ...]
+    """Copy-local ids of every edge of the source, junction-internal ones included: main, merge, out
+    first, then the others sorted (``BatchStates.edge_index`` indexes this)."""
+
+    def prefix(self, k: int) -> str:
+        if not 0 <= k < self.copies:
+            raise IndexError(f"copy {k} of a {self.copies}-copy net")
+        return copy_prefix(k, self.copies)
+
+    def copy_net(self, k: int) -> MergeNet:
+        """Copy ``k`` as a ``MergeNet`` (global edge and junction ids; ``path`` the K-copy file)."""
+        p = self.prefix(k)
+
+        def road(info: RoadInfo) -> RoadInfo:
+            return dataclasses.replace(info, edge_id=global_edge_id(p, info.edge_id))
+
+        s = self.source
+        return MergeNet(self.path, road(s.main), road(s.merge), road(s.out), p + s.junction_id)
+
+    def edge_table(self) -> dict[str, tuple[int, int]]:
+        """Global edge id -> (copy, index into ``edge_ids``), for every edge of every copy."""
+        return {
+            global_edge_id(copy_prefix(k, self.copies), e): (k, i)
+            for k in range(self.copies)
+            for i, e in enumerate(self.edge_ids)
+        }
+
+
+def multi_net(source: MergeNet | str | Path, copies: int, cache_dir: str | Path | None = None) -> MultiNet:
+    """K copies of a merge network (a ``MergeNet`` or its ``.net.xml``), built once and cached."""
+    merge = source if isinstance(source, MergeNet) else read_merge_net(source)
+    path = build_copies(merge.path, copies, cache_dir)
+    roads = (merge.main.edge_id, merge.merge.edge_id, merge.out.edge_id)
+    others = sorted(set(_edge_ids(merge.path)) - set(roads))
+    return MultiNet(path, merge, copies, (*roads, *others))
+
+
+def _edge_ids(path: Path) -> list[str]:
+    import sumolib
+
+    net: Any = sumolib.net.readNet(str(path), withInternal=True)
+    return [str(e.getID()) for e in net.getEdges(withInternal=True)]
+
+
+__all__ = [
+    "CACHE_ENV_VAR",
+    "MultiNet",
+    "build_copies",
+    "cache_key",
+    "check_copies",
+    "copy_prefix",
+    "default_cache_dir",
+    "global_edge_id",
+    "multi_net",
+]
