@@ -1,16 +1,55 @@
-"""``idas-sumo``: netgen | train | evaluate | plot. Exit codes: 0 ok, 1 runtime failure, 2 bad input, 130 Ctrl-C."""
+"""``idas-sumo``: netgen | train | evaluate | plot. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
+130 Ctrl-C, 143 SIGTERM."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import math
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+import tomllib
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from idas_sumo.errors import IdasError, InputError
-from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG_NAME, resolve_user_path
+from idas_sumo.resources import (
+    DEFAULT_NET_NAME,
+    DEFAULT_TRAIN_CONFIG,
+    DEFAULT_TRAIN_CONFIG_NAME,
+    resolve_user_path,
+)
+from idas_sumo.sim.netgen import NetParams
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+DESCRIPTION = (
+    "Train and evaluate IDAS merging policies in SUMO. "
+    "Exit codes: 0 ok, 1 runtime failure, 2 bad input, 130 Ctrl-C, 143 SIGTERM."
+)
+RESULTS_DIR = Path("results")
+"""Where ``evaluate`` without ``--out`` writes: a new ``<method>-<suite>-<seed>`` folder per run."""
+MISSING = "–"
+"""The table's cell for a value that does not exist (no perfect episode, so no speed)."""
+SIGTERM_EXIT = 128 + signal.SIGTERM
+NETGEN_FLAGS: dict[str, tuple[str, str]] = {
+    "main_length_m": ("--main-length", "main road length to the merge point, m"),
+    "merge_length_m": ("--merge-length", "merge road length to the merge point, m"),
+    "out_length_m": ("--out-length", "outgoing road length, m"),
+    "main_speed_mps": ("--main-speed", "main road speed limit, m/s"),
+    "merge_speed_mps": ("--merge-speed", "merge road speed limit, m/s"),
+    "out_speed_mps": ("--out-speed", "outgoing road speed limit, m/s"),
+    "angle_deg": ("--angle", "angle between the two roads, degrees"),
+}
+"""``netgen``'s flags: NetParams field -> (flag, help); the defaults are NetParams's."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C would be so that the same cleanup runs (checkpoint, temp files)."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -29,24 +68,56 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("idas-sumo")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        from idas_sumo import __version__
+
+        return __version__
+
+
+class _VersionAction(argparse.Action):
+    """``--version``, looked up only when asked for (the package metadata scan costs every start)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=kwargs.get("help"))
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> None:
+        print(f"{parser.prog} {_version()}")
+        parser.exit()
+
+
+def _train_defaults() -> dict[str, Any]:
+    """The shipped training config, for help texts; read with tomllib rather than TrainConfig so that
+    ``--help`` does not import torch (a test keeps the file equal to TrainConfig's defaults)."""
+    try:
+        with DEFAULT_TRAIN_CONFIG.open("rb") as f:
+            return tomllib.load(f)
+    except (OSError, tomllib.TOMLDecodeError):
+        return {}
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="idas-sumo", description=__doc__)
+    parser = _Parser(prog="idas-sumo", description=DESCRIPTION)
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    parser.add_argument("--version", action=_VersionAction, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     net = sub.add_parser("netgen", help="generate the two-road merge network with netconvert")
     net.add_argument("--out", default=DEFAULT_NET_NAME, help="output .net.xml (default: %(default)s)")
-    net.add_argument(
-        "--main-length", type=float, default=250.0, help="main road length to the merge point, m"
-    )
-    net.add_argument(
-        "--merge-length", type=float, default=250.0, help="merge road length to the merge point, m"
-    )
-    net.add_argument("--out-length", type=float, default=150.0, help="outgoing road length, m")
-    net.add_argument("--main-speed", type=float, default=20.0, help="main road speed limit, m/s")
-    net.add_argument("--merge-speed", type=float, default=15.0, help="merge road speed limit, m/s")
-    net.add_argument("--out-speed", type=float, default=20.0, help="outgoing road speed limit, m/s")
-    net.add_argument("--angle", type=float, default=30.0, help="angle between the two roads, degrees")
+    defaults = NetParams()
+    for field, (flag, what) in NETGEN_FLAGS.items():
+        net.add_argument(
+            flag,
+            dest=field,
+            metavar=flag.removeprefix("--").replace("-", "_").upper(),
+            type=float,
+            default=getattr(defaults, field),
+            help=f"{what} (default: %(default)s)",
+        )
 
     train = sub.add_parser("train", help="train IDAS (robot world, intelligent world, or both)")
     train.add_argument(
@@ -57,17 +128,44 @@ def build_parser() -> argparse.ArgumentParser:
         type=resolve_user_path,
         help=f"training config TOML (default: {DEFAULT_TRAIN_CONFIG_NAME})",
     )
+    shipped = _train_defaults()
+
+    def from_config(*keys: str) -> str:
+        values = " / ".join(str(shipped.get(k, "?")) for k in keys)
+        return f"default: from --config, else {DEFAULT_TRAIN_CONFIG_NAME}: {values}"
+
     train.add_argument(
-        "--stage", choices=("robot", "intelligent", "direct", "curriculum"), help="what to train"
+        "--stage",
+        choices=("robot", "intelligent", "direct", "curriculum"),
+        help=f"what to train ({from_config('stage')})",
     )
     train.add_argument(
-        "--episodes", type=_positive_int, help="episodes for every stage run (overrides config)"
+        "--episodes",
+        type=_positive_int,
+        help="episodes of every stage the run trains; with --resume, a larger N extends a finished run "
+        f"({from_config('robot_episodes', 'intelligent_episodes', 'direct_episodes')} for robot / "
+        "intelligent / direct)",
     )
-    train.add_argument("--workers", type=_positive_int, help="rollout processes (one SUMO each)")
-    train.add_argument("--seed", type=int, help="the one seed everything random flows from")
+    train.add_argument(
+        "--workers",
+        type=_positive_int,
+        help=f"rollout processes, one SUMO each ({from_config('workers')})",
+    )
+    train.add_argument(
+        "--seed",
+        type=int,
+        help=f"the one seed everything random flows from ({from_config('seed')})",
+    )
     train.add_argument("--out", type=Path, help="run directory (default: runs/<stage>)")
-    train.add_argument(
-        "--resume", action="store_true", help="continue the run in --out from its last checkpoint"
+    again = train.add_mutually_exclusive_group()
+    again.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its last checkpoint, with the run's own config "
+        "(flags you give override it: --workers, --episodes; others are ignored with a warning)",
+    )
+    again.add_argument(
+        "--force", action="store_true", help="start over in an --out that holds a run (replaces its files)"
     )
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.add_argument(
@@ -75,14 +173,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     ev = sub.add_parser("evaluate", help="evaluate a method with the paper's protocol; write CSVs")
-    ev.add_argument("--baseline", required=True, help="idas | idas_v | idas_direct | idm | fsm_idm | all")
+    ev.add_argument(
+        "--baseline", required=True, help="method: idas | idas_v | idas_direct | idm | fsm_idm | all"
+    )
     ev.add_argument(
         "--net", type=resolve_user_path, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
     )
-    ev.add_argument("--suite", default="paper", choices=("paper", "representative", "driver-types"))
-    ev.add_argument("--scenarios", type=_positive_int, default=100, help="random scenarios (paper suite)")
     ev.add_argument(
-        "--config", type=resolve_user_path, help="TOML: [traffic] and max_episode_s for the paper suite"
+        "--suite",
+        default="paper",
+        choices=("paper", "representative", "driver-types"),
+        help="scenario suite (default: %(default)s)",
+    )
+    ev.add_argument(
+        "--scenarios",
+        type=_positive_int,
+        default=100,
+        help="random scenarios of the paper suite (default: %(default)s)",
+    )
+    ev.add_argument(
+        "--config",
+        type=resolve_user_path,
+        help="TOML: [traffic] and max_episode_s for the paper suite "
+        "(default: the built-in values, as in scenarios/eval_paper.toml)",
     )
     ev.add_argument(
         "--scenario",
@@ -103,9 +216,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="checkpoint for the learned method instead of the shipped one",
     )
     ev.add_argument(
-        "--out", type=Path, default=Path("results"), help="output directory (default: %(default)s)"
+        "--out",
+        type=Path,
+        help=f"output directory (default: a new {RESULTS_DIR}/<method>-<suite>-<seed>, "
+        "or the same name with -2, -3, ... when that exists)",
     )
-    ev.add_argument("--force", action="store_true", help="overwrite files in an existing --out")
+    ev.add_argument(
+        "--force",
+        action="store_true",
+        help="write into an existing, non-empty --out (without --out: reuse "
+        "<method>-<suite>-<seed> instead of making a new one)",
+    )
     ev.add_argument("--trajectories", action="store_true", help="also write per-step trajectories.csv")
     ev.add_argument("--sumo-output", action="store_true", help="also keep SUMO's tripinfo XML per episode")
     ev.add_argument("--plots", action="store_true", help="also write PNG plots next to the CSVs")
@@ -118,31 +239,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _netgen(args: argparse.Namespace) -> int:
-    from idas_sumo.sim.netgen import NetParams, describe, generate_net, read_merge_net
+    from idas_sumo.sim.netgen import describe, generate_net, read_merge_net
 
-    params = NetParams(
-        main_length_m=args.main_length,
-        merge_length_m=args.merge_length,
-        out_length_m=args.out_length,
-        main_speed_mps=args.main_speed,
-        merge_speed_mps=args.merge_speed,
-        out_speed_mps=args.out_speed,
-        angle_deg=args.angle,
-    )
+    params = NetParams(**{field: getattr(args, field) for field in NETGEN_FLAGS})
     path = generate_net(args.out, params)
     print(describe(read_merge_net(path)))
     return 0
+
+
+def _default_out(args: argparse.Namespace) -> Path:
+    suite = "scenario" if args.scenario else args.suite  # --scenario files replace the suite
+    return RESULTS_DIR / f"{args.baseline}-{suite}-{args.seed}"
 
 
 def _evaluate(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.policies import METHOD_LABELS, METHODS, check_method
     from idas_sumo.evaluation.runner import EvalRequest, default_others, run_evaluation
 
-    methods = METHODS if args.baseline == "all" else (check_method(args.baseline),)
+    check_method(args.baseline, "--baseline", also=("all",))
+    methods = METHODS if args.baseline == "all" else (args.baseline,)
     if args.others is not None:
         check_method(args.others, "--others")
     others = args.others or default_others()
-    summary = run_evaluation(
+    result = run_evaluation(
         EvalRequest(
             net=Path(args.net),
             methods=tuple(methods),
@@ -151,8 +270,9 @@ def _evaluate(args: argparse.Namespace) -> int:
             seed=args.seed,
             others=others,
             policy=args.policy,
-            out=args.out,
+            out=args.out if args.out is not None else _default_out(args),
             force=args.force,
+            fresh_out=args.out is None and not args.force,
             trajectories=args.trajectories,
             sumo_output=args.sumo_output,
             progress=not args.no_progress and sys.stderr.isatty(),
@@ -165,27 +285,36 @@ def _evaluate(args: argparse.Namespace) -> int:
         # Only after the run: before it, a bad input must stay the one line on stderr.
         print("note: no shipped IDAS policy found; the other vehicles run IDM", file=sys.stderr)
     from rich.console import Console
-    from rich.table import Table
 
-    table = Table(title=f"{args.suite} suite, seed {args.seed}, others: {others}")
-    for col in ("method", "scenarios", "success %", "perfect %", "avg speed (perfect), m/s"):
-        table.add_column(col)
-    for row in summary.itertuples(index=False):
-        table.add_row(
-            METHOD_LABELS.get(str(row.method), str(row.method)),
-            str(row.scenarios),
-            f"{row.success_pct:.0f}",
-            f"{row.perfect_pct:.0f}",
-            f"{row.avg_speed_perfect_mps:.2f}",
-        )
-    Console().print(table)
-    print(f"wrote {args.out}/episodes.csv, summary.csv, flow.csv")
+    title = f"{args.suite} suite, seed {args.seed}, others: {others}"
+    Console().print(summary_table(result.summary, title, METHOD_LABELS))
+    names = ["episodes.csv", "summary.csv", "flow.csv"] + (["trajectories.csv"] if args.trajectories else [])
+    print(f"wrote {result.out}/: {', '.join(names)}")
     if args.plots:
         from idas_sumo.evaluation.plots import plot_directory
 
-        for png in plot_directory(args.out):
+        for png in plot_directory(result.out):
             print(f"wrote {png}")
     return 0
+
+
+def summary_table(summary: pd.DataFrame, title: str, labels: dict[str, str]) -> Any:
+    """The summary as a rich Table; a speed that does not exist (no perfect episode) shows as MISSING."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for col in ("method", "scenarios", "success %", "perfect %", "avg speed (perfect), m/s"):
+        table.add_column(col)
+    for row in summary.to_dict("records"):
+        speed = float(row["avg_speed_perfect_mps"])
+        table.add_row(
+            labels.get(str(row["method"]), str(row["method"])),
+            str(row["scenarios"]),
+            f"{row['success_pct']:.0f}",
+            f"{row['perfect_pct']:.0f}",
+            f"{speed:.2f}" if math.isfinite(speed) else MISSING,
+        )
+    return table
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -202,6 +331,24 @@ def _plot(args: argparse.Namespace) -> int:
     return 0
 
 
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises ``Terminated`` (a KeyboardInterrupt) while the command runs, so a stopped run
+    cleans up as after Ctrl-C; the previous handler comes back afterwards (main may run in a test)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set from the main thread
+        return
+
+    def terminate(signum: int, frame: object) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
@@ -209,7 +356,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     handlers = {"netgen": _netgen, "train": _train, "evaluate": _evaluate, "plot": _plot}
     try:
-        return handlers[args.command](args)
+        with _sigterm_as_interrupt():
+            return handlers[args.command](args)
+    except Terminated:
+        print("idas-sumo: terminated (SIGTERM); completed outputs were kept", file=sys.stderr)
+        return SIGTERM_EXIT
     except KeyboardInterrupt:
         print("idas-sumo: interrupted; completed outputs were kept", file=sys.stderr)
         return 130

@@ -1,26 +1,43 @@
-"""Writing outputs so that nothing is ever half-written: temp file in the same directory, then rename."""
+"""Writing outputs so that nothing is ever half-written: temp file in the same directory, then rename.
+
+Every temporary file the package makes comes from here and ends in ``.tmp`` (which ``.gitignore``
+covers), with the permissions of an ordinary new file.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Any
-
-import pandas as pd
+from typing import IO, TYPE_CHECKING, Any
 
 from idas_sumo.errors import InputError
 
+if TYPE_CHECKING:  # pandas only for the annotation: nets and checkpoints are written without it
+    import pandas as pd
+
+TEMP_SUFFIX = ".tmp"
+
+
+def _temp_beside(path: Path) -> tuple[int, Path]:
+    """A new, empty ``.<name>.XXXX.tmp`` beside ``path``: its open descriptor and its path."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMP_SUFFIX)
+    os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
+    return fd, Path(tmp)
+
 
 @contextlib.contextmanager
-def atomic_open(path: Path, mode: str = "w") -> Iterator[IO[Any]]:
-    """Open a temp file beside ``path``; it replaces ``path`` only if the block completes."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+def atomic_open(path: Path, mode: str = "w", **open_kwargs: Any) -> Iterator[IO[Any]]:
+    """Open a temp file beside ``path``; it replaces ``path`` only if the block completes.
+
+    ``open_kwargs`` (``newline``, ``encoding``) go to ``open``.
+    """
+    fd, tmp = _temp_beside(path)
     try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; results get the usual permissions
-        with os.fdopen(fd, mode) as f:
+        with os.fdopen(fd, mode, **open_kwargs) as f:
             yield f
             f.flush()
             os.fsync(f.fileno())
@@ -31,6 +48,20 @@ def atomic_open(path: Path, mode: str = "w") -> Iterator[IO[Any]]:
         raise
 
 
+@contextlib.contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """A temp file's path beside ``path``, for a tool that writes by file name (netconvert); it replaces
+    ``path`` only if the block completes, and is removed otherwise."""
+    fd, tmp = _temp_beside(path)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -38,8 +69,9 @@ def _umask() -> int:
 
 
 def write_csv_atomic(frame: pd.DataFrame, path: Path) -> None:
+    """``frame`` as CSV; a missing value (NaN) is an empty cell."""
     with atomic_open(path) as f:
-        frame.to_csv(f, index=False, lineterminator="\n")
+        frame.to_csv(f, index=False, lineterminator="\n", na_rep="")
 
 
 def prepare_output_dir(out: Path, force: bool, flag: str = "--out") -> Path:
@@ -51,6 +83,59 @@ def prepare_output_dir(out: Path, force: bool, flag: str = "--out") -> Path:
             f"{flag} {out}: directory exists and is not empty (use --force to overwrite its files)"
         )
     return ensure_writable_dir(out, flag)
+
+
+def claim_fresh_dir(base: Path, flag: str = "--out") -> Path:
+    """Create and return ``base``, or if it exists the first of ``base-2``, ``base-3``, … that does not.
+
+    ``mkdir`` without ``exist_ok`` claims the name, so two runs started together never share one.
+    """
+    ensure_writable_dir(base.parent, flag)
+    for n in itertools.count(1):
+        candidate = base if n == 1 else base.with_name(f"{base.name}-{n}")
+        try:
+            candidate.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as err:
+            raise InputError(f"{flag} {candidate}: cannot create directory ({err.strerror})") from None
+        return candidate
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+@contextlib.contextmanager
+def output_directory(out: Path, force: bool, fresh: bool = False, flag: str = "--out") -> Iterator[Path]:
+    """The directory a command writes into, for the duration of the block.
+
+    ``fresh``: ``out`` or, when that exists, the first free ``out-2``, ``out-3``, …; otherwise ``out``
+    itself (``prepare_output_dir``: refused when it holds files, unless ``force``). If the block fails
+    or is interrupted, every directory made here that is still empty is removed again (a new ``out``,
+    empty folders inside it, and the parents made for it): completed files stay, empty folders do not.
+    """
+    new_parents = [p for p in out.parents if not p.exists()]  # nearest first, as they must go
+    new_out: Path | None = None
+    try:
+        if fresh:
+            new_out = claim_fresh_dir(out, flag)
+            yield new_out
+        else:
+            if not out.exists():
+                new_out = out
+            yield prepare_output_dir(out, force, flag)
+    except BaseException:
+        if new_out is not None and new_out.is_dir():
+            _remove_empty_dirs(new_out)
+        for parent in new_parents:
+            with contextlib.suppress(OSError):
+                parent.rmdir()
+        raise
+
+
+def _remove_empty_dirs(top: Path) -> None:
+    """Remove ``top`` and the folders under it that hold no file (never a file)."""
+    for here, _, _ in os.walk(top, topdown=False):
+        with contextlib.suppress(OSError):
+            os.rmdir(here)
 
 
 def ensure_writable_dir(out: Path, flag: str = "--out") -> Path:

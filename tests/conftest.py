@@ -74,8 +74,11 @@ def checkpoint_payload(learner: Any, **extra: Any) -> dict[str, Any]:
     }
 
 
-def interrupt_when(proc: Any, ready: Any, settle_s: float = 0.0, timeout_s: float = 30.0) -> str:
-    """Wait until ``ready()`` (or ``timeout_s``), let ``settle_s`` pass, send Ctrl-C; return stderr.
+def interrupt_when(
+    proc: Any, ready: Any, settle_s: float = 0.0, timeout_s: float = 30.0, signum: int | None = None
+) -> str:
+    """Wait until ``ready()`` (or ``timeout_s``), let ``settle_s`` pass, send Ctrl-C (or ``signum``);
+    return stderr.
 
     Fails if the process ended before it could be interrupted; never leaves it running.
     """
@@ -88,7 +91,7 @@ def interrupt_when(proc: Any, ready: Any, settle_s: float = 0.0, timeout_s: floa
             time.sleep(0.05)
         time.sleep(settle_s)
         assert proc.poll() is None, f"finished before it could be interrupted: {proc.communicate()}"
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGINT if signum is None else signum)
         _, stderr = proc.communicate(timeout=timeout_s)
     finally:
         if proc.poll() is None:

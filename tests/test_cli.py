@@ -1,8 +1,11 @@
-"""The command line's contract (DESIGN.md section 4): exit 0 / 1 / 2 / 130; bad input is one line on stderr
+"""The command line's contract (docs/design-notes.md, "Command line and exit codes"): exit 0 / 1 / 2 / 130; bad input is one line on stderr
 that names the flag or file, never a traceback; nothing is overwritten or half-written."""
 
 from __future__ import annotations
 
+import argparse
+import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +13,7 @@ from pathlib import Path
 import pytest
 from conftest import interrupt_when, run_cli
 
+from idas_sumo.cli import MISSING, build_parser, main
 from idas_sumo.resources import DEFAULT_NET
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -18,9 +22,14 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 def assert_usage_error(result: subprocess.CompletedProcess[str], *needles: str) -> str:
     """Exit 2 with exactly one stderr line, no traceback, containing every needle; returns the line."""
     assert result.returncode == 2, (result.returncode, result.stderr)
-    assert "Traceback" not in result.stderr
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1, f"expected one stderr line, got {len(lines)}:\n{result.stderr}"
+    return assert_one_line(result.stderr, *needles)
+
+
+def assert_one_line(stderr: str, *needles: str) -> str:
+    """Exactly one 'idas-sumo ... error' line on stderr, no traceback, containing every needle."""
+    assert "Traceback" not in stderr
+    lines = stderr.splitlines()
+    assert len(lines) == 1, f"expected one stderr line, got {len(lines)}:\n{stderr}"
     line = lines[0]
     assert line.startswith("idas-sumo"), line
     assert "error" in line, line
@@ -36,11 +45,15 @@ def evaluate_args(out: Path, net: Path, *extra: str) -> list[str]:
 # --- methods ----------------------------------------------------------------------------------------
 
 
-def test_unknown_baseline_suggests_the_close_name(tmp_path: Path, net_path: Path) -> None:
+@pytest.mark.parametrize(("typed", "meant"), [("fsm_idn", "fsm_idm"), ("IDAS", "idas"), ("ALL", "all")])
+def test_unknown_baseline_suggests_the_close_name(
+    tmp_path: Path, net_path: Path, capsys: pytest.CaptureFixture[str], typed: str, meant: str
+) -> None:
     args = evaluate_args(tmp_path / "out", net_path)
-    args[args.index("idm")] = "fsm_idn"
-    line = assert_usage_error(run_cli(*args), "--baseline", "fsm_idn")
-    assert 'did you mean "fsm_idm"' in line
+    args[args.index("idm")] = typed
+    assert main(args) == 2
+    line = assert_one_line(capsys.readouterr().err, "--baseline", typed)
+    assert f'did you mean "{meant}"' in line
     assert not (tmp_path / "out").exists()
 
 
@@ -76,6 +89,54 @@ def test_existing_out_is_not_overwritten_without_force(tmp_path: Path, net_path:
     assert "Traceback" not in forced.stderr
     assert keep.read_text().startswith("scenario,seed,method,")
     assert {"episodes.csv", "summary.csv", "flow.csv"} <= {p.name for p in out.iterdir()}
+
+
+@pytest.mark.sumo
+def test_evaluate_without_out_writes_a_new_directory_per_run(
+    tmp_path: Path, net_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The quick start's `--out results/idas`, then `evaluate --baseline fsm_idm` as the README says."""
+    monkeypatch.chdir(tmp_path)
+    common = ["--net", str(net_path), "--scenarios", "2", "--others", "idm", "--no-progress"]
+    assert main(["evaluate", "--baseline", "idas", "--out", "results/idas", *common]) == 0
+    assert main(["evaluate", "--baseline", "fsm_idm", *common]) == 0
+    assert main(["evaluate", "--baseline", "fsm_idm", *common]) == 0
+    out = capsys.readouterr().out
+    first, second = Path("results/fsm_idm-paper-2019"), Path("results/fsm_idm-paper-2019-2")
+    assert f"wrote {first}/: episodes.csv, summary.csv, flow.csv" in out
+    assert f"wrote {second}/: episodes.csv, summary.csv, flow.csv" in out
+    assert (first / "episodes.csv").read_text() == (second / "episodes.csv").read_text()  # same seed
+    assert sorted(p.name for p in (tmp_path / "results").iterdir()) == [
+        "fsm_idm-paper-2019",
+        "fsm_idm-paper-2019-2",
+        "idas",
+    ]
+    # --force without --out reuses the first name; an explicit --out still needs --force.
+    assert main(["evaluate", "--baseline", "fsm_idm", "--force", *common]) == 0
+    assert f"wrote {first}/" in capsys.readouterr().out
+    assert len(list((tmp_path / "results").iterdir())) == 3
+    assert main(["evaluate", "--baseline", "idm", "--out", "results/idas", *common]) == 2
+    assert_one_line(capsys.readouterr().err, "results/idas", "--force")
+
+
+@pytest.mark.sumo
+def test_no_nan_speed_when_no_episode_is_perfect(
+    tmp_path: Path, net_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "short.toml"
+    config.write_text("max_episode_s = 1.0\n")  # nobody finishes in 1 s: no success, no perfect episode
+    out = tmp_path / "out"
+    assert (
+        main([*evaluate_args(out, net_path, "--scenarios", "2", "--config", str(config)), "--others", "idm"])
+        == 0
+    )
+    printed = capsys.readouterr().out
+    assert not re.search(r"\bnan\b", printed, re.IGNORECASE), printed
+    assert MISSING in printed
+    summary = (out / "summary.csv").read_text().splitlines()
+    assert summary[0].endswith(",avg_speed_perfect_mps")
+    assert summary[1] == "idm,2,0.0,0.0,"  # an empty cell, which pandas reads back as NaN
+    assert main(["plot", str(out)]) == 0
 
 
 def test_out_that_is_a_file(tmp_path: Path, net_path: Path) -> None:
@@ -226,6 +287,42 @@ def test_help_exits_zero() -> None:
     assert result.returncode == 0
     for command in ("netgen", "train", "evaluate", "plot"):
         assert command in result.stdout
+    assert "``" not in result.stdout  # the description is text, not the module docstring's markup
+    assert "Exit codes" in result.stdout
+
+
+def test_every_flag_with_a_default_shows_it(capsys: pytest.CaptureFixture[str]) -> None:
+    """Every option whose value is not "off" or "unset" says its default in --help."""
+    parser = build_parser()
+    (commands,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    missing = []
+    for name, sub in commands.choices.items():
+        for action in sub._actions:
+            if action.default in (None, False, [], argparse.SUPPRESS) or action.help is None:
+                continue
+            if "default" not in action.help:
+                missing.append(f"{name} {action.option_strings}")
+    assert missing == []
+    for command, needles in {
+        "evaluate": ["(default: paper)", "(default: 100)", "(default: 2019"],
+        "train": ["default: from --config", "curriculum", "20000"],
+        "netgen": ["(default: 250.0)", "(default: 150.0)", "(default: 15.0)", "(default: 30.0)"],
+    }.items():
+        with pytest.raises(SystemExit) as exit_:
+            main([command, "--help"])
+        assert exit_.value.code == 0
+        text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+        for needle in needles:
+            assert needle in text, (command, needle)
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out == f"idas-sumo {version('idas-sumo')}\n"
 
 
 def test_console_script_is_installed() -> None:
@@ -242,19 +339,27 @@ def test_console_script_is_installed() -> None:
 
 
 @pytest.mark.sumo
-def test_ctrl_c_exits_130_and_writes_nothing(tmp_path: Path, net_path: Path) -> None:
-    out = tmp_path / "out"
+@pytest.mark.parametrize(
+    ("signum", "code", "said"), [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")]
+)
+def test_stopped_evaluate_exits_and_leaves_nothing(
+    tmp_path: Path, net_path: Path, signum: int, code: int, said: str
+) -> None:
+    """Ctrl-C or SIGTERM mid-run: no CSV, no temp file, and no empty directory the run made (here the
+    default results/<method>-<suite>-<seed> and results/ itself)."""
+    args = evaluate_args(tmp_path, net_path, "--scenarios", "200")
+    args = args[: args.index("--out")] + args[args.index("--out") + 2 :]  # the default --out
     proc = subprocess.Popen(
-        [sys.executable, "-m", "idas_sumo.cli", *evaluate_args(out, net_path, "--scenarios", "200")],
+        [sys.executable, "-m", "idas_sumo.cli", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        cwd=REPO_ROOT,
+        cwd=tmp_path,
     )
+    results = tmp_path / "results"
     # The output directory appears once the inputs are checked; one more second is well into the episodes.
-    stderr = interrupt_when(proc, out.exists, settle_s=1.0)
-    assert proc.returncode == 130, stderr
+    stderr = interrupt_when(proc, results.exists, settle_s=1.0, signum=signum)
+    assert proc.returncode == code, stderr
     assert "Traceback" not in stderr
-    assert "interrupted" in stderr
-    leftovers = sorted(p.name for p in out.rglob("*"))
-    assert not [n for n in leftovers if n.endswith(".csv") or n.endswith(".tmp")], leftovers
+    assert said in stderr
+    assert list(tmp_path.iterdir()) == []

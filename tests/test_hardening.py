@@ -349,10 +349,55 @@ def test_resume_drops_a_metrics_row_cut_short(tmp_path: Path) -> None:
     row = ",".join(["robot", "{e}", "{e}", *["0"] * (len(METRIC_COLUMNS) - 3)])
     text = ",".join(METRIC_COLUMNS) + "\n" + "".join(row.format(e=e) + "\n" for e in range(3))
     (tmp_path / "metrics.csv").write_text(text + "robot,3,")  # cut off mid-row
-    with MetricsSink(tmp_path, keep_up_to_global_episode=1):
+    with MetricsSink(tmp_path, keep_below_global_episode=2):
         pass
     lines = (tmp_path / "metrics.csv").read_text().splitlines()
     assert lines == text.splitlines()[:3]  # header + episodes 0 and 1
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_temporary_files_are_made_only_by_io_utils() -> None:
+    """io_utils names every temp file ``*.tmp`` (which .gitignore covers) with ordinary permissions;
+    a temp file made elsewhere in the package got neither (netgen's ``*.net.xml``, mode 0600)."""
+    import re
+
+    from idas_sumo import io_utils
+
+    package = Path(io_utils.__file__).parent
+    makers = re.compile(r"\b(mkstemp|NamedTemporaryFile)\(")
+    elsewhere = [
+        str(p.relative_to(package))
+        for p in package.rglob("*.py")
+        if p.name != "io_utils.py" and makers.search(p.read_text())
+    ]
+    assert elsewhere == []
+    assert "*.tmp" in (REPO_ROOT / ".gitignore").read_text().splitlines()
+    assert io_utils.TEMP_SUFFIX == ".tmp"
+
+
+@pytest.mark.sumo
+def test_generated_net_is_written_through_a_tmp_file_with_normal_permissions(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from idas_sumo.sim import netgen
+
+    outputs: list[str] = []
+    real_run = subprocess.run
+
+    def recording_run(cmd: list[str], **kw: Any) -> Any:
+        outputs.append(cmd[cmd.index("--output-file") + 1])
+        return real_run(cmd, **kw)
+
+    monkeypatch.setattr(netgen.subprocess, "run", recording_run)
+    net = netgen.generate_net(tmp_path / "n.net.xml")
+    assert len(outputs) == 1 and outputs[0].endswith(".tmp"), outputs
+    assert net.stat().st_mode & 0o777 == 0o666 & ~_umask()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["n.edg.xml", "n.net.xml", "n.nod.xml"]
 
 
 # --- nets ---------------------------------------------------------------------------------------------

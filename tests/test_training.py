@@ -284,6 +284,184 @@ def test_resume_without_checkpoint_is_input_error(net_path: Path, tmp_path: Path
         run_training(net_path, tiny_config(), tmp_path / "nothing", resume=True, progress=False)
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_metrics_on_resume_keep_the_rows_before_the_checkpoint(tmp_path: Path) -> None:
+    """A checkpoint after 2 episodes (global 0 and 1): the row of episode 2, written before the run was
+    killed, goes; the rewritten file has an ordinary file's permissions."""
+    from idas_sumo.training.metrics import METRIC_COLUMNS, MetricsSink
+
+    rows = [
+        {**dict.fromkeys(METRIC_COLUMNS, 0), "stage": "robot", "episode": e, "global_episode": e}
+        for e in range(3)
+    ]
+    with MetricsSink(tmp_path, tensorboard_keys=()) as sink:
+        sink.write(rows)
+    with MetricsSink(tmp_path, keep_below_global_episode=2, tensorboard_keys=()) as sink:
+        assert [r["global_episode"] for r in sink.kept] == ["0", "1"]
+    assert [r["global_episode"] for r in read_metrics(tmp_path)] == ["0", "1"]
+    assert (tmp_path / "metrics.csv").stat().st_mode & 0o777 == 0o666 & ~_umask()
+
+
+@pytest.mark.sumo
+def test_resume_after_a_kill_in_stage_two_writes_no_row_twice(
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Killed (no Ctrl-C handler runs) after stage 2's first round: the checkpoint is stage 1's end,
+    and resuming must not repeat stage 2's first row (it did: `intelligent,0,2` twice)."""
+    from idas_sumo.training.loop import run_training
+
+    config = tiny_config(checkpoint_every=1000, validate_every=1, validation_scenarios=1)
+    straight = tmp_path / "straight"
+    run_training(net_path, config, straight, progress=False)
+
+    real_update = Learner.update
+    calls = {"n": 0}
+
+    def update_then_die(self: Learner, batch: Any) -> dict[str, float]:
+        calls["n"] += 1
+        if calls["n"] == 4:  # 2 robot rounds, then stage 2's second round
+            raise RuntimeError("killed")
+        return real_update(self, batch)
+
+    monkeypatch.setattr(Learner, "update", update_then_die)
+    run = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="killed"):
+        run_training(net_path, config, run, progress=False)
+    monkeypatch.undo()
+    assert load_checkpoint(run / "checkpoint.pt")["stage"] == "robot"
+    assert [r["stage"] for r in read_metrics(run)] == ["robot", "robot", "intelligent"]
+    run_training(net_path, config, run, resume=True, progress=False)
+
+    def strip(rows: list[dict[str, str]]) -> list[tuple[str, ...]]:
+        return [tuple(v for k, v in r.items() if k != "wall_time_s") for r in rows]
+
+    assert strip(read_metrics(run)) == strip(read_metrics(straight))
+    validation = [list(csv.DictReader((d / "validation.csv").open(newline=""))) for d in (run, straight)]
+    assert [(r["stage"], r["episode"]) for r in validation[0]] == [
+        ("robot", "1"),
+        ("robot", "2"),
+        ("intelligent", "1"),
+        ("intelligent", "2"),
+    ]
+    assert strip(validation[0]) == strip(validation[1])
+
+
+TINY_TRAIN_TOML = """\
+episodes_per_update = 1
+max_episode_s = 12.0
+[robot_traffic]
+min_vehicles_per_road = 2
+max_vehicles_per_road = 3
+max_controlled = 1
+[intelligent_traffic]
+min_vehicles_per_road = 2
+max_vehicles_per_road = 2
+"""
+
+
+def _train_cli(net: Path, *args: str) -> int:
+    from idas_sumo.cli import main
+
+    return main(["train", "--net", str(net), "--no-progress", *args])
+
+
+def _metric_rows(run: Path) -> list[tuple[str, ...]]:
+    return [tuple(v for k, v in r.items() if k != "wall_time_s") for r in read_metrics(run)]
+
+
+@pytest.mark.sumo
+def test_resume_warns_only_about_typed_values_and_extends_a_finished_run(
+    net_path: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_TRAIN_TOML)
+    run, straight = tmp_path / "run", tmp_path / "straight"
+    assert (
+        _train_cli(
+            net_path, "--config", str(config), "--stage", "robot", "--episodes", "2", "--out", str(run)
+        )
+        == 0
+    )
+    two = _metric_rows(run)
+    assert len(two) == 2
+
+    # Nothing typed but --resume: no warning (the shipped default config is not compared with the run).
+    caplog.clear()
+    assert _train_cli(net_path, "--out", str(run), "--resume") == 0
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == []
+    assert _metric_rows(run) == two
+
+    # A larger --episodes extends the finished run; a different --seed is the one value warned about.
+    caplog.clear()
+    assert _train_cli(net_path, "--out", str(run), "--resume", "--episodes", "4", "--seed", "9") == 0
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and warnings[0].endswith("ignoring new values for seed"), warnings
+    four = _metric_rows(run)
+    assert [r[:3] for r in four] == [("robot", str(e), str(e)) for e in range(4)]
+    assert four[:2] == two
+
+    # Same seed, same numbers: the extended run is the 4-episode run.
+    assert (
+        _train_cli(
+            net_path, "--config", str(config), "--stage", "robot", "--episodes", "4", "--out", str(straight)
+        )
+        == 0
+    )
+    assert four == _metric_rows(straight)
+    a, b = load_checkpoint(run / "robot.pt"), load_checkpoint(straight / "robot.pt")
+    assert a["episode"] == 4
+    for k, v in a["learner"]["actor"].items():
+        assert torch.equal(v, b["learner"]["actor"][k])
+
+    # A budget below where the run is: refused, nothing changed.
+    capsys.readouterr()
+    assert _train_cli(net_path, "--out", str(run), "--resume", "--episodes", "3") == 2
+    err = capsys.readouterr().err
+    assert "--episodes 4 or more" in err and len(err.splitlines()) == 1, err
+    assert _metric_rows(run) == four
+
+
+@pytest.mark.sumo
+def test_train_force_starts_over_and_is_needed_for_a_used_out(
+    net_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_TRAIN_TOML)
+    run = tmp_path / "run"
+    args = ["--config", str(config), "--stage", "robot", "--episodes", "2", "--out", str(run)]
+    assert _train_cli(net_path, *args) == 0
+    first = _metric_rows(run)
+    (run / "direct.pt").write_bytes((run / "robot.pt").read_bytes())  # a file of an earlier run there
+    (run / "notes.txt").write_text("mine\n")
+    capsys.readouterr()
+
+    assert _train_cli(net_path, *args) == 2
+    err = capsys.readouterr().err
+    assert "--force" in err and "--resume" in err and len(err.splitlines()) == 1, err
+
+    assert _train_cli(net_path, *args, "--force") == 0
+    assert _metric_rows(run) == first  # replaced, not appended to
+    assert not (run / "direct.pt").exists()
+    assert (run / "notes.txt").read_text() == "mine\n"  # not a training output: left alone
+
+    with pytest.raises(SystemExit) as exit_:
+        _train_cli(net_path, *args, "--force", "--resume")
+    assert exit_.value.code == 2
+    assert "--resume" in capsys.readouterr().err
+
+    # A folder with other files but no run needs --force too (metrics would be appended to otherwise).
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "metrics.csv").write_text("stage,episode\n")
+    assert _train_cli(net_path, *args[:-1], str(other)) == 2
+    assert "--force" in capsys.readouterr().err
+
+
 # --- validation ----------------------------------------------------------------------------------
 def _stats(parts: dict[str, float], perfect: bool, success: bool, end_s: float) -> Any:
     from idas_sumo.agents.rollout import EpisodeStats

@@ -25,11 +25,14 @@ METHOD_LABELS: dict[str, str] = {
 }
 
 
-def check_method(name: str, flag: str = "--baseline") -> str:
-    if name not in METHODS:
-        close = difflib.get_close_matches(name, METHODS, n=1, cutoff=0.4)
+def check_method(name: str, flag: str = "--baseline", also: tuple[str, ...] = ()) -> str:
+    """``name`` if it is a method (or one of ``also``, e.g. "all"); else an InputError with a hint."""
+    choices = (*METHODS, *also)
+    if name not in choices:
+        # Lower case first, so that "IDAS" is pointed to "idas" (difflib compares case-sensitively).
+        close = difflib.get_close_matches(name.lower(), choices, n=1, cutoff=0.4)
         hint = f' (did you mean "{close[0]}"?)' if close else ""
-        raise InputError(f"{flag}: unknown method {name!r}{hint}; choose from {', '.join(METHODS)}")
+        raise InputError(f"{flag}: unknown method {name!r}{hint}; choose from {', '.join(choices)}")
     return name
 
 

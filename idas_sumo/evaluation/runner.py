@@ -26,7 +26,7 @@ from idas_sumo.evaluation.protocol import (
     load_eval_config,
     suite_cases,
 )
-from idas_sumo.io_utils import prepare_output_dir, write_csv_atomic
+from idas_sumo.io_utils import output_directory, write_csv_atomic
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import read_merge_net
 
@@ -45,6 +45,9 @@ class EvalRequest:
     policy: Path | None = None
     out: Path = Path("results")
     force: bool = False
+    """Write into an existing, non-empty ``out`` (its files are overwritten)."""
+    fresh_out: bool = False
+    """``out`` names a new directory: when it exists, write to the first free ``out-2``, ``out-3``, …"""
     trajectories: bool = False
     sumo_output: bool = False
     progress: bool = True
@@ -59,8 +62,19 @@ def default_others() -> str:
     return "idas" if (POLICY_DIR / LEARNED_METHODS["idas"]).exists() else "idm"
 
 
-def run_evaluation(req: EvalRequest) -> pd.DataFrame:
-    """Run the suite; write CSVs into ``req.out`` (atomically, only once everything ran). Returns the summary."""
+@dataclass(frozen=True)
+class EvalOutput:
+    out: Path
+    """The directory the CSVs were written to."""
+    summary: pd.DataFrame
+    """The paper's table: one row per method (``summary.csv``)."""
+
+
+def run_evaluation(req: EvalRequest) -> EvalOutput:
+    """Run the suite; write CSVs into ``req.out`` (atomically, only once everything ran).
+
+    An interrupted or failed run removes the output directories it made that are still empty.
+    """
     net = read_merge_net(req.net)
     eval_config = load_eval_config(req.config) if req.config is not None else EvalConfig()
     others_name = req.others or default_others()
@@ -69,42 +83,45 @@ def run_evaluation(req: EvalRequest) -> pd.DataFrame:
     }
     others_policy = resolve_policy(others_name, None, req.seed)
     require_display(req.gui)
-    out = prepare_output_dir(req.out, req.force)
-    tripinfo_dir = None
-    if req.sumo_output:
-        tripinfo_dir = out / "sumo"
-        tripinfo_dir.mkdir(exist_ok=True)
-    sim = MergeSimulation(
-        net, seed=req.seed, config=EnvConfig(max_episode_s=eval_config.max_episode_s), gui=req.gui
-    )
-    if req.scenario_files:
-        cases = file_cases(list(req.scenario_files), req.seed, sim.speed_limits_mps)
-    else:
-        cases = suite_cases(req.suite, req.scenarios, req.seed, sim.speed_limits_mps, eval_config.traffic)
-    log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
-    episodes, flows, trajectories = [], [], []
-    total = len(cases) * len(policies)
-    try:
-        with _progress(req.progress, total, f"evaluate ({req.suite}, others: {others_name})") as advance:
-            for method, case, result in iterate_runs(sim, cases, policies, others_policy, tripinfo_dir):
-                episodes.append(result.episode)
-                flows.append(result.flow)
-                if req.trajectories:
-                    trajectories.append(
-                        result.trajectory.assign(scenario=case.scenario.name, run_method=method)
-                    )
-                advance()
-    finally:
-        sim.close()
-    episode_frame = pd.DataFrame(episodes, columns=list(EPISODE_COLUMNS))
-    summary = pd.DataFrame(summary_rows(episode_frame), columns=list(SUMMARY_COLUMNS))
-    write_csv_atomic(episode_frame, out / "episodes.csv")
-    write_csv_atomic(summary, out / "summary.csv")
-    write_csv_atomic(pd.DataFrame(flows, columns=list(FLOW_COLUMNS)), out / "flow.csv")
-    if req.trajectories:
-        columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
-        write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
-    return summary
+    with output_directory(req.out, req.force, fresh=req.fresh_out) as out:
+        tripinfo_dir = None
+        if req.sumo_output:
+            tripinfo_dir = out / "sumo"
+            tripinfo_dir.mkdir(exist_ok=True)
+        sim = MergeSimulation(
+            net, seed=req.seed, config=EnvConfig(max_episode_s=eval_config.max_episode_s), gui=req.gui
+        )
+        try:
+            if req.scenario_files:
+                cases = file_cases(list(req.scenario_files), req.seed, sim.speed_limits_mps)
+            else:
+                cases = suite_cases(
+                    req.suite, req.scenarios, req.seed, sim.speed_limits_mps, eval_config.traffic
+                )
+            log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
+            episodes, flows, trajectories = [], [], []
+            total = len(cases) * len(policies)
+            description = f"evaluate ({req.suite}, others: {others_name})"
+            with _progress(req.progress, total, description) as advance:
+                for method, case, result in iterate_runs(sim, cases, policies, others_policy, tripinfo_dir):
+                    episodes.append(result.episode)
+                    flows.append(result.flow)
+                    if req.trajectories:
+                        trajectories.append(
+                            result.trajectory.assign(scenario=case.scenario.name, run_method=method)
+                        )
+                    advance()
+        finally:
+            sim.close()
+        episode_frame = pd.DataFrame(episodes, columns=list(EPISODE_COLUMNS))
+        summary = pd.DataFrame(summary_rows(episode_frame), columns=list(SUMMARY_COLUMNS))
+        write_csv_atomic(episode_frame, out / "episodes.csv")
+        write_csv_atomic(summary, out / "summary.csv")
+        write_csv_atomic(pd.DataFrame(flows, columns=list(FLOW_COLUMNS)), out / "flow.csv")
+        if req.trajectories:
+            columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
+            write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
+    return EvalOutput(out, summary)
 
 
 class _progress:

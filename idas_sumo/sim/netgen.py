@@ -10,11 +10,11 @@ from __future__ import annotations
 import math
 import os
 import subprocess
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.io_utils import atomic_path
 
 MAIN_EDGE = "main"
 MERGE_EDGE = "merge"
@@ -126,31 +126,25 @@ def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
     edg = out.with_name(f"{stem}.edg.xml")
     nod.write_text(node_xml)
     edg.write_text(edge_xml)
-    fd, tmp_name = tempfile.mkstemp(dir=out.parent, prefix=f".{stem}.", suffix=".net.xml")
-    os.close(fd)
-    tmp = Path(tmp_name)
-    cmd = [
-        str(sumo_binary("netconvert")),
-        "--node-files",
-        str(nod),
-        "--edge-files",
-        str(edg),
-        "--output-file",
-        str(tmp),
-        "--no-turnarounds",
-        "true",
-        "--junctions.corner-detail",
-        "5",
-        "--no-warnings",
-        "true",
-    ]
-    try:
+    with atomic_path(out) as tmp:
+        cmd = [
+            str(sumo_binary("netconvert")),
+            "--node-files",
+            str(nod),
+            "--edge-files",
+            str(edg),
+            "--output-file",
+            str(tmp),
+            "--no-turnarounds",
+            "true",
+            "--junctions.corner-detail",
+            "5",
+            "--no-warnings",
+            "true",
+        ]
         result = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if result.returncode != 0:
             raise SimulationError(f"netconvert failed: {result.stderr.strip().splitlines()[-1:]}")
-        tmp.replace(out)
-    finally:
-        tmp.unlink(missing_ok=True)
     return out
 
 

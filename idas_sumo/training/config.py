@@ -19,7 +19,7 @@ from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
-__all__ = ["STAGES", "Stage", "TrainConfig", "load_train_config", "train_config_from_dict"]
+__all__ = ["RESUME_FIELDS", "STAGES", "Stage", "TrainConfig", "load_train_config", "train_config_from_dict"]
 
 Stage = Literal["robot", "intelligent", "direct", "curriculum"]
 STAGES: tuple[str, ...] = ("robot", "intelligent", "direct", "curriculum")
@@ -27,6 +27,9 @@ STAGES: tuple[str, ...] = ("robot", "intelligent", "direct", "curriculum")
 ROBOT_EPISODES = 20_000  # paper: stage 1, Robot World
 INTELLIGENT_EPISODES = 50_000  # paper: stage 2, Intelligent World
 DIRECT_EPISODES = 70_000  # paper: IDAS-direct, no curriculum
+RESUME_FIELDS: tuple[str, ...] = ("workers", "robot_episodes", "intelligent_episodes", "direct_episodes")
+"""What a resumed run takes from the new config: how many processes, and how far to train (a larger
+budget extends a finished run). Everything else is the run's own, from its checkpoint."""
 
 
 class ConfigValueError(InputError, ValueError):

@@ -13,11 +13,12 @@ import collections
 import contextlib
 import dataclasses
 import logging
+import shutil
 import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import torch
@@ -32,18 +33,19 @@ from idas_sumo.io_utils import ensure_writable_dir
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import read_merge_net
 from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
-from idas_sumo.training.config import TrainConfig, train_config_from_dict
+from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig, train_config_from_dict
 from idas_sumo.training.curriculum import StagePlan, plan_stages
-from idas_sumo.training.metrics import MetricsSink
+from idas_sumo.training.metrics import METRICS_NAME, TENSORBOARD_DIR, MetricsSink
 from idas_sumo.training.validation import VALIDATION_COLUMNS, score_episodes, validation_tasks
 from idas_sumo.training.workers import EpisodeTask, RolloutWorkers, make_workers
 
-__all__ = ["CHECKPOINT_NAME", "run_training"]
+__all__ = ["CHECKPOINT_NAME", "run_training", "stored_config"]
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.pt"
 """The latest checkpoint of a run directory (what ``--resume`` reads)."""
+VALIDATION_NAME = "validation.csv"
 SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
 
 
@@ -134,11 +136,44 @@ class _StageValidation:
         )
 
 
-def _saved_validation_score(path: Path) -> float:
-    """The joint return a ``<stage>_best.pt`` was saved with (-inf when there is none)."""
-    if not path.exists():
-        return float("-inf")
-    return float(load_checkpoint(path)["validation"]["joint_return"])
+def _drop_best_after(out_dir: Path, global_episode: int) -> None:
+    """Delete every ``<stage>_best.pt`` saved after ``global_episode``: its weights come from training
+    that resuming from that checkpoint discards."""
+    for path in _run_outputs(out_dir):
+        stale = (
+            path.name.endswith("_best.pt")
+            and path.is_file()
+            and load_checkpoint(path)["global_episode"] > global_episode
+        )
+        if stale:
+            log.info("removing %s: saved after the checkpoint the run resumes from", path)
+            path.unlink()
+
+
+def stored_config(out_dir: Path) -> TrainConfig:
+    """The config of the run in ``out_dir`` (from its ``checkpoint.pt``), as ``--resume`` continues it."""
+    latest = out_dir / CHECKPOINT_NAME
+    return train_config_from_dict(load_checkpoint(latest)["config"], f"{latest}: config")
+
+
+def _resumed_config(saved: TrainConfig, requested: TrainConfig) -> TrainConfig:
+    """The run's own config with ``RESUME_FIELDS`` from ``requested``; other new values are ignored."""
+    ignored = [
+        f.name
+        for f in dataclasses.fields(TrainConfig)
+        if f.name not in RESUME_FIELDS and getattr(saved, f.name) != getattr(requested, f.name)
+    ]
+    if ignored:
+        log.warning("resuming with the checkpoint's config; ignoring new values for %s", ", ".join(ignored))
+    return dataclasses.replace(saved, **{name: getattr(requested, name) for name in RESUME_FIELDS})
+
+
+def _run_outputs(out_dir: Path) -> list[Path]:
+    """Every file or folder a training run writes into ``out_dir`` (what ``force`` replaces)."""
+    stages = {plan.name for stage in get_args(Stage) for plan in plan_stages(TrainConfig(stage=stage))}
+    names = [CHECKPOINT_NAME, METRICS_NAME, VALIDATION_NAME, TENSORBOARD_DIR]
+    names += [f"{stage}{suffix}" for stage in sorted(stages) for suffix in (".pt", "_best.pt")]
+    return [out_dir / name for name in names]
 
 
 def _make_progress(enabled: bool) -> Progress:
@@ -162,12 +197,16 @@ def run_training(
     resume: bool = False,
     progress: bool = True,
     gui: bool = False,
+    force: bool = False,
 ) -> Path:
     """Train as ``config`` says; write checkpoints and ``metrics.csv`` under ``out_dir``.
 
     Returns the final checkpoint (``out_dir/<last stage>.pt``). ``resume`` continues the run in
-    ``out_dir`` from its ``checkpoint.pt`` with the saved config (only ``workers`` is taken from
-    ``config``). ``gui`` shows the rollouts in sumo-gui (one worker only). Ctrl-C saves a checkpoint of the completed rounds, then re-raises KeyboardInterrupt.
+    ``out_dir`` from its ``checkpoint.pt`` with the saved config, taking only ``RESUME_FIELDS``
+    (workers, the stage budgets) from ``config``: a larger budget extends a finished run. Without
+    ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which replaces the
+    files a run writes. ``gui`` shows the rollouts in sumo-gui (one worker only). Ctrl-C saves a
+    checkpoint of the completed rounds, then re-raises KeyboardInterrupt.
     """
     net_path = Path(net_path)
     out_dir = Path(out_dir)
@@ -179,24 +218,23 @@ def run_training(
     require_display(gui)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a directory")
+    if resume and force:
+        raise InputError("--resume and --force exclude each other")
     resumed: dict[str, Any] | None = None
     if resume:
         if not latest.exists():
             raise InputError(f"{latest}: no checkpoint to resume from")
         resumed = load_checkpoint(latest)
-        saved = train_config_from_dict(resumed["config"], f"{latest}: config")
-        differs = [
-            f.name
-            for f in dataclasses.fields(TrainConfig)
-            if f.name != "workers" and getattr(saved, f.name) != getattr(config, f.name)
-        ]
-        if differs:
-            log.warning(
-                "resuming with the checkpoint's config; ignoring new values for %s", ", ".join(differs)
+        config = _resumed_config(train_config_from_dict(resumed["config"], f"{latest}: config"), config)
+    elif not force and out_dir.is_dir() and any(out_dir.iterdir()):
+        if latest.exists():
+            raise InputError(
+                f"{out_dir}: already holds a training run; pass --resume to continue it, --force to "
+                "start over, or choose another --out"
             )
-        config = dataclasses.replace(saved, workers=config.workers)
-    elif latest.exists():
-        raise InputError(f"{out_dir}: already holds a training run; pass --resume or choose another --out")
+        raise InputError(
+            f"--out {out_dir}: directory exists and is not empty (use --force to overwrite its files)"
+        )
     if config.init_from and resumed is None:
         try:
             init_state = load_checkpoint(config.init_from)["learner"]
@@ -220,9 +258,23 @@ def run_training(
     if resumed is not None:
         if resumed["stage_index"] >= len(plans) or plans[resumed["stage_index"]].name != resumed["stage"]:
             raise InputError(f"{latest}: stage {resumed['stage']!r} does not belong to this run's plan")
+        budget = plans[resumed["stage_index"]].episodes
+        if resumed["episode"] > budget:
+            raise InputError(
+                f"{latest}: the run is at episode {resumed['episode']} of stage {resumed['stage']!r}; "
+                f"a budget of {budget} episodes ends before that (give --episodes {resumed['episode']} "
+                "or more)"
+            )
         np_rng.bit_generator.state = resumed["numpy_rng"]
         torch_rng.set_state(resumed["torch_rng"])
         counters = _Counters(resumed["stage_index"], resumed["episode"], resumed["global_episode"])
+        _drop_best_after(out_dir, counters.global_episode)
+    elif force:
+        for path in _run_outputs(out_dir):
+            if path.is_dir():
+                shutil.rmtree(path)
+            else:
+                path.unlink(missing_ok=True)
 
     show = progress and sys.stderr.isatty()
     started = time.perf_counter()
@@ -230,12 +282,14 @@ def run_training(
     learner: Learner | None = None
     with (
         make_workers(net_path, env_config, config.seed, config.workers, gui=gui) as workers,
+        # On resume, rows past the checkpoint go: an episode row is stamped with its own index, a
+        # validation row with the episode count it was scored at (one at the checkpoint's count stays).
         MetricsSink(out_dir, counters.global_episode if resumed else None) as sink,
         (
             MetricsSink(
                 out_dir,
-                counters.global_episode if resumed else None,
-                name="validation.csv",
+                counters.global_episode + 1 if resumed else None,
+                name=VALIDATION_NAME,
                 columns=VALIDATION_COLUMNS,
                 tensorboard_keys=(),
             )
@@ -275,8 +329,14 @@ def run_training(
                     ),
                     validation_sink,
                     best_path,
-                    best=_saved_validation_score(best_path) if resumed is not None else float("-inf"),
                 )
+                if resumed is not None and stage_index == resumed["stage_index"]:
+                    # The stage's validations before the checkpoint: the best so far, and whether the
+                    # checkpoint's own episode was validated already (then not twice).
+                    kept = [r for r in validation_sink.kept if r["stage"] == plan.name]
+                    validation.best = max((float(r["joint_return"]) for r in kept), default=float("-inf"))
+                    if kept and int(kept[-1]["episode"]) == counters.episode:
+                        validation.validated_at = counters.episode
             stage_start, stage_start_episode = time.perf_counter(), counters.episode
             round_rng = (np_rng.bit_generator.state, torch_rng.get_state())
             try:

@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import csv
 import logging
-import os
-import tempfile
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from idas_sumo.io_utils import atomic_open
+
 log = logging.getLogger(__name__)
 
-__all__ = ["METRIC_COLUMNS", "MetricsSink"]
+__all__ = ["METRICS_NAME", "METRIC_COLUMNS", "TENSORBOARD_DIR", "MetricsSink"]
+
+METRICS_NAME = "metrics.csv"
+TENSORBOARD_DIR = "tensorboard"
+"""The run directory's TensorBoard folder (when TensorBoard is installed)."""
 
 METRIC_COLUMNS: tuple[str, ...] = (
     "stage",
@@ -49,22 +53,28 @@ TENSORBOARD_KEYS: tuple[str, ...] = (
 
 
 class MetricsSink:
-    """Appends rows to ``metrics.csv`` (or ``name`` with ``columns``); on resume first drops rows
-    past the checkpoint. ``tensorboard_keys`` go to TensorBoard too when it is installed."""
+    """Appends rows to ``metrics.csv`` (or ``name`` with ``columns``). ``tensorboard_keys`` go to
+    TensorBoard too when it is installed.
+
+    On resume, ``keep_below_global_episode`` first drops every row whose ``global_episode`` is not
+    below it (rows written after the checkpoint, and a row cut short); ``kept`` then holds the rows
+    that stayed.
+    """
 
     def __init__(
         self,
         out_dir: Path,
-        keep_up_to_global_episode: int | None = None,
-        name: str = "metrics.csv",
+        keep_below_global_episode: int | None = None,
+        name: str = METRICS_NAME,
         columns: tuple[str, ...] = METRIC_COLUMNS,
         tensorboard_keys: tuple[str, ...] = TENSORBOARD_KEYS,
     ) -> None:
         self.path = out_dir / name
         self.columns = columns
         self.tensorboard_keys = tensorboard_keys
-        if keep_up_to_global_episode is not None and self.path.exists():
-            self._truncate(keep_up_to_global_episode)
+        self.kept: list[dict[str, str]] = []
+        if keep_below_global_episode is not None and self.path.exists():
+            self._truncate(keep_below_global_episode)
         new = not self.path.exists() or self.path.stat().st_size == 0
         self._file = self.path.open("a", newline="", encoding="utf-8")
         self._writer = csv.DictWriter(self._file, fieldnames=columns)
@@ -76,25 +86,22 @@ class MetricsSink:
             try:
                 from torch.utils.tensorboard import SummaryWriter
 
-                self._tb = SummaryWriter(log_dir=str(out_dir / "tensorboard"))
+                self._tb = SummaryWriter(log_dir=str(out_dir / TENSORBOARD_DIR))
             except Exception:  # tensorboard not installed: CSV only
                 self._tb = None
 
-    def _truncate(self, keep: int) -> None:
+    def _truncate(self, keep_below: int) -> None:
         with self.path.open(newline="", encoding="utf-8") as f:
             rows = []
             for row in csv.DictReader(f):
                 episode = _episode_of(row, self.columns)
-                if episode is not None and episode <= keep:
+                if episode is not None and episode < keep_below:
                     rows.append(row)
-        fd, tmp = tempfile.mkstemp(prefix=".metrics.", suffix=".tmp", dir=self.path.parent)
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
+        with atomic_open(self.path, "w", newline="", encoding="utf-8") as f:
             w = csv.DictWriter(f, fieldnames=self.columns)
             w.writeheader()
             w.writerows(rows)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.path)
+        self.kept = rows
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         for row in rows:
