@@ -238,6 +238,16 @@ def test_bad_commands_and_sizes_are_refused(merge_net: MergeNet, cache: Path) ->
         batch.step()
         st = batch.vehicle_states()
         assert st.speed_mps[st.ids.index("a")] == 3.0
+        # A car SUMO removed (here: crashed) may still be commanded, as in SumoBackend: nothing happens.
+        batch.reset([_scenarios()[-1], _scenarios()[3]])
+        crashed: set[str] = set()
+        for _ in range(20):
+            batch.set_speeds(["fast", "stop", "a"], [20.0, 0.0, 5.0], copy=[0, 0, 1])
+            crashed |= batch.step().copies[0].collided
+        assert {"fast", "stop"} <= crashed
+        st = batch.vehicle_states()
+        assert "fast" not in st.of_copy(0).ids
+        assert st.of_copy(1).speed_mps[st.of_copy(1).ids.index("a")] == 5.0
     finally:
         batch.close()
 
