@@ -1,6 +1,6 @@
 """Episode and flow statistics computed from one episode's per-step trajectory (pure functions).
 
-Definitions (DESIGN.md section 2, ours where the paper is silent): *success* = no collision and every
+Definitions (docs/design-notes.md, "Definitions"; ours where the paper is silent): *success* = no collision and every
 controlled vehicle finished in time; *perfect* = success and no reward deduction for any agent (no
 impede, no flow penalty); throughput = vehicles past the merge point per hour of simulated time.
 """
