@@ -114,8 +114,9 @@ def _run_alone(net: MergeNet, scenario: Scenario) -> tuple[Series, EventLog]:
 
 
 def _run_batch(
-    backend: BatchBackend, scenarios: list[Scenario]
+    backend: BatchBackend, scenarios: list[Scenario], clear: tuple[int, int] | None = None
 ) -> tuple[list[Series], list[EventLog], list[tuple[str, ...]]]:
+    """Drive every copy as ``_run_alone`` drives one; ``clear`` = (copy, step): empty that copy then."""
     series: list[Series] = [{} for _ in scenarios]
     events: list[EventLog] = [[] for _ in scenarios]
     orders: list[tuple[str, ...]] = []
@@ -123,6 +124,8 @@ def _run_batch(
     released: set[tuple[int, str]] = set()
     backend.reset(scenarios)
     for step in range(STEPS):
+        if clear is not None and step == clear[1]:
+            backend.clear_copy(clear[0])
         ev = backend.step()
         assert len(ev.copies) == len(scenarios)
         for k, e in enumerate(ev.copies):
@@ -179,6 +182,20 @@ def test_each_copy_moves_exactly_as_its_scenario_alone(merge_net: MergeNet, cach
     assert robots_after_release, "car 'a' was never released"
     hard = [row for rows in series for seq in rows.values() for row in seq if row[4] <= -3.99]
     assert hard, "no hard brake was commanded"
+
+
+def test_clearing_a_copy_leaves_the_others_exact(merge_net: MergeNet, cache: Path) -> None:
+    scenarios = _scenarios()[2:4]  # the second one has cars still to depart when the first is cleared
+    backend = BatchBackend(merge_net, copies=2, cache_dir=cache)
+    try:
+        series, events, _ = _run_batch(backend, scenarios, clear=(1, 5))
+        assert backend.vehicle_states().of_copy(1).ids == ()
+    finally:
+        backend.close()
+    assert (series[0], events[0]) == _run_alone(merge_net, scenarios[0])
+    assert max(len(rows) for rows in series[1].values()) == 5  # seen for 5 steps, then gone
+    assert "c" not in series[1]  # departs at 6.2 s: removed before it came
+    assert not [e for e in events[1][5:] if any(e[1:])]  # a cleared copy reports nothing
 
 
 def test_states_keep_sumo_order_within_each_copy(merge_net: MergeNet, cache: Path) -> None:
@@ -359,3 +376,63 @@ def test_bad_requests_are_input_errors(merge_net: MergeNet, tmp_path: Path) -> N
     with pytest.raises(InputError, match="3 given with a 2-copy net"):
         BatchBackend(multi, copies=3)
     assert os.listdir(tmp_path)
+
+
+CROSSING_NODES = """<nodes>
+  <node id="C" x="0" y="0" type="traffic_light"/>
+  <node id="N" x="0" y="200"/><node id="S" x="0" y="-200"/><node id="E" x="200" y="0"/><node id="W" x="-200" y="0"/>
+</nodes>
+"""
+CROSSING_EDGES = """<edges>
+  <edge id="WC" from="W" to="C" numLanes="2" speed="13.9"/><edge id="CE" from="C" to="E" numLanes="2" speed="13.9"/>
+  <edge id="EC" from="E" to="C" numLanes="2" speed="13.9"/><edge id="CW" from="C" to="W" numLanes="2" speed="13.9"/>
+  <edge id="NC" from="N" to="C" speed="10"/><edge id="CS" from="C" to="S" speed="10"/>
+</edges>
+"""
+
+
+def test_any_net_is_copied(tmp_path: Path) -> None:
+    """Not only the merge: a two-lane crossing with a traffic light, checked and loadable by SUMO."""
+    import subprocess
+
+    from idas_sumo.sim.netgen import sumo_binary
+
+    (tmp_path / "x.nod.xml").write_text(CROSSING_NODES)
+    (tmp_path / "x.edg.xml").write_text(CROSSING_EDGES)
+    source = tmp_path / "crossing.net.xml"
+    netconvert = [str(sumo_binary("netconvert")), "-n", str(tmp_path / "x.nod.xml")]
+    subprocess.run([*netconvert, "-e", str(tmp_path / "x.edg.xml"), "-o", str(source)], check=True)
+    built = build_copies(source, 3, tmp_path / "cache")  # check_copies ran inside
+    text = built.read_text()
+    assert [f'tlLogic id="c{k}_C"' in text for k in range(3)] == [True] * 3
+    assert len(_lanes(built)) == 3 * len(_lanes(source))
+    run = subprocess.run(
+        [str(sumo_binary("sumo")), "-n", str(built), "--end", "5", "--no-step-log", "true"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stderr
+
+
+def test_workers_building_the_same_net_at_once_agree(merge_net: MergeNet, tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from idas_sumo.sim.multinet import build_copies; "
+        "print(build_copies(sys.argv[1], 5, sys.argv[2]))"
+    )
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code, str(merge_net.path), str(tmp_path)],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(3)
+    ]
+    outputs = {p.communicate(timeout=120)[0].strip() for p in procs}
+    assert all(p.returncode == 0 for p in procs)
+    assert len(outputs) == 1
+    (path,) = outputs
+    check_copies(merge_net.path, Path(path), 5)
+    assert [p.name for p in tmp_path.iterdir()] == [Path(path).name]  # no temp file left behind

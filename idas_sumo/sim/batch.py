@@ -169,6 +169,8 @@ class BatchBackend:
         """Global vehicle id -> (copy, local id), for every vehicle of the loaded scenarios."""
         self._controlled: set[str] = set()
         self._released: set[str] = set()
+        self._cleared: set[int] = set()
+        """Copies emptied by ``clear_copy`` since the last reset."""
         self._active_copies = 0
 
     # -- lifecycle -------------------------------------------------------------------------------
@@ -219,6 +221,7 @@ class BatchBackend:
             self._prefixes[k] + vid for k, s in enumerate(scenarios) for vid in s.controlled_ids
         }
         self._released = set()
+        self._cleared = set()
         self._active_copies = len(scenarios)
 
     def close(self) -> None:
@@ -277,6 +280,16 @@ class BatchBackend:
             raise SimulationError(f"SUMO failed during a step: {err}") from None
         time_s = float(simulation.getTime())
         events = [StepEvents(time_s=time_s) for _ in range(self._active_copies)]
+        cleared = self._cleared
+        departed = simulation.getDepartedIDList()
+        for vid in departed:
+            k, local = self._local(vid)
+            if k in cleared:  # a car of an emptied copy that just entered: gone again, unreported
+                libsumo.vehicle.remove(vid)
+                continue
+            if vid in self._controlled:
+                libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
+            events[k].departed.append(local)
         collided_global: set[str] = set()
         for collision in simulation.getCollisions():
             k, collider = self._local(collision.collider)
@@ -286,22 +299,19 @@ class BatchBackend:
                     f"collision across copies ({collision.collider} and {collision.victim}): the net's "
                     "copies overlap"
                 )
-            events[k].collision_pairs.append((collider, victim))
-            events[k].collided.update((collider, victim))
             collided_global.update((collision.collider, collision.victim))
-        departed = simulation.getDepartedIDList()
-        for vid in departed:
-            if vid in self._controlled:
-                libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
-            k, local = self._local(vid)
-            events[k].departed.append(local)
+            if k not in cleared:
+                events[k].collision_pairs.append((collider, victim))
+                events[k].collided.update((collider, victim))
         for vid in simulation.getArrivedIDList():
             if vid not in collided_global:
                 k, local = self._local(vid)
-                events[k].arrived.append(local)
+                if k not in cleared:
+                    events[k].arrived.append(local)
         for vid in simulation.getStartingTeleportIDList():
             k, local = self._local(vid)
-            events[k].teleported.append(local)
+            if k not in cleared:
+                events[k].teleported.append(local)
         return BatchStepEvents(time_s, events)
 
     def vehicle_states(self) -> BatchStates:
@@ -415,6 +425,25 @@ class BatchBackend:
             libsumo.vehicle.setSpeedMode(vid, SUMO_DEFAULT_SPEED_MODE)
             libsumo.vehicle.setSpeed(vid, -1)
             self._released.add(vid)
+
+    def clear_copy(self, copy: int) -> None:
+        """Remove every vehicle of copy ``copy``, on the road or still to depart (its episode is over).
+
+        An idle copy then costs SUMO nothing until the next ``reset``; the other copies are untouched.
+        Removed vehicles are reported nowhere (neither arrived nor collided). SUMO loads a vehicle only
+        when its departure comes, so one still to depart is removed in the step it enters.
+        """
+        import contextlib
+
+        import libsumo
+
+        if not 0 <= copy < self.copies:
+            raise IndexError(f"copy {copy} of a {self.copies}-copy net")
+        self._cleared.add(copy)
+        for vid in libsumo.vehicle.getIDList():
+            if self._local(vid)[0] == copy:
+                with contextlib.suppress(libsumo.TraCIException):
+                    libsumo.vehicle.remove(vid)
 
     def raw_call(self, domain: str, method: str, *args: Any) -> Any:
         """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args) (global ids)."""
