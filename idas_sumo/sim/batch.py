@@ -7,7 +7,8 @@ alone (tests/test_sim_batch.py checks it vehicle by vehicle). Everything SUMO-fa
 vehicles' speed mode, the stderr capture and error wrapping, and the one-simulation-per-process guard
 (a ``BatchBackend`` occupies the same slot as a ``SumoBackend``).
 
-Ids: copy ``k``'s vehicles and edges carry the prefix ``MultiNet.prefix(k)`` (``c{k}_``) in SUMO;
+Ids: copy ``k``'s vehicles and edges carry the prefix ``MultiNet.prefix(k)`` in SUMO (``c{k}_``, k
+zero-padded from 11 copies on, so SUMO's id order is copy order);
 events and states come back with copy-local ids plus the copy index, and commands take either.
 """
 
@@ -22,7 +23,7 @@ from typing import Any, cast
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.sim import backend as _backend
 from idas_sumo.sim.backend import (
     CONTROLLED_SPEED_MODE,
@@ -186,7 +187,7 @@ class BatchBackend:
 
         if not 1 <= len(scenarios) <= self.copies:
             raise InputError(f"{len(scenarios)} scenarios for a {self.copies}-copy net (1 to {self.copies})")
-        if _backend._active is not None and _backend._active is not cast(Any, self):
+        if _backend._active is not None and _backend._active is not self:
             raise SimulationError(
                 "another SUMO simulation is already open in this process (libsumo allows one); "
                 "close it before opening a BatchBackend"
@@ -208,11 +209,12 @@ class BatchBackend:
         if failure is not None:  # SUMO's reason arrives in the captured lines on leaving the block
             self._running = False
             _backend._active = None
-            raise _backend.SumoRefusedInput(
+            raise SumoRefusedInput(
                 f"SUMO could not load {self.net.path}: {_backend._sumo_message(failure, stderr_lines)}"
             )
         self._running = True
-        # The shared slot: SumoBackend and make_backend see this process's simulation as taken.
+        # The shared slot: SumoBackend and make_backend see this process's simulation as taken. The
+        # slot is typed SumoBackend; what it needs of its holder is close() (at exit), which we have.
         _backend._active = cast(SumoBackend, self)
         self._split = {
             self._prefixes[k] + v.id: (k, v.id) for k, s in enumerate(scenarios) for v in s.vehicles
@@ -235,7 +237,7 @@ class BatchBackend:
             with contextlib.suppress(Exception):
                 libsumo.close()
             self._running = False
-        if _backend._active is cast(Any, self):
+        if _backend._active is self:
             _backend._active = None
         if self._workdir is not None:
             shutil.rmtree(self._workdir, ignore_errors=True)
