@@ -21,7 +21,7 @@ from idas_sumo.agents.learner import Learner
 from idas_sumo.env.core import EnvConfig, MergeSimulation
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
-from idas_sumo.training.checkpoint import save_checkpoint
+from idas_sumo.training.checkpoint import TrainingCheckpoint, save_checkpoint
 from idas_sumo.training.config import load_train_config
 from idas_sumo.training.imitation import collect_demonstrations, imitate
 
@@ -58,16 +58,16 @@ def main() -> None:
         )
     save_checkpoint(
         args.out,
-        {
-            "learner": learner.state_dict(),
-            "config": config.as_dict(),
-            "stage": f"imitation-{args.teacher}",
-            "stage_index": 0,
-            "episode": 0,
-            "global_episode": 0,
-            "numpy_rng": dict(rng.bit_generator.state),
-            "torch_rng": torch.Generator().manual_seed(args.seed).get_state(),
-        },
+        TrainingCheckpoint(
+            learner=learner.state_dict(),
+            config=config,
+            stage=f"imitation-{args.teacher}",
+            stage_index=0,
+            episode=0,
+            global_episode=0,
+            numpy_rng=dict(rng.bit_generator.state),
+            torch_rng=torch.Generator().manual_seed(args.seed).get_state(),
+        ),
     )
     print(f"wrote {args.out} (use it as init_from)")
 

@@ -10,6 +10,7 @@ package versions.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import json
 import platform
@@ -20,7 +21,7 @@ from pathlib import Path
 import pandas as pd
 
 from idas_sumo.resources import POLICY_DIR
-from idas_sumo.training.checkpoint import load_checkpoint
+from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint
 
 CURVE_WINDOW = 200  # episodes averaged for the end-of-stage numbers
 
@@ -42,17 +43,16 @@ def stage_summaries(metrics: pd.DataFrame) -> dict[str, dict[str, float]]:
     return out
 
 
-def _validation_pick(data: dict) -> dict | None:
+def _validation_pick(data: TrainingCheckpoint) -> dict | None:
     """For a ``<stage>_best.pt``: the episode it was saved at and its held-out score."""
-    if "validation" not in data:
+    if data.validation is None:
         return None
-    config = data["config"]
     return {
-        "stage_episode": data["episode"],
-        "global_episode": data["global_episode"],
-        "validation_scenarios": config.get("validation_scenarios"),
-        "validation_seed": config.get("validation_seed"),
-        **{k: round(float(v), 4) for k, v in data["validation"].items()},
+        "stage_episode": data.episode,
+        "global_episode": data.global_episode,
+        "validation_scenarios": data.config.validation_scenarios,
+        "validation_seed": data.config.validation_seed,
+        **{k: round(float(v), 4) for k, v in dataclasses.asdict(data.validation).items()},
     }
 
 
@@ -89,15 +89,15 @@ def main() -> None:
         "file": f"{args.name}.pt",
         "made_with": args.command,
         "source_checkpoint": str(args.checkpoint),
-        "stage_of_checkpoint": data["stage"],
+        "stage_of_checkpoint": data.stage,
         "global_episodes": int(metrics["global_episode"].max() + 1),
-        "seed": data["config"].get("seed"),
+        "seed": data.config.seed,
         "wall_time_s": round(wall_s, 1),
         "machine": f"{platform.machine()}, {platform.python_version()}, 2 CPU cores, no GPU",
         "stages": stage_summaries(metrics),
         "picked_by_validation": _validation_pick(data),
         "validation_curve": _validation_curve(args.checkpoint.parent / "validation.csv", args.stages),
-        "config": data["config"],
+        "config": data.config.as_dict(),
         "packages": {**packages, "python": platform.python_version()},
         "shipped_on": dt.date.today().isoformat(),
         "note": "Trained with a budget that fits one laptop session, far below the paper's 20k + 50k episodes; "

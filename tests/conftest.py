@@ -54,24 +54,28 @@ def merge_net(net_path: Path):  # type: ignore[no-untyped-def]
     return read_merge_net(net_path)
 
 
-def checkpoint_payload(learner: Any, **extra: Any) -> dict[str, Any]:
-    """A complete training-checkpoint payload around ``learner`` (for checkpoint tests)."""
+def checkpoint_payload(learner: Any, /, **changes: Any) -> Any:
+    """A complete ``TrainingCheckpoint`` around ``learner``, with ``changes`` to its fields (for
+    checkpoint tests)."""
+    import dataclasses
+
     import numpy as np
     import torch
 
+    from idas_sumo.training.checkpoint import TrainingCheckpoint
     from idas_sumo.training.config import TrainConfig
 
-    return {
-        "learner": learner.state_dict(),
-        "config": TrainConfig().as_dict(),
-        "stage": "robot",
-        "stage_index": 0,
-        "episode": 7,
-        "global_episode": 7,
-        "numpy_rng": np.random.default_rng(3).bit_generator.state,
-        "torch_rng": torch.Generator().manual_seed(3).get_state(),
-        **extra,
-    }
+    checkpoint = TrainingCheckpoint(
+        learner=learner.state_dict(),
+        config=TrainConfig(),
+        stage="robot",
+        stage_index=0,
+        episode=7,
+        global_episode=7,
+        numpy_rng=np.random.default_rng(3).bit_generator.state,
+        torch_rng=torch.Generator().manual_seed(3).get_state(),
+    )
+    return dataclasses.replace(checkpoint, **changes)
 
 
 def interrupt_when(

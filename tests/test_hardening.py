@@ -129,7 +129,7 @@ def _learner() -> Any:
     return Learner(LearnerConfig(), seed=1)
 
 
-def _payload(learner: Any, **extra: Any) -> dict[str, Any]:
+def _payload(learner: Any, /, **extra: Any) -> Any:
     return checkpoint_payload(learner, **extra)
 
 
@@ -172,12 +172,12 @@ def make_bad_checkpoint(path: Path, damage: str, marker: Path) -> None:
         state = learner.state_dict()
         name = next(iter(state["actor"]))
         state["actor"][name] = torch.full_like(state["actor"][name], float("nan"))
-        save_checkpoint(path, {**_payload(learner), "learner": state})
+        save_checkpoint(path, _payload(learner, learner=state))
     elif damage == "shapes":
         state = learner.state_dict()
         name = next(iter(state["actor"]))
         state["actor"][name] = torch.zeros(2, 2)
-        save_checkpoint(path, {**_payload(learner), "learner": state})
+        save_checkpoint(path, _payload(learner, learner=state))
     else:  # pragma: no cover
         raise AssertionError(damage)
 
@@ -338,7 +338,7 @@ def test_interrupted_checkpoint_write_keeps_the_previous_file(
             ckpt.save_checkpoint(path, _payload(learner, episode=99, global_episode=99))
         monkeypatch.undo()
         assert path.read_bytes() == before
-        assert ckpt.load_checkpoint(path)["episode"] == 7
+        assert ckpt.load_checkpoint(path).episode == 7
         assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]
 
 
@@ -604,9 +604,9 @@ def test_ctrl_c_during_train_exits_130_with_a_loadable_checkpoint(tmp_path: Path
     assert "Traceback" not in stderr
     assert stderr.splitlines()[-1].startswith("idas-sumo: interrupted"), stderr
     data = load_checkpoint(run / "checkpoint.pt")
-    assert data["episode"] >= 2
+    assert data.episode >= 2
     rows = metrics.read_text().splitlines()
-    assert len(rows) - 1 >= data["episode"]
+    assert len(rows) - 1 >= data.episode
     assert temp_files(run) == []
 
 

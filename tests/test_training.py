@@ -44,7 +44,7 @@ def read_metrics(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def _payload(learner: Any, **extra: Any) -> dict[str, Any]:
+def _payload(learner: Any, /, **extra: Any) -> Any:
     return checkpoint_payload(learner, **extra)
 
 
@@ -91,12 +91,12 @@ def test_checkpoint_round_trip(tmp_path: Path) -> None:
     path = tmp_path / "c.pt"
     save_checkpoint(path, _payload(learner))
     data = load_checkpoint(path)
-    assert data["episode"] == 7 and data["obs_layout_id"] == OBS_LAYOUT_ID
+    assert data.episode == 7 and data.obs_layout_id == OBS_LAYOUT_ID
     rng = np.random.default_rng(0)
-    rng.bit_generator.state = data["numpy_rng"]
+    rng.bit_generator.state = data.numpy_rng
     assert rng.random() == np.random.default_rng(3).random()
     gen = torch.Generator()
-    gen.set_state(data["torch_rng"])
+    gen.set_state(data.torch_rng)
     assert torch.equal(
         torch.rand(3, generator=gen), torch.rand(3, generator=torch.Generator().manual_seed(3))
     )
@@ -126,7 +126,7 @@ def test_bad_checkpoints_are_one_line_input_errors(tmp_path: Path, damage: str) 
         state = learner.state_dict()
         name = next(iter(state["actor"]))
         state["actor"][name] = torch.full_like(state["actor"][name], float("nan"))
-        save_checkpoint(path, {**_payload(learner), "learner": state})
+        save_checkpoint(path, _payload(learner, learner=state))
     with pytest.raises(InputError) as err:
         load_checkpoint(path)
     message = str(err.value)
@@ -147,8 +147,109 @@ def test_crash_while_saving_keeps_the_previous_checkpoint(
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(path, _payload(learner, episode=99))
     monkeypatch.undo()
-    assert load_checkpoint(path)["episode"] == 7
+    assert load_checkpoint(path).episode == 7
     assert [p.name for p in tmp_path.iterdir()] == ["c.pt"]
+
+
+EARLIER_CHECKPOINT_KEYS = {
+    "kind",
+    "format",
+    "package_version",
+    "obs_layout_id",
+    "learner",
+    "config",
+    "stage",
+    "stage_index",
+    "episode",
+    "global_episode",
+    "numpy_rng",
+    "torch_rng",
+}
+"""The keys of a checkpoint written before checkpoints were typed (a ``<stage>_best.pt`` adds
+``validation``): the file format the typed checkpoint must keep."""
+
+
+def test_a_checkpoint_on_disk_is_the_flat_dict_it_always_was(tmp_path: Path) -> None:
+    from idas_sumo.training.validation import ValidationScore
+
+    learner = Learner(LearnerConfig(), seed=1)
+    score = ValidationScore(joint_return=3.5, perfect_rate=0.5, success_rate=1.0, mean_end_time_s=20.0)
+    save_checkpoint(tmp_path / "c.pt", _payload(learner))
+    save_checkpoint(tmp_path / "best.pt", _payload(learner, validation=score))
+    plain = torch.load(tmp_path / "c.pt", weights_only=True)
+    best = torch.load(tmp_path / "best.pt", weights_only=True)
+    assert set(plain) == EARLIER_CHECKPOINT_KEYS
+    assert set(best) == EARLIER_CHECKPOINT_KEYS | {"validation"}
+    assert best["validation"] == dataclasses.asdict(score)
+    assert plain["config"] == TrainConfig().as_dict() and plain["episode"] == 7
+    assert load_checkpoint(tmp_path / "best.pt").validation == score
+    assert load_checkpoint(tmp_path / "c.pt").validation is None
+
+
+def test_shipped_policies_still_load(tmp_path: Path) -> None:
+    """The committed policies were written before checkpoints were typed: they load, and saving one
+    again writes the same keys and the same weights."""
+    from idas_sumo.resources import POLICY_DIR
+
+    shipped = sorted(POLICY_DIR.glob("*.pt"))
+    assert shipped, f"no policies in {POLICY_DIR}"
+    for path in shipped:
+        raw = torch.load(path, weights_only=True)
+        checkpoint = load_checkpoint(path)
+        assert (checkpoint.stage, checkpoint.episode) == (raw["stage"], raw["episode"])
+        assert (checkpoint.validation is None) == ("validation" not in raw)
+        load_actor(path)
+        save_checkpoint(tmp_path / path.name, checkpoint)
+        again = torch.load(tmp_path / path.name, weights_only=True)
+        assert set(again) == set(raw)
+        for net in ("actor", "value", "central"):
+            for name, tensor in raw["learner"][net].items():
+                assert torch.equal(again["learner"][net][name], tensor)
+
+
+@pytest.mark.parametrize(
+    ("change", "needle"),
+    [
+        ({"episode": None}, "lacks 'episode'"),
+        ({"global_episode": -1}, "global_episode must be a non-negative integer, got -1"),
+        ({"stage_index": True}, "stage_index must be a non-negative integer"),
+        ({"stage": 3}, "stage must be a str"),
+        ({"torch_rng": [1, 2]}, "torch_rng must be a Tensor"),
+        ({"config": {"robot_episods": 3}}, "config: unknown key 'robot_episods'"),
+        ({"config": {"robot_episodes": 0}}, "config: robot_episodes must be at least 1"),
+        ({"validation": {"joint_return": 1.0}}, "validation: missing required key"),
+        ({"obs_layout_id": None}, "lacks 'obs_layout_id'"),
+    ],
+)
+def test_a_missing_or_ill_typed_value_is_one_line_naming_it(
+    tmp_path: Path, change: dict[str, Any], needle: str
+) -> None:
+    path = tmp_path / "c.pt"
+    data = _payload(Learner(LearnerConfig(), seed=1)).to_dict()
+    for key, value in change.items():
+        if value is None:
+            del data[key]
+        else:
+            data[key] = value
+    torch.save(data, path)
+    with pytest.raises(InputError) as err:
+        load_checkpoint(path)
+    message = str(err.value)
+    assert message.startswith(f"{path}: ") and needle in message and "\n" not in message, message
+
+
+def test_evaluation_reads_only_the_policy_part(tmp_path: Path) -> None:
+    """A file without the training state is a policy (``load_actor``), not a training checkpoint."""
+    learner = Learner(LearnerConfig(), seed=1)
+    path = tmp_path / "policy.pt"
+    data = _payload(learner).to_dict()
+    for key in ("config", "stage", "stage_index", "episode", "global_episode", "numpy_rng", "torch_rng"):
+        del data[key]
+    torch.save(data, path)
+    actor = load_actor(path).actor.state_dict()
+    assert all(torch.equal(actor[k], v) for k, v in learner.actor.state_dict().items())
+    with pytest.raises(InputError, match="lacks 'config'"):
+        load_checkpoint(path)
 
 
 # --- rollouts and the loop (SUMO) ----------------------------------------------------------------
@@ -210,7 +311,7 @@ def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
     assert {r["agents"] for r in rows if r["stage"] == "robot"} == {"1"}
     assert float(rows[-1]["q_loss"]) > 0.0 and float(rows[0]["q_loss"]) == 0.0
     ckpt = load_checkpoint(final)
-    assert (ckpt["stage"], ckpt["episode"], ckpt["global_episode"]) == ("intelligent", 2, 4)
+    assert (ckpt.stage, ckpt.episode, ckpt.global_episode) == ("intelligent", 2, 4)
     with pytest.raises(InputError, match="already holds"):
         run_training(net_path, tiny_config(), run, progress=False)
 
@@ -242,7 +343,7 @@ def test_interrupt_then_resume_continues_exactly(
     with pytest.raises(KeyboardInterrupt):
         run_training(net_path, config, run, progress=False)
     monkeypatch.undo()
-    assert load_checkpoint(run / "checkpoint.pt")["episode"] == 1  # only the completed round
+    assert load_checkpoint(run / "checkpoint.pt").episode == 1  # only the completed round
     run_training(net_path, config.with_overrides(workers=1), run, resume=True, progress=False)
 
     def strip(rows: list[dict[str, str]]) -> list[dict[str, str]]:
@@ -258,10 +359,10 @@ def test_interrupt_then_resume_continues_exactly(
             load_checkpoint(run / "robot_best.pt"),
             load_checkpoint(straight / "robot_best.pt"),
         )
-        assert best_run["episode"] == best_straight["episode"]
+        assert best_run.episode == best_straight.episode
     a, b = load_checkpoint(run / "robot.pt"), load_checkpoint(straight / "robot.pt")
-    for k, v in a["learner"]["actor"].items():
-        assert torch.equal(v, b["learner"]["actor"][k])
+    for k, v in a.learner["actor"].items():
+        assert torch.equal(v, b.learner["actor"][k])
 
 
 @pytest.mark.sumo
@@ -333,7 +434,7 @@ def test_resume_after_a_kill_in_stage_two_writes_no_row_twice(
     with pytest.raises(RuntimeError, match="killed"):
         run_training(net_path, config, run, progress=False)
     monkeypatch.undo()
-    assert load_checkpoint(run / "checkpoint.pt")["stage"] == "robot"
+    assert load_checkpoint(run / "checkpoint.pt").stage == "robot"
     assert [r["stage"] for r in read_metrics(run)] == ["robot", "robot", "intelligent"]
     run_training(net_path, config, run, resume=True, progress=False)
 
@@ -414,9 +515,9 @@ def test_resume_warns_only_about_typed_values_and_extends_a_finished_run(
     )
     assert four == _metric_rows(straight)
     a, b = load_checkpoint(run / "robot.pt"), load_checkpoint(straight / "robot.pt")
-    assert a["episode"] == 4
-    for k, v in a["learner"]["actor"].items():
-        assert torch.equal(v, b["learner"]["actor"][k])
+    assert a.episode == 4
+    for k, v in a.learner["actor"].items():
+        assert torch.equal(v, b.learner["actor"][k])
 
     # A budget below where the run is: refused, nothing changed.
     capsys.readouterr()
@@ -530,8 +631,9 @@ def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
     scores = [float(r["joint_return"]) for r in rows]
     best_path = tmp_path / "validated" / "intelligent_best.pt"
     best = load_checkpoint(best_path)
-    assert best["validation"]["joint_return"] == pytest.approx(max(scores), abs=1e-4)
-    assert best["episode"] == int(rows[scores.index(max(scores))]["episode"])
+    assert best.validation is not None
+    assert best.validation.joint_return == pytest.approx(max(scores), abs=1e-4)
+    assert best.episode == int(rows[scores.index(max(scores))]["episode"])
 
     # The saved weights score the same when validated again from the file.
     sim = MergeSimulation(net_path, seed=0, config=EnvConfig(max_episode_s=plain.max_episode_s))
@@ -543,4 +645,4 @@ def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
         again = score_episodes([e.stats for e in workers.run(load_actor(best_path), tasks)])
     finally:
         workers.close()
-    assert again.joint_return == pytest.approx(best["validation"]["joint_return"], abs=1e-4)
+    assert again.joint_return == pytest.approx(best.validation.joint_return, abs=1e-4)

@@ -1,39 +1,144 @@
-"""The checkpoint file: what makes a file one of ours, reading it safely, and the actor in it.
+"""The checkpoint file: its typed contents, turning them into / from the dict on disk, reading safely.
 
-A checkpoint (written by ``training.checkpoint.save_checkpoint``) is a dict of plain types and
-tensors. Its own keys are kind, format, package_version, obs_layout_id and learner
-(``Learner.state_dict()``); the rest (training progress, config) is training's, checked by
-``training.checkpoint.load_checkpoint``. Shipped policies are such files, and evaluation needs only
-their actor, so reading lives here, below training and evaluation alike.
+On disk a checkpoint is the flat dict ``torch.save`` wrote: ``kind`` and ``format`` (what makes the
+file ours, and which format) plus one key per field of the checkpoint dataclass, under the field's
+own name. ``PolicyCheckpoint`` holds what every checkpoint has and evaluation reads (the learner's
+state, the package version and observation layout it was written for);
+``training.checkpoint.TrainingCheckpoint`` adds the training state. ``PolicyCheckpoint.to_dict`` and
+``from_dict`` are the one place that turns either into / from that dict, so no key is spelled
+elsewhere. Shipped policies are such files, and evaluation needs only their actor, so reading lives
+here, below training and evaluation alike.
 
 Files are read with ``torch.load(weights_only=True)``, so pickled code never runs. Every problem
-(missing, empty, truncated, not ours, other layout, non-finite weights) is one ``InputError`` line
-naming the file.
+(missing, empty, truncated, not ours, other layout, missing or ill-typed values, non-finite weights)
+is one ``InputError`` line naming the file.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
+import types
+import typing
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import torch
 
+from idas_sumo import __version__
 from idas_sumo.agents.learner import Learner, LearnerConfig
+from idas_sumo.config import from_dict
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.errors import InputError
 
-__all__ = ["CHECKPOINT_KIND", "TRAIN_CHECKPOINT_FORMAT", "load_actor", "read_checkpoint_file"]
+__all__ = ["CHECKPOINT_KIND", "TRAIN_CHECKPOINT_FORMAT", "PolicyCheckpoint", "load_actor"]
 
 CHECKPOINT_KIND = "idas-sumo-train"
 TRAIN_CHECKPOINT_FORMAT = 1
 NETWORK_KEYS = ("actor", "value", "central", "value_target", "central_target")
 
 
-def read_checkpoint_file(path: Path | str) -> dict[str, Any]:
-    """Read a checkpoint file and check what every checkpoint has: ours, this format and layout, sound weights."""
-    p = Path(path)
+@dataclasses.dataclass(frozen=True, kw_only=True, eq=False)  # eq=False: tensors have no plain ==
+class PolicyCheckpoint:
+    """What every checkpoint holds: the learner's state and the build that wrote it.
+
+    A subclass adds fields; each is saved under its own name. A field that may be ``None`` may be
+    absent from a file (and ``None`` is not written); every other field must be there.
+    """
+
+    learner: dict[str, Any]
+    """``Learner.state_dict()``: the networks, their targets and the optimisers' states."""
+    package_version: str = __version__
+    """The idas-sumo version that wrote the file (recorded, not checked)."""
+    obs_layout_id: str = OBS_LAYOUT_ID
+    """The observation layout the actor was trained on; a file of another layout is refused."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """The dict ``torch.save`` writes: plain types and tensors only, so ``weights_only`` reads it."""
+        data: dict[str, Any] = {"kind": CHECKPOINT_KIND, "format": TRAIN_CHECKPOINT_FORMAT}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if value is None:
+                continue
+            if dataclasses.is_dataclass(value) and not isinstance(value, type):
+                value = dataclasses.asdict(value)
+            data[field.name] = value
+        return data
+
+    @classmethod
+    def from_dict(cls, data: Any, path: Path) -> Self:
+        """The checkpoint in ``data`` (what ``torch.load`` returned for ``path``), every value checked;
+        keys of fields ``cls`` lacks (a training checkpoint read as a policy) are ignored."""
+        if not isinstance(data, dict) or data.get("kind") != CHECKPOINT_KIND:
+            raise InputError(f"{path}: not an idas-sumo training checkpoint")
+        if data.get("format") != TRAIN_CHECKPOINT_FORMAT:
+            raise InputError(
+                f"{path}: checkpoint format {data.get('format')!r}, this build reads {TRAIN_CHECKPOINT_FORMAT}"
+            )
+        hints = typing.get_type_hints(cls)
+        values: dict[str, Any] = {}
+        for field in dataclasses.fields(cls):
+            if field.name in data:
+                values[field.name] = _checked(data[field.name], hints[field.name], f"{path}: {field.name}")
+            elif not _optional(hints[field.name]):
+                raise InputError(f"{path}: checkpoint lacks {field.name!r}")
+        checkpoint = cls(**values)
+        checkpoint._check(path)
+        return checkpoint
+
+    @classmethod
+    def read(cls, path: Path | str) -> Self:
+        """Read and check the checkpoint file at ``path``."""
+        p = Path(path)
+        return cls.from_dict(_load_file(p), p)
+
+    def _check(self, path: Path) -> None:
+        """What the types alone do not say: the layout matches this build, the weights are sound."""
+        if self.obs_layout_id != OBS_LAYOUT_ID:
+            raise InputError(
+                f"{path}: written for observation layout {self.obs_layout_id!r}, "
+                f"this build uses {OBS_LAYOUT_ID!r}"
+            )
+        if any(not isinstance(self.learner.get(k), dict) for k in NETWORK_KEYS):
+            raise InputError(f"{path}: checkpoint has no complete learner weights")
+        for net in NETWORK_KEYS:
+            for name, tensor in self.learner[net].items():
+                if not isinstance(tensor, torch.Tensor):
+                    raise InputError(f"{path}: {net}.{name} is not a tensor")
+                if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+                    raise InputError(f"{path}: non-finite weights in {net}.{name}")
+
+
+def _optional(annotation: Any) -> bool:
+    return typing.get_origin(annotation) in (typing.Union, types.UnionType) and type(None) in typing.get_args(
+        annotation
+    )
+
+
+def _checked(value: Any, annotation: Any, where: str) -> Any:
+    """``value`` as a field of type ``annotation`` (a dataclass from its dict), or an InputError."""
+    if _optional(annotation):
+        if value is None:
+            return None
+        (annotation,) = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if dataclasses.is_dataclass(annotation):
+        try:
+            return from_dict(typing.cast(type, annotation), value, where)
+        except InputError as err:  # a dataclass's own range checks do not name the file
+            raise err if str(err).startswith(where) else InputError(f"{where}: {err}") from None
+    if annotation is int:  # the counts of training progress
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise InputError(f"{where} must be a non-negative integer, got {value!r}")
+        return value
+    expected = typing.get_origin(annotation) or annotation  # dict[str, Any] -> dict
+    if not isinstance(value, expected):
+        raise InputError(f"{where} must be a {expected.__name__}, got {type(value).__name__}")
+    return value
+
+
+def _load_file(p: Path) -> Any:
+    """What ``torch.load`` (``weights_only``) finds in ``p``, or an InputError saying why there is nothing."""
     if not p.exists():
         raise InputError(f"{p}: checkpoint not found")
     if p.is_dir():
@@ -44,33 +149,12 @@ def read_checkpoint_file(path: Path | str) -> dict[str, Any]:
         with warnings.catch_warnings():
             # torch warns on stderr about pickle protocols it did not write; the error below says it all.
             warnings.simplefilter("ignore")
-            data = torch.load(p, map_location="cpu", weights_only=True)
+            return torch.load(p, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         raise InputError(f"{p}: {_refused_pickle_reason(err)}") from None
     except Exception as err:  # any file: torch raises RuntimeError, KeyError, EOFError, ...
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise InputError(f"{p}: not a readable checkpoint (truncated or corrupt?): {first[:200]}") from None
-    if not isinstance(data, dict) or data.get("kind") != CHECKPOINT_KIND:
-        raise InputError(f"{p}: not an idas-sumo training checkpoint")
-    if data.get("format") != TRAIN_CHECKPOINT_FORMAT:
-        raise InputError(
-            f"{p}: checkpoint format {data.get('format')!r}, this build reads {TRAIN_CHECKPOINT_FORMAT}"
-        )
-    if data.get("obs_layout_id") != OBS_LAYOUT_ID:
-        raise InputError(
-            f"{p}: written for observation layout {data.get('obs_layout_id')!r}, "
-            f"this build uses {OBS_LAYOUT_ID!r}"
-        )
-    learner = data.get("learner")
-    if not isinstance(learner, dict) or any(not isinstance(learner.get(k), dict) for k in NETWORK_KEYS):
-        raise InputError(f"{p}: checkpoint has no complete learner weights")
-    for net in NETWORK_KEYS:
-        for name, tensor in learner[net].items():
-            if not isinstance(tensor, torch.Tensor):
-                raise InputError(f"{p}: {net}.{name} is not a tensor")
-            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
-                raise InputError(f"{p}: non-finite weights in {net}.{name}")
-    return data
 
 
 def _refused_pickle_reason(err: pickle.UnpicklingError) -> str:
@@ -94,10 +178,10 @@ def _refused_pickle_reason(err: pickle.UnpicklingError) -> str:
 
 def load_actor(path: Path | str) -> Learner:
     """A checkpoint's networks in a ``Learner`` (use its ``act``); no optimiser state, for evaluation."""
-    data = read_checkpoint_file(path)
+    weights = PolicyCheckpoint.read(path).learner
     learner = Learner(LearnerConfig(), seed=0)
     try:
-        learner.load_state_dict(data["learner"], load_optimisers=False)
+        learner.load_state_dict(weights, load_optimisers=False)
     except (RuntimeError, KeyError) as err:  # shapes or names that do not fit these networks
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise InputError(f"{path}: weights do not fit this build's networks: {first[:200]}") from None

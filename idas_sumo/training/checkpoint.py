@@ -1,46 +1,59 @@
-"""Training checkpoints: written atomically, read through ``agents.checkpoint_file``, checked.
+"""Training checkpoints: the typed state of a run, written atomically, read and checked.
 
-A checkpoint is a dict of plain types and tensors::
+``TrainingCheckpoint`` is ``agents.checkpoint_file.PolicyCheckpoint`` (the learner's state, package
+version, observation layout) plus where the run stands: its config, stage, episode counts, the RNG
+states that make ``--resume`` continue exactly, and for a ``<stage>_best.pt`` the validation score
+that picked it. ``PolicyCheckpoint.to_dict`` / ``from_dict`` turn it into / from the dict on disk.
 
-    kind, format, package_version, obs_layout_id, learner (Learner.state_dict()),
-    config (TrainConfig as a dict), stage, stage_index, episode (within the stage),
-    global_episode, numpy_rng (bit-generator state), torch_rng (uint8 tensor)
-
-Every problem reading one (missing, empty, truncated, not ours, other layout, non-finite weights)
-is one ``InputError`` line naming the file.
+Every problem reading one (missing, empty, truncated, not ours, other layout, missing or ill-typed
+values, non-finite weights) is one ``InputError`` line naming the file.
 """
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import os
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from idas_sumo import __version__
-from idas_sumo.agents.checkpoint_file import CHECKPOINT_KIND, TRAIN_CHECKPOINT_FORMAT, read_checkpoint_file
-from idas_sumo.env.layout import OBS_LAYOUT_ID
-from idas_sumo.errors import InputError
+from idas_sumo.agents.checkpoint_file import PolicyCheckpoint
 from idas_sumo.io_utils import atomic_open
+from idas_sumo.training.config import TrainConfig
+from idas_sumo.training.validation import ValidationScore
 
-__all__ = ["load_checkpoint", "save_checkpoint"]
+__all__ = ["TrainingCheckpoint", "load_checkpoint", "save_checkpoint"]
 
 
-def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
-    """Write ``payload`` to ``path`` atomically: temp file in the same directory, fsync, rename."""
+@dataclasses.dataclass(frozen=True, kw_only=True, eq=False)
+class TrainingCheckpoint(PolicyCheckpoint):
+    """A run's state after a whole number of rounds: enough to continue it exactly."""
+
+    config: TrainConfig
+    """The run's own config (``--resume`` continues with it)."""
+    stage: str
+    """The name of the stage the run is in (a ``StagePlan`` name)."""
+    stage_index: int
+    """Its index in the run's plan (``plan_stages(config)``)."""
+    episode: int
+    """Episodes completed in this stage."""
+    global_episode: int
+    """Episodes completed in every stage of the run."""
+    numpy_rng: dict[str, Any]
+    """The scenario generator's bit-generator state."""
+    torch_rng: torch.Tensor
+    """The action-seed generator's state (a uint8 tensor)."""
+    validation: ValidationScore | None = None
+    """For a ``<stage>_best.pt``: the held-out score that made these the best weights."""
+
+
+def save_checkpoint(path: Path, checkpoint: PolicyCheckpoint) -> None:
+    """Write ``checkpoint`` to ``path`` atomically: temp file in the same directory, fsync, rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    full = {
-        "kind": CHECKPOINT_KIND,
-        "format": TRAIN_CHECKPOINT_FORMAT,
-        "package_version": __version__,
-        "obs_layout_id": OBS_LAYOUT_ID,
-        **payload,
-    }
     with atomic_open(path, "wb") as f:
-        torch.save(full, f)
+        torch.save(checkpoint.to_dict(), f)
     try:  # make the rename itself durable
         dir_fd = os.open(path.parent, os.O_RDONLY)
     except OSError:
@@ -53,15 +66,6 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
         os.close(dir_fd)
 
 
-def load_checkpoint(path: Path | str) -> dict[str, Any]:
-    """Read and check a training checkpoint: the file (``read_checkpoint_file``), then its training state."""
-    p = Path(path)
-    data = read_checkpoint_file(p)
-    for key in ("stage", "stage_index", "episode", "global_episode", "config"):
-        if key not in data:
-            raise InputError(f"{p}: checkpoint lacks {key!r}")
-    for key in ("episode", "global_episode", "stage_index"):
-        value = data[key]
-        if not isinstance(value, int) or value < 0 or (isinstance(value, float) and not math.isfinite(value)):
-            raise InputError(f"{p}: {key} must be a non-negative integer, got {value!r}")
-    return data
+def load_checkpoint(path: Path | str) -> TrainingCheckpoint:
+    """Read and check a training checkpoint (``--resume``, ``init_from``, a ``<stage>_best.pt``)."""
+    return TrainingCheckpoint.read(path)

@@ -48,9 +48,10 @@ def train_from_args(args: argparse.Namespace) -> int:
     print(f"wrote {final}")
     for best in sorted(out.glob("*_best.pt")):
         saved = load_checkpoint(best)
-        score = saved["validation"]
-        print(
-            f"wrote {best}: best on validation at {saved['stage']} episode {saved['episode']} "
-            f"(joint return {score['joint_return']:.2f}, perfect {score['perfect_rate']:.0%})"
-        )
+        score = saved.validation
+        if score is not None:
+            print(
+                f"wrote {best}: best on validation at {saved.stage} episode {saved.episode} "
+                f"(joint return {score.joint_return:.2f}, perfect {score.perfect_rate:.0%})"
+            )
     return 0

@@ -32,8 +32,8 @@ from idas_sumo.errors import InputError
 from idas_sumo.io_utils import ensure_writable_dir
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import read_merge_net
-from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
-from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig, train_config_from_dict
+from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint, save_checkpoint
+from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig
 from idas_sumo.training.curriculum import StagePlan, plan_stages
 from idas_sumo.training.metrics import METRICS_NAME, TENSORBOARD_DIR, MetricsSink
 from idas_sumo.training.validation import VALIDATION_COLUMNS, score_episodes, validation_tasks
@@ -63,17 +63,17 @@ def _payload(
     counters: _Counters,
     np_rng_state: Mapping[str, Any],
     torch_rng_state: torch.Tensor,
-) -> dict[str, Any]:
-    return {
-        "learner": learner.state_dict(),
-        "config": config.as_dict(),
-        "stage": plan.name,
-        "stage_index": counters.stage_index,
-        "episode": counters.episode,
-        "global_episode": counters.global_episode,
-        "numpy_rng": dict(np_rng_state),
-        "torch_rng": torch_rng_state.clone(),
-    }
+) -> TrainingCheckpoint:
+    return TrainingCheckpoint(
+        learner=learner.state_dict(),
+        config=config,
+        stage=plan.name,
+        stage_index=counters.stage_index,
+        episode=counters.episode,
+        global_episode=counters.global_episode,
+        numpy_rng=dict(np_rng_state),
+        torch_rng=torch_rng_state.clone(),
+    )
 
 
 def _episode_row(plan: StagePlan, episode: int, global_episode: int, e: EpisodeData) -> dict[str, Any]:
@@ -108,14 +108,19 @@ class _StageValidation:
     """The stage episode of the last validation."""
 
     def run(
-        self, learner: Learner, plan: StagePlan, counters: _Counters, payload: dict[str, Any], wall_s: float
+        self,
+        learner: Learner,
+        plan: StagePlan,
+        counters: _Counters,
+        payload: TrainingCheckpoint,
+        wall_s: float,
     ) -> None:
         """Score the greedy policy; save ``payload`` as ``best_path`` when it beats the best so far."""
         score = score_episodes([e.stats for e in self.workers.run(learner, self.tasks)])
         improved = score.joint_return > self.best
         if improved:
             self.best = score.joint_return
-            save_checkpoint(self.best_path, {**payload, "validation": dataclasses.asdict(score)})
+            save_checkpoint(self.best_path, dataclasses.replace(payload, validation=score))
         self.validated_at = counters.episode
         row = {
             "stage": plan.name,
@@ -143,7 +148,7 @@ def _drop_best_after(out_dir: Path, global_episode: int) -> None:
         stale = (
             path.name.endswith("_best.pt")
             and path.is_file()
-            and load_checkpoint(path)["global_episode"] > global_episode
+            and load_checkpoint(path).global_episode > global_episode
         )
         if stale:
             log.info("removing %s: saved after the checkpoint the run resumes from", path)
@@ -152,8 +157,7 @@ def _drop_best_after(out_dir: Path, global_episode: int) -> None:
 
 def stored_config(out_dir: Path) -> TrainConfig:
     """The config of the run in ``out_dir`` (from its ``checkpoint.pt``), as ``--resume`` continues it."""
-    latest = out_dir / CHECKPOINT_NAME
-    return train_config_from_dict(load_checkpoint(latest)["config"], f"{latest}: config")
+    return load_checkpoint(out_dir / CHECKPOINT_NAME).config
 
 
 def _resumed_config(saved: TrainConfig, requested: TrainConfig) -> TrainConfig:
@@ -220,12 +224,12 @@ def run_training(
         raise InputError(f"--out {out_dir}: exists and is not a directory")
     if resume and force:
         raise InputError("--resume and --force exclude each other")
-    resumed: dict[str, Any] | None = None
+    resumed: TrainingCheckpoint | None = None
     if resume:
         if not latest.exists():
             raise InputError(f"{latest}: no checkpoint to resume from")
         resumed = load_checkpoint(latest)
-        config = _resumed_config(train_config_from_dict(resumed["config"], f"{latest}: config"), config)
+        config = _resumed_config(resumed.config, config)
     elif not force and out_dir.is_dir() and any(out_dir.iterdir()):
         if latest.exists():
             raise InputError(
@@ -237,7 +241,7 @@ def run_training(
         )
     if config.init_from and resumed is None:
         try:
-            init_state = load_checkpoint(config.init_from)["learner"]
+            init_state = load_checkpoint(config.init_from).learner
         except InputError as err:
             raise InputError(
                 f"init_from: {err} (a path from the working directory; the shipped recipe makes "
@@ -256,18 +260,18 @@ def run_training(
     torch_rng = torch.Generator().manual_seed(config.seed)
     counters = _Counters()
     if resumed is not None:
-        if resumed["stage_index"] >= len(plans) or plans[resumed["stage_index"]].name != resumed["stage"]:
-            raise InputError(f"{latest}: stage {resumed['stage']!r} does not belong to this run's plan")
-        budget = plans[resumed["stage_index"]].episodes
-        if resumed["episode"] > budget:
+        if resumed.stage_index >= len(plans) or plans[resumed.stage_index].name != resumed.stage:
+            raise InputError(f"{latest}: stage {resumed.stage!r} does not belong to this run's plan")
+        budget = plans[resumed.stage_index].episodes
+        if resumed.episode > budget:
             raise InputError(
-                f"{latest}: the run is at episode {resumed['episode']} of stage {resumed['stage']!r}; "
-                f"a budget of {budget} episodes ends before that (give --episodes {resumed['episode']} "
+                f"{latest}: the run is at episode {resumed.episode} of stage {resumed.stage!r}; "
+                f"a budget of {budget} episodes ends before that (give --episodes {resumed.episode} "
                 "or more)"
             )
-        np_rng.bit_generator.state = resumed["numpy_rng"]
-        torch_rng.set_state(resumed["torch_rng"])
-        counters = _Counters(resumed["stage_index"], resumed["episode"], resumed["global_episode"])
+        np_rng.bit_generator.state = resumed.numpy_rng
+        torch_rng.set_state(resumed.torch_rng)
+        counters = _Counters(resumed.stage_index, resumed.episode, resumed.global_episode)
         _drop_best_after(out_dir, counters.global_episode)
     elif force:
         for path in _run_outputs(out_dir):
@@ -302,8 +306,8 @@ def run_training(
             plan = plans[stage_index]
             previous = learner
             learner = Learner(plan.learner, seed=config.seed + stage_index)
-            if resumed is not None and stage_index == resumed["stage_index"]:
-                learner.load_state_dict(resumed["learner"])
+            if resumed is not None and stage_index == resumed.stage_index:
+                learner.load_state_dict(resumed.learner)
             elif plan.init_from_previous and previous is not None:
                 learner.load_state_dict(previous.state_dict(), load_optimisers=False)
             elif init_state is not None and stage_index == 0:
@@ -330,7 +334,7 @@ def run_training(
                     validation_sink,
                     best_path,
                 )
-                if resumed is not None and stage_index == resumed["stage_index"]:
+                if resumed is not None and stage_index == resumed.stage_index:
                     # The stage's validations before the checkpoint: the best so far, and whether the
                     # checkpoint's own episode was validated already (then not twice).
                     kept = [r for r in validation_sink.kept if r["stage"] == plan.name]
