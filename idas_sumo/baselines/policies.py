@@ -21,6 +21,7 @@ from idas_sumo.baselines.fsm_idm import (
 )
 from idas_sumo.env.actions import closest_allowed_action
 from idas_sumo.env.core import MergeSimulation, PolicyFn
+from idas_sumo.env.engine import AgentBatch
 from idas_sumo.env.snapshot import TrafficSnapshot
 from idas_sumo.physics.idm import IDMParams
 
@@ -72,6 +73,20 @@ BASELINES: dict[str, BaselinePolicy] = {
 """Rule-based baselines by the name ``idas-sumo evaluate --baseline`` uses."""
 
 
+class RuleBasedPolicy:
+    """A baseline behind the engine's ``Policy`` contract: it reads the batch's snapshot, not observations."""
+
+    def __init__(self, name: str, params: FSMParams = DEFAULT_FSM) -> None:
+        self.name = name
+        self._act = BASELINES[name]
+        self.params = params
+
+    def act(self, batch: AgentBatch, rows: IntArray) -> IntArray:
+        return self._act(
+            batch.snapshot, batch.egos[rows], batch.prev_accel[rows], batch.masks[rows], self.params
+        )
+
+
 def baseline_policy(name: str) -> PolicyFn:
     """The baseline ``name`` behind the interface every method shares; it reads the simulation's snapshot."""
     act = BASELINES[name]
@@ -86,4 +101,11 @@ def baseline_policy(name: str) -> PolicyFn:
     return policy
 
 
-__all__ = ["BASELINES", "BaselinePolicy", "baseline_policy", "fsm_idm_actions", "idm_actions"]
+__all__ = [
+    "BASELINES",
+    "BaselinePolicy",
+    "RuleBasedPolicy",
+    "baseline_policy",
+    "fsm_idm_actions",
+    "idm_actions",
+]

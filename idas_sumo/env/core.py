@@ -8,7 +8,7 @@ parts. Both environments (PettingZoo and Gymnasium) are thin wrappers around it.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ from idas_sumo.env.actions import (
     next_acceleration,
     safety_bound,
 )
+from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, HARD_BRAKE_DETECT_MPS2, EnvConfig, placeholder_mask
 from idas_sumo.env.layout import (
     ACCEL_SCALE_MPS2,
     B_TYPE_SCALE,
@@ -39,7 +40,6 @@ from idas_sumo.env.rewards import (
     IMPEDE_PENALTY,
     MERGE_ZONE_RADIUS_M,
     REWARD_PART_NAMES,
-    RewardConfig,
     collide_reward,
     finish_reward,
     flow_penalty,
@@ -64,21 +64,6 @@ from idas_sumo.sim.backend import STEP_LENGTH_S, VEHICLE_LENGTH_M, Backend, Vehi
 from idas_sumo.sim.netgen import MergeNet, read_merge_net
 
 FloatArray = npt.NDArray[np.float64]
-HARD_BRAKE_DETECT_MPS2 = -3.0  # a SUMO-driven car decelerating harder than this counts as a hard brake
-DEFAULT_MAX_EPISODE_S = 60.0  # ours: timeout, not a success
-
-
-@dataclass(frozen=True)
-class EnvConfig:
-    """Episode rules shared by every environment."""
-
-    max_episode_s: float = DEFAULT_MAX_EPISODE_S
-    """Simulated seconds before the episode is cut off (a timeout is not a success)."""
-    reward: RewardConfig = field(default_factory=RewardConfig)
-
-    def __post_init__(self) -> None:
-        if not (self.max_episode_s > 0):
-            raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
 
 
 @dataclass
@@ -565,8 +550,11 @@ def _empty_snapshot() -> TrafficSnapshot:
     return TrafficSnapshot((), np.zeros(0, dtype=np.int64), z, z, z, z, z)
 
 
-def placeholder_mask() -> npt.NDArray[np.int8]:
-    """The action mask handed back with an agent's last observation: one action, never used."""
-    mask = np.zeros(N_ACTIONS, dtype=np.int8)
-    mask[0] = 1
-    return mask
+__all__ = [
+    "DEFAULT_MAX_EPISODE_S",
+    "EnvConfig",
+    "MergeSimulation",
+    "PolicyFn",
+    "StepOutcome",
+    "placeholder_mask",
+]

@@ -30,7 +30,7 @@ def build_grids(snapshot: TrafficSnapshot, egos: IntArray) -> npt.NDArray[np.flo
     grids = np.zeros((n_egos, 2, 2, GRID_CELLS), dtype=np.float32)
     if n_egos == 0:
         return grids
-    same, other = lane_relations(snapshot.road, egos)
+    same, other = lane_relations(snapshot.road, egos, snapshot.copy)
     ahead_front = snapshot.dist_to_merge_m[egos][:, None] - snapshot.dist_to_merge_m[None, :]  # (egos, veh)
     ahead_rear = ahead_front - snapshot.length_m[None, :]
     first = np.floor((ahead_rear + VISIBILITY_M) / CELL_M).astype(np.int64)

@@ -37,6 +37,8 @@ class TrafficSnapshot:
     length_m: FloatArray
     speed_limit_mps: FloatArray
     """The limit the rule mask enforces for this vehicle now (merge exemption included)."""
+    copy: IntArray | None = None
+    """Which copy of the merge each vehicle drives in (None: all in one)."""
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -53,20 +55,34 @@ class TrafficSnapshot:
         return vehicle_id in self._lookup
 
 
-def lane_relations(road: IntArray, egos: IntArray) -> tuple[BoolArray, BoolArray]:
-    """(same_lane, other_lane): bool (n_egos, n_vehicles) matrices; a vehicle is never its own neighbour."""
+def same_copy(copy: IntArray | None, egos: IntArray) -> BoolArray | None:
+    """(n_egos, n_vehicles): True where the vehicle drives in the ego's copy (None: one copy, all True)."""
+    if copy is None:
+        return None
+    return np.asarray(copy[egos][:, None] == copy[None, :])
+
+
+def lane_relations(
+    road: IntArray, egos: IntArray, copy: IntArray | None = None
+) -> tuple[BoolArray, BoolArray]:
+    """(same_lane, other_lane): bool (n_egos, n_vehicles) matrices; a vehicle is never its own neighbour,
+    nor a neighbour of a vehicle in another copy (``copy``: each vehicle's copy, None: one copy)."""
     ego_road = road[egos][:, None]
     other_road = road[None, :]
     incoming_ego = ego_road != OUT
     same = np.where(incoming_ego, (other_road == ego_road) | (other_road == OUT), other_road == OUT)
     other = np.where(incoming_ego, (other_road != ego_road) & (other_road != OUT), other_road != OUT)
     self_mask = np.arange(road.shape[0])[None, :] == egos[:, None]
-    return same & ~self_mask, other & ~self_mask
+    related = ~self_mask
+    in_copy = same_copy(copy, egos)
+    if in_copy is not None:
+        related &= in_copy
+    return same & related, other & related
 
 
 def leaders(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatArray]:
     """Nearest car ahead in each ego's current lane: (index or NO_LEADER, bumper gap in m or inf)."""
-    same, _ = lane_relations(snapshot.road, egos)
+    same, _ = lane_relations(snapshot.road, egos, snapshot.copy)
     ahead_by = snapshot.dist_to_merge_m[egos][:, None] - snapshot.dist_to_merge_m[None, :]  # > 0: ahead
     return _nearest_ahead(snapshot, np.where(same & (ahead_by > 0.0), ahead_by, np.inf))
 
@@ -119,4 +135,7 @@ def other_road_leaders(
     candidates = incoming_ego & other_incoming & ahead & (ahead_by <= max_ahead_m) & (dist[None, :] <= zone_m)
     if never_leading is not None:
         candidates &= ~never_leading[None, :]
+    in_copy = same_copy(snapshot.copy, egos)
+    if in_copy is not None:
+        candidates &= in_copy
     return _nearest_ahead(snapshot, np.where(candidates, ahead_by, np.inf))

@@ -1,0 +1,913 @@
+"""The episode engine: K merge episodes side by side in one SUMO run, every agent of every copy at once.
+
+``MergeEngine`` owns K episode *slots* over a ``BatchBackend`` (K copies of the merge net in one libsumo
+simulation, sim/batch.py; each copy moves exactly as its scenario alone). Each step it reads SUMO once,
+builds one copy-aware ``TrafficSnapshot`` (env/snapshot.py: pairwise relations never cross copies),
+hands every active agent of every copy to the policies as one ``AgentBatch``, applies the masked actions
+and scores the step with numpy over all copies. ``run_episodes`` is the one episode loop: it fills the
+slots with the next scenarios, steps until all are over, and refills; results come back in scenario
+order, whatever K is.
+
+A slot follows the single-episode rules exactly: an agent acts from the step it enters; a copy with no
+agent on the road but controlled cars still to come only lets time run (nothing is scored, as when one
+episode waits for its first car); a copy is over when every controlled car finished, collided or left,
+or time ran out. ``EpisodeOutcome`` defines success once, for training, validation and evaluation.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.env.actions import (
+    HARD_BRAKE,
+    N_ACTIONS,
+    MaskInputs,
+    action_masks,
+    candidate_accelerations,
+    closest_allowed_action,
+    effective_speed_limit,
+    next_acceleration,
+    safety_bound,
+)
+from idas_sumo.env.layout import (
+    ACCEL_SCALE_MPS2,
+    B_TYPE_SCALE,
+    DIST_SCALE_M,
+    OBS_DIM,
+    SPEED_SCALE_MPS,
+    VISIBILITY_M,
+)
+from idas_sumo.env.observation import build_observations
+from idas_sumo.env.rewards import (
+    FINISH_DISTANCE_PAST_MERGE_M,
+    IMPEDE_PENALTY,
+    MERGE_ZONE_RADIUS_M,
+    REWARD_PART_NAMES,
+    RewardConfig,
+    collide_reward,
+    finish_reward,
+)
+from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
+from idas_sumo.env.snapshot import (
+    MAIN,
+    MERGE,
+    OUT,
+    TrafficSnapshot,
+    lane_relations,
+    leader_speeds,
+    leaders,
+    other_road_leaders,
+)
+from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.errors import SimulationError
+from idas_sumo.physics.idm import DEFAULT_IDM
+from idas_sumo.sim.backend import (
+    STEP_LENGTH_S,
+    VEHICLE_LENGTH_M,
+    Backend,
+    StepEvents,
+    make_backend,
+    slot_taken,
+)
+from idas_sumo.sim.batch import BatchBackend, BatchStates, BatchStepEvents
+from idas_sumo.sim.netgen import MergeNet, read_merge_net
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+HARD_BRAKE_DETECT_MPS2 = -3.0  # a SUMO-driven car decelerating harder than this counts as a hard brake
+DEFAULT_MAX_EPISODE_S = 60.0  # ours: timeout, not a success
+END_REASONS: tuple[str, ...] = ("finished", "collided", "removed", "timeout")
+_PART = {name: i for i, name in enumerate(REWARD_PART_NAMES)}
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Episode rules shared by every environment."""
+
+    max_episode_s: float = DEFAULT_MAX_EPISODE_S
+    """Simulated seconds before the episode is cut off (a timeout is not a success)."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+
+    def __post_init__(self) -> None:
+        if not (self.max_episode_s > 0):
+            raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+
+
+# -- what an episode amounted to -------------------------------------------------------------------
+
+
+@dataclass
+class EpisodeOutcome:
+    """One episode's facts, and the one definition of success (docs/design-notes.md, "Definitions").
+
+    Counts cover the steps in which some agent acted (a copy waiting for its first car scores nothing).
+    """
+
+    scenario: Scenario
+    end_reasons: dict[str, str] = field(default_factory=dict)
+    """Per controlled car that entered: 'finished', 'collided', 'removed' or 'timeout'."""
+    collisions: int = 0
+    """Collision pairs SUMO reported (any cars)."""
+    hard_brakes: int = 0
+    """Hard brakes: agents choosing the hard-brake action, SUMO-driven cars decelerating harder than
+    ``HARD_BRAKE_DETECT_MPS2``."""
+    hard_brakes_merge_zone: int = 0
+    """Of those, the ones within ``MERGE_ZONE_RADIUS_M`` of the merge point (each costs the flow penalty)."""
+    impedes: int = 0
+    """Agent-steps with an impede penalty."""
+    returns: dict[str, float] = field(default_factory=dict)
+    """Per agent: the sum of its rewards (finish + collide + impede)."""
+    finish_times_s: dict[str, float] = field(default_factory=dict)
+    """Per finished agent: the simulated time it crossed the finish line."""
+    decision_steps: int = 0
+    """Steps in which at least one agent acted."""
+    agent_steps: int = 0
+    start_time_s: float = 0.0
+    """When the first agent could act (the insertion step ends at 0.2 s)."""
+    end_time_s: float = 0.0
+    timed_out: bool = False
+
+    @property
+    def duration_s(self) -> float:
+        return self.end_time_s - self.start_time_s
+
+    @property
+    def all_finished(self) -> bool:
+        """Every controlled car of the scenario finished."""
+        return all(self.end_reasons.get(a) == "finished" for a in self.scenario.controlled_ids)
+
+    @property
+    def success(self) -> bool:
+        """The paper's success: no collision and every controlled car finished (in time)."""
+        return self.collisions == 0 and self.all_finished
+
+    @property
+    def perfect(self) -> bool:
+        """Success without any reward deduction: no impede, no flow penalty."""
+        return self.success and self.impedes == 0 and self.hard_brakes_merge_zone == 0
+
+
+# -- what the policies see -------------------------------------------------------------------------
+
+
+@dataclass
+class AgentBatch:
+    """Every active agent of every copy at one step (row i: agent ``ids[i]`` of copy ``copy[i]``)."""
+
+    ids: tuple[str, ...]
+    """Copy-local agent ids (the same id may appear in several copies)."""
+    copy: IntArray
+    egos: IntArray
+    """Each agent's row in ``snapshot``."""
+    prev_accel: FloatArray
+    """The acceleration each agent drives with (m/s²)."""
+    masks: npt.NDArray[np.int8]
+    """(n, N_ACTIONS) allowed actions."""
+    snapshot: TrafficSnapshot
+    """Every vehicle of every copy (copy-aware)."""
+    b_prio: FloatArray
+    b_type: FloatArray
+    time_s: float
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @functools.cached_property
+    def obs(self) -> npt.NDArray[np.float32]:
+        """(n, OBS_DIM) observations, built on first use (rule-based policies never need them)."""
+        if not len(self.ids):
+            return np.zeros((0, OBS_DIM), dtype=np.float32)
+        obs = build_observations(self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type)
+        finite = np.isfinite(obs).all(axis=1)
+        if not finite.all():
+            bad = self.ids[int(np.argmin(finite))]
+            raise SimulationError(
+                f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
+            )
+        return obs
+
+
+class Policy(Protocol):
+    """How a method acts: actions (len(rows),) for the agents ``rows`` of ``batch``, never a masked one.
+
+    A policy holds its own choices (greedy or sampling, its seeded generator); learned actors answer
+    all the rows in one forward pass.
+    """
+
+    def act(self, batch: AgentBatch, rows: IntArray) -> IntArray: ...
+
+
+@dataclass
+class StepResult:
+    """One step, per agent of the batch that acted (aligned with it) and per copy."""
+
+    rewards: FloatArray
+    """finish + collide + impede."""
+    reward_parts: FloatArray
+    """(n, len(REWARD_PART_NAMES)): the named parts; 'flow' is the agent's copy's shared flow penalty."""
+    end_reason: tuple[str, ...]
+    """'' while the agent goes on, else one of END_REASONS."""
+    applied: IntArray
+    """The actions applied (a masked request replaced by the closest allowed one)."""
+    joint_reward: FloatArray
+    """Per copy: the sum of its agents' rewards plus its flow penalty (the central critic's reward)."""
+    collisions: list[list[tuple[str, str]]]
+    """Per copy: collision pairs."""
+    hard_brakes: IntArray
+    """Per copy."""
+    hard_brakes_merge_zone: IntArray
+    """Per copy."""
+
+
+# -- SUMO side -------------------------------------------------------------------------------------
+
+
+class _SoloBackend:
+    """One scenario on a single-simulation backend (in-process, a subprocess, or sumo-gui), behind the
+    ``BatchBackend`` calls the engine makes: the K = 1 engine of the environments and of ``--gui``."""
+
+    copies = 1
+
+    def __init__(self, backend: Backend) -> None:
+        self._backend = backend
+
+    def reset(self, scenarios: Sequence[Scenario], extra_args: Sequence[str] = ()) -> None:
+        if len(scenarios) != 1:
+            raise SimulationError(f"{len(scenarios)} scenarios for a single simulation (a bug)")
+        self._backend.reset(scenarios[0], extra_args)
+
+    def step(self) -> BatchStepEvents:
+        events: StepEvents = self._backend.step()
+        return BatchStepEvents(events.time_s, [events])
+
+    def vehicle_states(self) -> BatchStates:
+        s = self._backend.vehicle_states()
+        n = len(s.ids)
+        zeros = np.zeros(n, dtype=np.int64)
+        return BatchStates(
+            s.ids, zeros, s.edge, zeros, s.lane_pos_m, s.speed_mps, s.accel_mps2, np.array([0, n])
+        )
+
+    def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: npt.ArrayLike, copy: npt.ArrayLike) -> None:
+        speeds = np.asarray(speeds_mps, dtype=np.float64).tolist()
+        self._backend.set_speeds(dict(zip(vehicle_ids, speeds, strict=True)))
+
+    def release(self, vehicle_id: str, copy: int) -> None:
+        self._backend.release(vehicle_id)
+
+    def clear_copy(self, copy: int) -> None:
+        """Nothing to do: the next reset reloads the simulation."""
+
+    def close(self) -> None:
+        self._backend.close()
+
+
+@dataclass
+class _Slot:
+    """One copy's episode."""
+
+    scenario: Scenario
+    spec: dict[str, VehicleSpec]
+    origin: dict[str, int]
+    order: dict[str, int]
+    state_slot: dict[str, int]
+    outcome: EpisodeOutcome
+    active: list[str] = field(default_factory=list)
+    accel: dict[str, float] = field(default_factory=dict)
+    done: dict[str, str] = field(default_factory=dict)
+    over: bool = False
+    started: bool = False
+
+
+class MergeEngine:
+    """K merge episodes at a time on one SUMO simulation (``copies`` = K)."""
+
+    def __init__(
+        self,
+        net: MergeNet | str | Path,
+        copies: int = 1,
+        seed: int = 0,
+        config: EnvConfig | None = None,
+        gui: bool = False,
+    ) -> None:
+        if copies < 1:
+            raise ValueError(f"copies must be at least 1, got {copies}")
+        if gui and copies != 1:
+            raise ValueError("sumo-gui shows one simulation: copies must be 1 with gui")
+        self.net = net if isinstance(net, MergeNet) else read_merge_net(net)
+        self.config = config or EnvConfig()
+        # libsumo holds one simulation per process: when it is taken (another environment is open), run
+        # the episodes one at a time in a SUMO child process. Results do not depend on K.
+        if copies > 1 and slot_taken():
+            copies = 1
+        self.copies = copies
+        self._seed = seed
+        self._gui = gui
+        self._backend: BatchBackend | _SoloBackend | None = None
+        self.speed_limits_mps: dict[Road, float] = {
+            "main": self.net.main.speed_limit_mps,
+            "merge": self.net.merge.speed_limit_mps,
+        }
+        self.road_lengths_m: dict[Road, float] = {
+            "main": self.net.main.length_m,
+            "merge": self.net.merge.length_m,
+        }
+        self._edge_road = {
+            self.net.main.edge_id: MAIN,
+            self.net.merge.edge_id: MERGE,
+            self.net.out.edge_id: OUT,
+        }
+        self._road_length_by_code = np.array([self.net.main.length_m, self.net.merge.length_m])
+        self._via_length_by_code = np.array([self.net.main.via_length_m, self.net.merge.via_length_m])
+        self._limit_by_code = np.array(
+            [self.net.main.speed_limit_mps, self.net.merge.speed_limit_mps, self.net.out.speed_limit_mps]
+        )
+        self.slots: list[_Slot] = []
+        self.snapshot = _empty_snapshot()
+        self._controlled = np.zeros(0, dtype=np.bool_)
+        self._rows: list[dict[str, int]] = []
+        self._batch: AgentBatch | None = None
+        self._time_s = 0.0
+        self._closed = False
+
+    # -- episodes ------------------------------------------------------------------------------
+    def _make_backend(self) -> BatchBackend | _SoloBackend:
+        if self.copies == 1:
+            return _SoloBackend(make_backend(self.net, seed=self._seed, gui=self._gui))
+        return BatchBackend(self.net, copies=self.copies, seed=self._seed)
+
+    def reset(self, scenarios: Sequence[Scenario], sumo_args: Sequence[str] = ()) -> None:
+        """Start one episode per scenario (at most ``copies``), scenario k in slot k."""
+        if self._closed:
+            raise SimulationError("this engine is closed; create a new one")
+        if not 1 <= len(scenarios) <= self.copies:
+            raise ValueError(f"{len(scenarios)} scenarios for {self.copies} slots")
+        if self._backend is None:
+            self._backend = self._make_backend()
+        self.slots = []
+        for s in scenarios:
+            self.slots.append(
+                _Slot(
+                    scenario=s,
+                    spec={v.id: v for v in s.vehicles},
+                    origin={v.id: MAIN if v.road == "main" else MERGE for v in s.vehicles},
+                    order={v.id: i for i, v in enumerate(s.vehicles)},
+                    state_slot={v.id: i for i, v in enumerate(s.vehicles) if i < STATE_SLOTS},
+                    outcome=EpisodeOutcome(s),
+                )
+            )
+        self._batch = None
+        self._backend.reset(scenarios, sumo_args)
+        events = self._backend.step()  # insertion step: vehicles appear where the scenarios put them
+        self._time_s = events.time_s
+        self._read_snapshot()
+        for k, slot in enumerate(self.slots):
+            self._admit(slot, events.copies[k].departed)
+            self._settle(k)
+
+    @property
+    def backend(self) -> BatchBackend | _SoloBackend:
+        if self._backend is None:
+            raise SimulationError("step() before reset()")
+        return self._backend
+
+    @property
+    def time_s(self) -> float:
+        """Simulated seconds since the scenarios started (the insertion step ends at 0.2 s)."""
+        return self._time_s
+
+    def timed_out(self) -> bool:
+        return self._time_s >= self.config.max_episode_s - 1e-9
+
+    @property
+    def running(self) -> list[int]:
+        """Slots whose episode is not over."""
+        return [k for k, s in enumerate(self.slots) if not s.over]
+
+    def over(self, k: int) -> bool:
+        return self.slots[k].over
+
+    def outcome(self, k: int) -> EpisodeOutcome:
+        return self.slots[k].outcome
+
+    def active_agents(self, k: int) -> list[str]:
+        """Slot k's controlled cars on the road that still act (in scenario order)."""
+        return list(self.slots[k].active)
+
+    def finished_agents(self, k: int) -> dict[str, str]:
+        return dict(self.slots[k].done)
+
+    def spec(self, k: int, vehicle_id: str) -> VehicleSpec:
+        return self.slots[k].spec[vehicle_id]
+
+    def prev_accel(self, k: int, agent_id: str) -> float:
+        return self.slots[k].accel[agent_id]
+
+    def rows_of(self, k: int) -> slice:
+        """Slot k's vehicles in ``snapshot``."""
+        lo, hi = self._bounds[k], self._bounds[k + 1]
+        return slice(int(lo), int(hi))
+
+    def row(self, k: int, vehicle_id: str) -> int | None:
+        """``vehicle_id``'s row in ``snapshot`` (None: not on the road)."""
+        return self._rows[k].get(vehicle_id)
+
+    def _waiting(self, slot: _Slot) -> bool:
+        """Controlled cars still to enter."""
+        return any(a not in slot.done and a not in slot.active for a in slot.scenario.controlled_ids)
+
+    def _settle(self, k: int) -> None:
+        """After a step: mark the episode over, and the first step an agent can act."""
+        slot = self.slots[k]
+        if self.timed_out() or (not slot.active and not self._waiting(slot)):
+            slot.over = True
+            slot.outcome.end_time_s = self._time_s
+            slot.outcome.timed_out = self.timed_out()
+            if not slot.started:
+                slot.outcome.start_time_s = self._time_s
+                slot.started = True
+        elif slot.active and not slot.started:
+            slot.outcome.start_time_s = self._time_s
+            slot.started = True
+
+    def _admit(self, slot: _Slot, departed: list[str]) -> None:
+        added = False
+        for vid in departed:
+            spec = slot.spec.get(vid)
+            if spec is not None and spec.controlled and vid not in slot.done and vid not in slot.active:
+                slot.active.append(vid)
+                slot.accel[vid] = 0.0
+                added = True
+        if added:
+            slot.active.sort(key=slot.order.__getitem__)
+
+    def _read_snapshot(self) -> None:
+        states = self.backend.vehicle_states()
+        n = len(states.ids)
+        copy = states.copy
+        bounds = states.bounds
+        origin = np.empty(n, dtype=np.int64)
+        controlled = np.zeros(n, dtype=np.bool_)
+        self._rows = []
+        for k in range(len(self.slots)):
+            lo, hi = int(bounds[k]), int(bounds[k + 1])
+            ids = states.ids[lo:hi]
+            slot = self.slots[k]
+            spec = slot.spec
+            origin[lo:hi] = [slot.origin[v] for v in ids]
+            controlled[lo:hi] = [spec[v].controlled for v in ids]
+            self._rows.append(dict(zip(ids, range(lo, hi), strict=True)))
+        edge_road = np.fromiter((self._edge_road.get(e, -1) for e in states.edge), dtype=np.int64, count=n)
+        pos = states.lane_pos_m
+        incoming = (edge_road == MAIN) | (edge_road == MERGE)
+        # Internal junction lanes (edge_road -1) lie past the merge point: they count as the outgoing road.
+        road = np.where(incoming, edge_road, OUT)
+        dist = np.where(
+            incoming,
+            self._road_length_by_code[np.where(incoming, edge_road, 0)] - pos,
+            np.where(edge_road == OUT, -(self._via_length_by_code[origin] + pos), -pos),
+        )
+        out_limit = self._limit_by_code[OUT]
+        own_limit = effective_speed_limit(self._limit_by_code[road], dist, out_limit)
+        limit = np.where(road == OUT, out_limit, own_limit)
+        self._bounds = bounds
+        self._controlled = controlled
+        self.snapshot = TrafficSnapshot(
+            ids=states.ids,
+            road=road.astype(np.int64),
+            dist_to_merge_m=dist,
+            speed_mps=states.speed_mps.copy(),
+            accel_mps2=states.accel_mps2.copy(),
+            length_m=np.full(n, VEHICLE_LENGTH_M),
+            speed_limit_mps=limit,
+            copy=copy if len(self.slots) > 1 else None,
+        )
+
+    # -- observation ---------------------------------------------------------------------------
+    def observe(self) -> AgentBatch:
+        """Every active agent of every running slot, in slot then scenario order."""
+        ids: list[str] = []
+        copies: list[int] = []
+        egos: list[int] = []
+        prev: list[float] = []
+        b_prio: list[float] = []
+        b_type: list[float] = []
+        for k, slot in enumerate(self.slots):
+            if slot.over or not slot.active:
+                continue
+            rows = self._rows[k]
+            s = slot.scenario
+            prio_by_road = (float(s.main_prio), float(s.merge_prio), float(max(s.main_prio, s.merge_prio)))
+            for a in slot.active:
+                r = rows[a]
+                ids.append(a)
+                copies.append(k)
+                egos.append(r)
+                prev.append(slot.accel[a])
+                b_prio.append(prio_by_road[int(self.snapshot.road[r])])
+                b_type.append(slot.spec[a].b_type)
+        ego_arr = np.array(egos, dtype=np.int64)
+        prev_arr = np.array(prev, dtype=np.float64)
+        batch = AgentBatch(
+            ids=tuple(ids),
+            copy=np.array(copies, dtype=np.int64),
+            egos=ego_arr,
+            prev_accel=prev_arr,
+            masks=self._masks(ego_arr, prev_arr),
+            snapshot=self.snapshot,
+            b_prio=np.array(b_prio, dtype=np.float64),
+            b_type=np.array(b_type, dtype=np.float64),
+            time_s=self._time_s,
+        )
+        self._batch = batch
+        return batch
+
+    def _masks(self, egos: IntArray, prev: FloatArray) -> npt.NDArray[np.int8]:
+        if len(egos) == 0:
+            return np.zeros((0, N_ACTIONS), dtype=np.int8)
+        snap = self.snapshot
+        gap, leader_speed, ease_in = self.front_cars(egos)
+        return action_masks(
+            MaskInputs(
+                prev_accel_mps2=prev,
+                speed_mps=snap.speed_mps[egos],
+                speed_limit_mps=snap.speed_limit_mps[egos],
+                gap_m=gap,
+                leader_speed_mps=leader_speed,
+                ease_in=ease_in,
+            )
+        )
+
+    def front_cars(self, egos: IntArray) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+        """The car the safety mask keeps its distance to: (gap m, its speed m/s, ease_in; see MaskInputs).
+
+        Ours: in a merge the car in front is not only the one ahead in the ego's lane. A car on the other
+        incoming road that is closer to the merge point (projected, within sight of both) will be in front
+        of the ego after the merge, so whichever of the two asks for the lower IDM acceleration counts.
+        Level cars: the main-road car counts as ahead. With only the ego's own lane (the literal reading)
+        the cars of the two roads met side by side at the merge point: 28 of the first 40 paper-suite
+        scenarios had a collision with IDM driving every car, 26 with IDAS (docs/design-notes.md).
+        """
+        snap = self.snapshot
+        leader, gap = leaders(snap, egos)
+        # SUMO's own cars on the merge road give way to every main-road car at the junction (stage 1's
+        # "merge always yields"); counting them as front cars of main-road cars deadlocked both.
+        sumo_yielding = (snap.road == MERGE) & ~self._controlled
+        merge_leader, merge_gap = other_road_leaders(
+            snap,
+            egos,
+            max_ahead_m=np.inf,
+            zone_m=VISIBILITY_M,
+            level_counts_for_main=True,
+            never_leading=sumo_yielding,
+        )
+        speed = snap.speed_mps[egos]
+        leader_speed = leader_speeds(snap, egos, leader)
+        merge_speed = leader_speeds(snap, egos, merge_leader)
+        own_lane_bound = safety_bound(speed, gap, leader_speed)
+        other_road = (merge_leader >= 0) & (safety_bound(speed, merge_gap, merge_speed) < own_lane_bound)
+        ease_in = (
+            other_road
+            & (snap.dist_to_merge_m[egos] > MERGE_ZONE_RADIUS_M)
+            & (own_lane_bound >= -DEFAULT_IDM.comfortable_decel_mps2)
+        )
+        return np.where(other_road, merge_gap, gap), np.where(other_road, merge_speed, leader_speed), ease_in
+
+    def state(self, k: int) -> npt.NDArray[np.float32]:
+        """Slot k's global state for the centralised critic (layout in ``env/state_layout.py``)."""
+        slot = self.slots[k]
+        state = np.zeros((STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
+        snap = self.snapshot
+        s = slot.scenario
+        table = np.array([s.main_prio, s.merge_prio, max(s.main_prio, s.merge_prio)], dtype=np.float64)
+        rows = self.rows_of(k)
+        for i in range(rows.start, rows.stop):
+            vid = snap.ids[i]
+            place = slot.state_slot.get(vid)
+            if place is None:
+                continue
+            spec = slot.spec[vid]
+            road = int(snap.road[i])
+            state[place] = (
+                1.0,
+                road == MAIN,
+                road == MERGE,
+                road == OUT,
+                snap.dist_to_merge_m[i] / DIST_SCALE_M,
+                snap.speed_mps[i] / SPEED_SCALE_MPS,
+                snap.accel_mps2[i] / ACCEL_SCALE_MPS2,
+                table[road],
+                spec.b_type / B_TYPE_SCALE,
+                float(spec.controlled and vid in slot.active),
+            )
+        return state.reshape(STATE_DIM)
+
+    # -- stepping ------------------------------------------------------------------------------
+    def step(self, actions: npt.ArrayLike) -> StepResult:
+        """Apply one action per agent of the last ``observe()`` batch, advance SUMO one step, score it."""
+        if self._closed:
+            raise SimulationError("step() after close(); create a new engine")
+        batch = self._batch
+        if batch is None:
+            raise SimulationError("step() without observe() first")
+        self._batch = None
+        n = len(batch)
+        requested = _checked_actions(batch, actions)
+        before = self.snapshot
+        applied = requested
+        if n:
+            masks, prev = batch.masks, batch.prev_accel
+            rows = np.arange(n)
+            allowed = masks[rows, requested].astype(bool)
+            if not allowed.all():
+                wanted = candidate_accelerations(prev)[rows, requested]
+                applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
+            new_accel = next_acceleration(prev, applied)
+            next_speed = np.maximum(before.speed_mps[batch.egos] + new_accel * STEP_LENGTH_S, 0.0)
+            self.backend.set_speeds(batch.ids, next_speed, batch.copy)
+            for a, k, acc in zip(batch.ids, batch.copy.tolist(), new_accel.tolist(), strict=True):
+                self.slots[k].accel[a] = acc
+        events = self.backend.step()
+        self._time_s = events.time_s
+        rows_before = self._rows
+        self._read_snapshot()
+        after = self.snapshot
+        k_count = len(self.slots)
+        acting_copies = set(batch.copy.tolist())
+
+        # Hard brakes, placed where the braking car was when it decided (the step's start): agents that
+        # chose the hard brake, then SUMO-driven cars of acting copies that braked hard on their own.
+        brake_rows = [int(r) for r in batch.egos[applied == HARD_BRAKE]]
+        for i in np.flatnonzero(after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2).tolist():
+            k = int(self._copy_of(after, i))
+            slot = self.slots[k]
+            vid = after.ids[i]
+            if k in acting_copies and vid not in slot.active and vid in rows_before[k]:
+                brake_rows.append(rows_before[k][vid])
+        brakes = np.array(brake_rows, dtype=np.int64)
+        brake_copy = self._copy_of(before, brakes)
+        in_zone = np.abs(before.dist_to_merge_m[brakes]) <= MERGE_ZONE_RADIUS_M
+        hard_brakes = np.bincount(brake_copy, minlength=k_count)
+        zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
+        flow = -1.0 * zone_brakes  # FLOW_PENALTY_PER_HARD_BRAKE per merge-zone brake, shared per copy
+        impeded_by = _impeding_vehicles(before, brakes)
+
+        # End reasons: collided, removed, finished, else timeout (if time is up).
+        timed_out = self.timed_out()
+        reasons: list[str] = []
+        for a, k in zip(batch.ids, batch.copy.tolist(), strict=True):
+            r = self._rows[k].get(a)
+            if a in events.copies[k].collided:
+                reasons.append("collided")
+            elif r is None:
+                reasons.append("removed")
+            elif after.dist_to_merge_m[r] <= -FINISH_DISTANCE_PAST_MERGE_M:
+                reasons.append("finished")
+            else:
+                reasons.append("timeout" if timed_out else "")
+
+        parts = np.zeros((n, len(REWARD_PART_NAMES)))
+        if n:
+            parts[:, _PART["flow"]] = flow[batch.copy]
+            culprits = np.bincount(impeded_by, minlength=len(before))
+            parts[:, _PART["impede"]] = IMPEDE_PENALTY * culprits[batch.egos]
+            sign = self.config.reward.collision_sign
+            for i, (a, k, reason) in enumerate(zip(batch.ids, batch.copy.tolist(), reasons, strict=True)):
+                slot = self.slots[k]
+                spec = slot.spec[a]
+                if reason == "collided":
+                    # The priority of the road the car came from: collisions happen on the junction or
+                    # after it, where the snapshot's road is the outgoing one (priority max of both).
+                    prio = float(slot.scenario.prio(spec.road))
+                    parts[i, _PART["collide"]] = float(collide_reward(prio, sign))
+                elif reason == "finished":
+                    parts[i, _PART["finish"]] = float(finish_reward(spec.b_type))
+        rewards = parts[:, _PART["finish"]] + parts[:, _PART["collide"]] + parts[:, _PART["impede"]]
+        joint = np.bincount(batch.copy, weights=rewards, minlength=k_count) + flow
+
+        # Book-keeping per slot: outcome, ended agents, new arrivals, episode over.
+        for i, (a, k, reason) in enumerate(zip(batch.ids, batch.copy.tolist(), reasons, strict=True)):
+            slot = self.slots[k]
+            out = slot.outcome
+            out.returns[a] = out.returns.get(a, 0.0) + float(rewards[i])
+            if parts[i, _PART["impede"]] < 0:
+                out.impedes += 1
+            if reason:
+                slot.done[a] = reason
+                out.end_reasons[a] = reason
+                slot.active.remove(a)
+                if reason == "finished":
+                    out.finish_times_s[a] = self._time_s
+                    self.backend.release(a, k)
+        collisions: list[list[tuple[str, str]]] = []
+        for k, slot in enumerate(self.slots):
+            ev = events.copies[k]
+            collisions.append(ev.collision_pairs)
+            if slot.over:
+                continue
+            if k in acting_copies:
+                out = slot.outcome
+                out.collisions += len(ev.collision_pairs)
+                out.hard_brakes += int(hard_brakes[k])
+                out.hard_brakes_merge_zone += int(zone_brakes[k])
+                out.decision_steps += 1
+                out.agent_steps += int(np.count_nonzero(batch.copy == k))
+            self._admit(slot, ev.departed)
+            self._settle(k)
+        return StepResult(
+            rewards=rewards,
+            reward_parts=parts,
+            end_reason=tuple(reasons),
+            applied=np.asarray(applied, dtype=np.int64),
+            joint_reward=joint,
+            collisions=collisions,
+            hard_brakes=hard_brakes,
+            hard_brakes_merge_zone=zone_brakes,
+        )
+
+    def _copy_of(self, snap: TrafficSnapshot, rows: npt.ArrayLike) -> IntArray:
+        r = np.asarray(rows, dtype=np.int64)
+        if snap.copy is None:
+            return np.zeros(r.shape, dtype=np.int64)
+        return np.asarray(snap.copy[r], dtype=np.int64)
+
+    def release_slot(self, k: int) -> None:
+        """Slot k's episode is over: its cars leave SUMO so that they cost nothing until the next reset."""
+        self.backend.clear_copy(k)
+
+    def close(self) -> None:
+        if self._backend is not None:
+            self._backend.close()
+            self._backend = None
+        self._closed = True
+
+
+def _checked_actions(batch: AgentBatch, actions: npt.ArrayLike) -> IntArray:
+    """Actions as int64 (n,), or a ValueError naming the first bad one's agent and the time."""
+    raw = np.asarray(actions)
+    n = len(batch)
+    if raw.shape != (n,):
+        raise ValueError(f"{raw.shape} actions for {n} agents")
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if raw.dtype.kind not in "iu":
+        bad = 0
+        for i, v in enumerate(raw.tolist()):
+            if isinstance(v, bool) or not isinstance(v, int):
+                bad = i
+                break
+        else:
+            raw = raw.astype(np.int64)
+        if raw.dtype.kind not in "iu":
+            raise ValueError(
+                f"invalid action {raw[bad]!r} for agent {batch.ids[bad]!r} at t = {batch.time_s:.1f} s: "
+                f"expected an int in [0, {N_ACTIONS})"
+            )
+    out = raw.astype(np.int64)
+    wrong = (out < 0) | (out >= N_ACTIONS)
+    if wrong.any():
+        i = int(np.flatnonzero(wrong)[0])
+        raise ValueError(
+            f"invalid action {int(out[i])} for agent {batch.ids[i]!r} at t = {batch.time_s:.1f} s: "
+            f"expected an int in [0, {N_ACTIONS})"
+        )
+    return out
+
+
+def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArray:
+    """For each hard-braking vehicle, the nearest vehicle ahead of it on either lane (within sight, same
+    copy): their rows in ``before`` (one per brake that has one)."""
+    if len(brake_rows) == 0:
+        return np.zeros(0, dtype=np.int64)
+    same, other = lane_relations(before.road, brake_rows, before.copy)
+    ahead = before.dist_to_merge_m[brake_rows][:, None] - before.dist_to_merge_m[None, :]
+    candidates = (same | other) & (ahead >= 0.0) & (ahead <= VISIBILITY_M)
+    distance = np.where(candidates, ahead, np.inf)
+    nearest = np.argmin(distance, axis=1)
+    found = np.isfinite(distance[np.arange(len(brake_rows)), nearest])
+    return np.asarray(nearest[found], dtype=np.int64)
+
+
+def _empty_snapshot() -> TrafficSnapshot:
+    z = np.zeros(0)
+    return TrafficSnapshot((), np.zeros(0, dtype=np.int64), z, z, z, z, z)
+
+
+def placeholder_mask() -> npt.NDArray[np.int8]:
+    """The action mask handed back with an agent's last observation: one action, never used."""
+    mask = np.zeros(N_ACTIONS, dtype=np.int8)
+    mask[0] = 1
+    return mask
+
+
+# -- the one episode loop --------------------------------------------------------------------------
+
+
+class EpisodeObserver(Protocol):
+    """Hooks of ``run_episodes``; ``job`` is the scenario's index in the list given to it."""
+
+    def decided(self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: IntArray) -> None:
+        """Before a step: the actions chosen for ``batch`` (``jobs[k]``: the job in slot k)."""
+
+    def stepped(
+        self,
+        engine: MergeEngine,
+        jobs: Sequence[int],
+        batch: AgentBatch,
+        actions: IntArray,
+        result: StepResult,
+    ) -> None:
+        """After the step."""
+
+    def ended(self, engine: MergeEngine, slot: int, job: int, outcome: EpisodeOutcome) -> None:
+        """Slot ``slot``'s episode (job ``job``) is over; ``engine.snapshot`` still shows its last state."""
+
+
+AssignPolicy = Callable[[int, str], int]
+"""(job, agent id) -> index of the policy that drives that agent."""
+
+
+def iter_episodes(
+    engine: MergeEngine,
+    scenarios: Sequence[Scenario],
+    assign_policy: AssignPolicy,
+    policies: Sequence[Policy],
+    observer: EpisodeObserver | None = None,
+    sumo_args: Callable[[int], Sequence[str]] | None = None,
+) -> Iterator[tuple[int, EpisodeOutcome]]:
+    """Run every scenario to its end, ``engine.copies`` at a time; yield (job, outcome) in job order.
+
+    ``sumo_args(job)``: SUMO options for that job's run (only with one copy: a run holds all copies).
+    """
+    if sumo_args is not None and engine.copies != 1:
+        raise ValueError("per-scenario SUMO options need an engine with one copy")
+    k_max = engine.copies
+    for start in range(0, len(scenarios), k_max):
+        jobs = list(range(start, min(start + k_max, len(scenarios))))
+        args = sumo_args(jobs[0]) if sumo_args is not None else ()
+        engine.reset([scenarios[j] for j in jobs], args)
+        assigned: list[dict[str, int]] = [{} for _ in jobs]
+        reported: set[int] = set()
+        while True:
+            for k in range(len(jobs)):
+                if k not in reported and engine.over(k):
+                    reported.add(k)
+                    if observer is not None:
+                        observer.ended(engine, k, jobs[k], engine.outcome(k))
+                    engine.release_slot(k)
+            if len(reported) == len(jobs):
+                break
+            batch = engine.observe()
+            actions = np.zeros(len(batch), dtype=np.int64)
+            if len(batch):
+                which = np.empty(len(batch), dtype=np.int64)
+                for i, (a, k) in enumerate(zip(batch.ids, batch.copy.tolist(), strict=True)):
+                    p = assigned[k].get(a)
+                    if p is None:
+                        p = assigned[k][a] = assign_policy(jobs[k], a)
+                    which[i] = p
+                for p in np.unique(which).tolist():
+                    rows = np.flatnonzero(which == p)
+                    actions[rows] = policies[p].act(batch, rows)
+            if observer is not None:
+                observer.decided(engine, jobs, batch, actions)
+            result = engine.step(actions)
+            if observer is not None:
+                observer.stepped(engine, jobs, batch, actions, result)
+        for k, j in enumerate(jobs):
+            yield j, engine.outcome(k)
+
+
+def run_episodes(
+    engine: MergeEngine,
+    scenarios: Sequence[Scenario],
+    assign_policy: AssignPolicy,
+    policies: Sequence[Policy],
+    observer: EpisodeObserver | None = None,
+    sumo_args: Callable[[int], Sequence[str]] | None = None,
+) -> list[EpisodeOutcome]:
+    """Every scenario's outcome, in scenario order (``iter_episodes``)."""
+    return [o for _, o in iter_episodes(engine, scenarios, assign_policy, policies, observer, sumo_args)]
+
+
+__all__ = [
+    "DEFAULT_MAX_EPISODE_S",
+    "END_REASONS",
+    "AgentBatch",
+    "EnvConfig",
+    "EpisodeObserver",
+    "EpisodeOutcome",
+    "MergeEngine",
+    "Policy",
+    "StepResult",
+    "iter_episodes",
+    "placeholder_mask",
+    "run_episodes",
+]

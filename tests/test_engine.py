@@ -1,0 +1,235 @@
+"""The episode engine (env/engine.py): K copies side by side give each scenario's numbers exactly.
+
+``tests/data/engine_golden.json`` holds what the single-episode path (``MergeSimulation``, now gone)
+produced on fixed paper-suite scenarios: per episode, a digest of every step's acting agents, masks,
+rewards, reward parts and end reasons, plus the outcome counts. The engine must reproduce it with one
+copy and with several.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from idas_sumo.baselines.policies import RuleBasedPolicy
+from idas_sumo.env.engine import AgentBatch, EnvConfig, MergeEngine, Policy, StepResult, run_episodes
+from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot, lane_relations, leaders
+from idas_sumo.evaluation.protocol import suite_cases
+from idas_sumo.sim.netgen import read_merge_net
+
+GOLDEN = Path(__file__).parent / "data" / "engine_golden.json"
+GOLDEN_SEED = 7
+GOLDEN_SCENARIOS = 8
+GOLDEN_MAX_EPISODE_S = 40.0
+
+
+def golden_cases(net_path: Path) -> list:
+    net = read_merge_net(net_path)
+    limits = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
+    return suite_cases("paper", GOLDEN_SCENARIOS, GOLDEN_SEED, limits, TrafficConfig())
+
+
+def jitter_actions(ids: list[str], t: float, masks: np.ndarray, idm: np.ndarray) -> np.ndarray:
+    """An erratic driver that is the same in every run and every K: IDM's action, but one step in four
+    an allowed action picked by a hash of the agent and the time (so the golden runs see hard brakes,
+    impedes and timeouts)."""
+    out = []
+    for a, m, planned in zip(ids, masks, idm.tolist(), strict=True):
+        h = zlib.crc32(f"{a}@{t:.1f}".encode())
+        allowed = np.flatnonzero(m)
+        out.append(int(allowed[(h // 4) % len(allowed)]) if h % 4 == 0 else planned)
+    return np.array(out, dtype=np.int64)
+
+
+def erratic(agent: str) -> bool:
+    """Agents of the golden runs that drive with ``jitter_actions`` (the others: IDM; the ego: FSM+IDM)."""
+    return agent[-1] in "13579"
+
+
+class JitterPolicy:
+    def act(self, batch: AgentBatch, rows: np.ndarray) -> np.ndarray:
+        idm = RuleBasedPolicy("idm").act(batch, rows)
+        return jitter_actions([batch.ids[r] for r in rows], batch.time_s, batch.masks[rows], idm)
+
+
+def _digest_lines(lines: list[str]) -> str:
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()
+
+
+def step_line(
+    t: float, ids: list[str], masks: np.ndarray, parts: dict[str, list[float]], reasons: list[str]
+) -> str:
+    """One step, canonically: time, then per agent id, mask bits, reward parts (finish collide impede flow), end."""
+    cells = [f"{t:.3f}"]
+    for i, a in enumerate(ids):
+        bits = "".join(str(int(b)) for b in masks[i])
+        values = " ".join(f"{v:.6f}" for v in parts[a])
+        cells.append(f"{a}|{bits}|{values}|{reasons[i]}")
+    return ";".join(cells)
+
+
+class _Recorder:
+    """Observer: step lines per job."""
+
+    def __init__(self) -> None:
+        self.lines: dict[int, list[str]] = {}
+
+    def decided(self, engine: MergeEngine, jobs, batch: AgentBatch, actions) -> None:
+        self._batch = batch
+
+    def stepped(self, engine: MergeEngine, jobs, batch: AgentBatch, actions, result: StepResult) -> None:
+        for k in np.unique(batch.copy).tolist():
+            rows = np.flatnonzero(batch.copy == k)
+            ids = [batch.ids[r] for r in rows]
+            parts = {batch.ids[r]: result.reward_parts[r].tolist() for r in rows}
+            reasons = [result.end_reason[r] for r in rows]
+            line = step_line(batch.time_s, ids, batch.masks[rows], parts, reasons)
+            self.lines.setdefault(jobs[k], []).append(line)
+
+    def ended(self, engine: MergeEngine, slot: int, job: int, outcome) -> None:
+        pass
+
+
+def engine_records(net_path: Path, copies: int) -> list[dict[str, object]]:
+    cases = golden_cases(net_path)
+    engine = MergeEngine(net_path, copies=copies, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+    assert engine.copies == copies, "another simulation held libsumo: the copies did not run side by side"
+    policies: list[Policy] = [RuleBasedPolicy("fsm_idm"), RuleBasedPolicy("idm"), JitterPolicy()]
+    recorder = _Recorder()
+    try:
+        outcomes = run_episodes(
+            engine,
+            [c.scenario for c in cases],
+            lambda job, agent: 0 if agent == cases[job].ego else (2 if erratic(agent) else 1),
+            policies,
+            recorder,
+        )
+    finally:
+        engine.close()
+    return [
+        {
+            "scenario": c.scenario.name,
+            "steps": _digest_lines(recorder.lines.get(j, [])),
+            "decision_steps": len(recorder.lines.get(j, [])),
+            "collisions": o.collisions,
+            "hard_brakes": o.hard_brakes,
+            "hard_brakes_merge_zone": o.hard_brakes_merge_zone,
+            "impedes": o.impedes,
+            "end_reasons": dict(sorted(o.end_reasons.items())),
+            "returns": {a: round(r, 6) for a, r in sorted(o.returns.items())},
+            "start_time_s": round(o.start_time_s, 3),
+            "end_time_s": round(o.end_time_s, 3),
+        }
+        for j, (c, o) in enumerate(zip(cases, outcomes, strict=True))
+    ]
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("copies", [1, 3])
+def test_engine_reproduces_the_single_episode_path(net_path: Path, copies: int) -> None:
+    golden = json.loads(GOLDEN.read_text())
+    assert len(golden) == GOLDEN_SCENARIOS
+    assert engine_records(net_path, copies) == golden
+
+
+def _snapshot(road: list[int], dist: list[float], copy: list[int] | None) -> TrafficSnapshot:
+    n = len(road)
+    return TrafficSnapshot(
+        ids=tuple(f"v{i}" for i in range(n)),
+        road=np.array(road, dtype=np.int64),
+        dist_to_merge_m=np.array(dist),
+        speed_mps=np.full(n, 10.0),
+        accel_mps2=np.zeros(n),
+        length_m=np.full(n, 5.0),
+        speed_limit_mps=np.full(n, 15.0),
+        copy=None if copy is None else np.array(copy, dtype=np.int64),
+    )
+
+
+def test_relations_never_cross_copies() -> None:
+    road = [MAIN, MAIN, MERGE, OUT]
+    dist = [100.0, 80.0, 90.0, -10.0]
+    one = _snapshot(road, dist, None)
+    same, other = lane_relations(one.road, np.array([0]))
+    assert same[0].tolist() == [False, True, False, True]
+    assert other[0].tolist() == [False, False, True, False]
+    # The same cars, but the leader and the merge-road car drive in another copy of the merge.
+    split = _snapshot(road, dist, [0, 1, 1, 0])
+    same, other = lane_relations(split.road, np.array([0]), split.copy)
+    assert same[0].tolist() == [False, False, False, True]
+    assert other[0].tolist() == [False, False, False, False]
+    assert leaders(one, np.array([0]))[0].tolist() == [1]
+    assert leaders(split, np.array([0]))[0].tolist() == [3]
+
+
+def single_path_records(net_path: Path) -> list[dict[str, object]]:
+    """The golden file's source: the single-episode path (``MergeSimulation``), one scenario at a time.
+
+    Delete with ``MergeSimulation``; the golden file keeps its value.
+    """
+    from idas_sumo.baselines.policies import fsm_idm_actions, idm_actions
+    from idas_sumo.env.core import MergeSimulation
+
+    cases = golden_cases(net_path)
+    sim = MergeSimulation(net_path, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+    records: list[dict[str, object]] = []
+    try:
+        for case in cases:
+            sim.reset(case.scenario)
+            start = sim.time_s
+            lines: list[str] = []
+            counts = {"collisions": 0, "hard_brakes": 0, "hard_brakes_merge_zone": 0, "impedes": 0}
+            returns: dict[str, float] = {}
+            while not sim.episode_over:
+                agents = sim.active_agents
+                t = sim.time_s
+                _, masks = sim.observe(agents)
+                egos = sim.snapshot.index(agents)
+                prev = np.array([sim.prev_accel(a) for a in agents])
+                idm = idm_actions(sim.snapshot, egos, prev, masks)
+                fsm = fsm_idm_actions(sim.snapshot, egos, prev, masks)
+                jit = jitter_actions(agents, t, masks, idm)
+                chosen = np.where(
+                    np.array([a == case.ego for a in agents]),
+                    fsm,
+                    np.where(np.array([erratic(a) for a in agents]), jit, idm),
+                )
+                out = sim.step({a: int(c) for a, c in zip(agents, chosen, strict=True)})
+                parts = {
+                    a: [out.reward_parts[a][p] for p in ("finish", "collide", "impede", "flow")]
+                    for a in agents
+                }
+                reasons = [out.end_reason.get(a, "") for a in agents]
+                lines.append(step_line(t, agents, masks, parts, reasons))
+                counts["collisions"] += len(out.collisions)
+                counts["hard_brakes"] += len(out.hard_brakes)
+                counts["hard_brakes_merge_zone"] += out.hard_brakes_merge_zone
+                counts["impedes"] += sum(1 for p in out.reward_parts.values() if p["impede"] < 0)
+                for a, r in out.rewards.items():
+                    returns[a] = returns.get(a, 0.0) + r
+            records.append(
+                {
+                    "scenario": case.scenario.name,
+                    "steps": _digest_lines(lines),
+                    "decision_steps": len(lines),
+                    **counts,
+                    "end_reasons": dict(sorted(sim.finished_agents.items())),
+                    "returns": {a: round(r, 6) for a, r in sorted(returns.items())},
+                    "start_time_s": round(start, 3),
+                    "end_time_s": round(sim.time_s, 3),
+                }
+            )
+    finally:
+        sim.close()
+    return records
+
+
+@pytest.mark.sumo
+def test_single_episode_path_gives_the_golden_file(net_path: Path) -> None:
+    assert single_path_records(net_path) == json.loads(GOLDEN.read_text())
