@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
 from idas_sumo.errors import IdasError, InputError
+from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.resources import (
     DEFAULT_NET_NAME,
     DEFAULT_TRAIN_CONFIG,
@@ -232,6 +233,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--plots", action="store_true", help="also write PNG plots next to the CSVs")
     ev.add_argument("--no-progress", action="store_true", help="no progress bar")
     ev.add_argument("--gui", action="store_true", help="show the episodes in sumo-gui (needs a display)")
+    ev.add_argument(
+        "--copies",
+        type=_positive_int,
+        default=DEFAULT_EVAL_COPIES,
+        help="episodes run side by side in one SUMO run; results do not depend on it (default: %(default)s)",
+    )
 
     plot = sub.add_parser("plot", help="draw PNG plots from an evaluation output directory")
     plot.add_argument("dir", type=Path, help="directory written by `idas-sumo evaluate`")
@@ -279,6 +286,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             gui=args.gui,
             config=args.config,
             scenario_files=tuple(args.scenario),
+            copies=args.copies,
         )
     )
     if args.others is None and others == "idm":

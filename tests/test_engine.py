@@ -233,3 +233,31 @@ def single_path_records(net_path: Path) -> list[dict[str, object]]:
 @pytest.mark.sumo
 def test_single_episode_path_gives_the_golden_file(net_path: Path) -> None:
     assert single_path_records(net_path) == json.loads(GOLDEN.read_text())
+
+
+@pytest.mark.sumo
+def test_evaluation_csvs_do_not_depend_on_copies(tmp_path: Path, net_path: Path) -> None:
+    from idas_sumo.cli import main
+
+    outs = []
+    for copies in (1, 4):
+        out = tmp_path / f"k{copies}"
+        args = [
+            "evaluate",
+            "--net",
+            str(net_path),
+            "--baseline",
+            "all",
+            "--others",
+            "idm",
+            "--scenarios",
+            "6",
+        ]
+        args += ["--seed", "3", "--trajectories", "--no-progress", "--copies", str(copies), "--out", str(out)]
+        assert main(args) == 0
+        outs.append(out)
+    names = ["episodes.csv", "summary.csv", "flow.csv", "trajectories.csv"]
+    for name in names:
+        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
+    # Several methods and scenarios ran side by side: the comparison saw more than one job per SUMO run.
+    assert len((outs[0] / "episodes.csv").read_text().splitlines()) == 1 + 5 * 6

@@ -103,6 +103,16 @@ class EnvConfig:
 # -- what an episode amounted to -------------------------------------------------------------------
 
 
+def is_success(collisions: int, all_finished: bool) -> bool:
+    """The paper's success: no collision and every controlled car finished (in time)."""
+    return collisions == 0 and all_finished
+
+
+def is_perfect(success: bool, impedes: int, hard_brakes_merge_zone: int) -> bool:
+    """Success without any reward deduction: no impede, no flow penalty (no hard brake in the merging zone)."""
+    return success and impedes == 0 and hard_brakes_merge_zone == 0
+
+
 @dataclass
 class EpisodeOutcome:
     """One episode's facts, and the one definition of success (docs/design-notes.md, "Definitions").
@@ -145,13 +155,11 @@ class EpisodeOutcome:
 
     @property
     def success(self) -> bool:
-        """The paper's success: no collision and every controlled car finished (in time)."""
-        return self.collisions == 0 and self.all_finished
+        return is_success(self.collisions, self.all_finished)
 
     @property
     def perfect(self) -> bool:
-        """Success without any reward deduction: no impede, no flow penalty."""
-        return self.success and self.impedes == 0 and self.hard_brakes_merge_zone == 0
+        return is_perfect(self.success, self.impedes, self.hard_brakes_merge_zone)
 
 
 # -- what the policies see -------------------------------------------------------------------------
@@ -907,6 +915,8 @@ __all__ = [
     "MergeEngine",
     "Policy",
     "StepResult",
+    "is_perfect",
+    "is_success",
     "iter_episodes",
     "placeholder_mask",
     "run_episodes",

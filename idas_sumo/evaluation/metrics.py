@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from idas_sumo.env.engine import is_perfect, is_success
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M, finish_reward
 
 TRAJECTORY_COLUMNS: tuple[str, ...] = (
@@ -104,8 +105,8 @@ def finish_times(trajectory: pd.DataFrame) -> pd.Series:
 def episode_row(trajectory: pd.DataFrame, facts: EpisodeFacts) -> dict[str, object]:
     controlled = trajectory[trajectory["controlled"]]
     ego = trajectory[trajectory["vehicle"] == facts.ego_id]
-    success = facts.collisions == 0 and facts.all_finished
-    perfect = success and facts.impedes == 0 and facts.hard_brakes_merge_zone == 0
+    success = is_success(facts.collisions, facts.all_finished)
+    perfect = is_perfect(success, facts.impedes, facts.hard_brakes_merge_zone)
     ego_finish = finish_times(ego).get(facts.ego_id, np.nan)
     return {
         "scenario": facts.scenario,

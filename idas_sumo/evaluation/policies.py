@@ -1,16 +1,13 @@
-"""Methods an evaluation can run, behind one interface: given the simulation and some agents, pick
-their actions. Baselines read the traffic snapshot; learned policies read observations."""
+"""Methods an evaluation can run, behind the engine's ``Policy`` contract (env/engine.py): actions for
+rows of an ``AgentBatch``. Baselines read the traffic snapshot; learned policies read observations."""
 
 from __future__ import annotations
 
 import difflib
 from pathlib import Path
 
-import numpy as np
-import numpy.typing as npt
-
-from idas_sumo.baselines.policies import BASELINES, baseline_policy
-from idas_sumo.env.core import MergeSimulation, PolicyFn
+from idas_sumo.baselines.policies import BASELINES, RuleBasedPolicy
+from idas_sumo.env.engine import Policy
 from idas_sumo.errors import InputError
 from idas_sumo.resources import POLICY_DIR
 
@@ -36,28 +33,19 @@ def check_method(name: str, flag: str = "--baseline", also: tuple[str, ...] = ()
     return name
 
 
-def learned_policy(path: Path, seed: int = 0) -> PolicyFn:
+def learned_policy(path: Path, seed: int = 0) -> Policy:
     """A shipped or trained actor, acting greedily (the most probable allowed action)."""
     from idas_sumo.agents.checkpoint_file import load_actor  # lazy: torch only for learned methods
+    from idas_sumo.agents.policy import ActorPolicy
 
-    actor = load_actor(path)
-    import torch
-
-    generator = torch.Generator().manual_seed(seed)
-
-    def policy(
-        sim: MergeSimulation, agents: list[str], obs: npt.NDArray[np.float32], masks: npt.NDArray[np.int8]
-    ) -> npt.NDArray[np.int64]:
-        return actor.act(obs, masks, generator, deterministic=True)
-
-    return policy
+    return ActorPolicy(load_actor(path), seed=seed, deterministic=True)
 
 
-def resolve_policy(name: str, policy_path: Path | None = None, seed: int = 0) -> PolicyFn:
+def resolve_policy(name: str, policy_path: Path | None = None, seed: int = 0) -> Policy:
     """The policy for a method name; learned methods load ``policy_path`` or the shipped file."""
     check_method(name)
     if name in BASELINES:
-        return baseline_policy(name)
+        return RuleBasedPolicy(name)
     path = policy_path or POLICY_DIR / LEARNED_METHODS[name]
     if not path.exists():
         raise InputError(f"{path}: policy file not found (train it with `idas-sumo train` or pass --policy)")

@@ -1,9 +1,13 @@
 """The paper's evaluation protocol: scenarios from a seed, one ego per scenario running the method,
-every other vehicle running ``others``; every method acts through the same masks."""
+every other vehicle running ``others``; every method acts through the same masks.
+
+Every (method, case) pair is one job of the episode engine (env/engine.py), which runs ``copies`` of
+them side by side in one SUMO run; each job's numbers are those of its scenario alone, so the CSVs do
+not depend on ``copies``."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -12,7 +16,14 @@ import numpy as np
 import pandas as pd
 
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.core import DEFAULT_MAX_EPISODE_S, MergeSimulation
+from idas_sumo.env.engine import (
+    DEFAULT_MAX_EPISODE_S,
+    AgentBatch,
+    EpisodeOutcome,
+    MergeEngine,
+    Policy,
+    iter_episodes,
+)
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.env.scenario import (
     B_TYPE_RANGE,
@@ -24,7 +35,6 @@ from idas_sumo.env.scenario import (
 )
 from idas_sumo.env.snapshot import ROAD_NAMES
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
-from idas_sumo.evaluation.policies import PolicyFn
 from idas_sumo.resources import SCENARIO_DIR
 
 Suite = Literal["paper", "representative", "driver-types"]
@@ -105,124 +115,155 @@ class EpisodeResult:
     trajectory: pd.DataFrame = field(repr=False)
 
 
-def _free_flow_times(sim: MergeSimulation, vehicles: tuple[VehicleSpec, ...]) -> dict[str, float]:
-    out_limit = sim.net.out.speed_limit_mps
+@dataclass(frozen=True)
+class EvalJob:
+    """One episode of an evaluation: ``case`` with ``method`` driving ``case.method_vehicles``."""
+
+    method: str
+    case: EvalCase
+
+
+def eval_jobs(cases: Sequence[EvalCase], methods: Sequence[str]) -> list[EvalJob]:
+    """Every (method, case) pair, method by method (the CSVs' row order)."""
+    jobs = []
+    for method in methods:
+        for case in cases:
+            if method == "fsm_idm":  # FSM+IDM has no driver type: the paper runs it on one car only
+                case = replace(case, method_vehicles=(case.ego,))
+            jobs.append(EvalJob(method, case))
+    return jobs
+
+
+def _free_flow_times(engine: MergeEngine, vehicles: tuple[VehicleSpec, ...]) -> dict[str, float]:
+    out_limit = engine.net.out.speed_limit_mps
     times = {}
     for v in vehicles:
-        to_merge = sim.road_lengths_m[v.road] - v.start_pos_m
-        times[v.id] = to_merge / sim.speed_limits_mps[v.road] + FINISH_DISTANCE_PAST_MERGE_M / out_limit
+        to_merge = engine.road_lengths_m[v.road] - v.start_pos_m
+        times[v.id] = to_merge / engine.speed_limits_mps[v.road] + FINISH_DISTANCE_PAST_MERGE_M / out_limit
     return times
 
 
-def run_case(
-    sim: MergeSimulation,
-    case: EvalCase,
-    method: str,
-    method_policy: PolicyFn,
-    others_policy: PolicyFn,
-    sumo_args: tuple[str, ...] = (),
+class _Recorder:
+    """The engine observer of an evaluation: every vehicle's row at each step a job's agents decide,
+    and at its end; the job's ``EpisodeResult`` once it is over."""
+
+    def __init__(self, jobs: Sequence[EvalJob]) -> None:
+        self.jobs = jobs
+        self.rows: dict[int, list[tuple[object, ...]]] = {}
+        self.results: dict[int, EpisodeResult] = {}
+
+    def decided(
+        self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: np.ndarray
+    ) -> None:
+        copies = batch.copy.tolist()
+        chosen = actions.tolist()
+        per_copy: dict[int, tuple[dict[str, int], dict[str, str]]] = {}
+        for i, (a, k) in enumerate(zip(batch.ids, copies, strict=True)):
+            acts, masks = per_copy.setdefault(k, ({}, {}))
+            acts[a] = chosen[i]
+            masks[a] = "".join(map(str, batch.masks[i].tolist()))
+        for k, (acts, masks) in per_copy.items():
+            self._record(engine, k, jobs[k], acts, masks)
+
+    def stepped(self, *args: object) -> None:
+        pass
+
+    def ended(self, engine: MergeEngine, slot: int, job: int, outcome: EpisodeOutcome) -> None:
+        self._record(engine, slot, job, {}, {})
+        self.results[job] = _result(engine, self.jobs[job], outcome, self.rows.pop(job))
+
+    def _record(
+        self, engine: MergeEngine, k: int, job: int, actions: dict[str, int], masks: dict[str, str]
+    ) -> None:
+        snap = engine.snapshot
+        case = self.jobs[job].case
+        method = self.jobs[job].method
+        method_set = set(case.method_vehicles)
+        controlled = set(case.scenario.controlled_ids)
+        t = round(engine.time_s, 3)
+        rows = self.rows.setdefault(job, [])
+        span = engine.rows_of(k)
+        for i in range(span.start, span.stop):
+            vid = snap.ids[i]
+            rows.append(
+                (
+                    t,
+                    vid,
+                    vid in controlled,
+                    method if vid in method_set else ("others" if vid in controlled else "sumo"),
+                    ROAD_NAMES[int(snap.road[i])],
+                    round(float(snap.dist_to_merge_m[i]), 3),
+                    round(float(snap.speed_mps[i]), 4),
+                    round(float(snap.accel_mps2[i]), 4),
+                    actions.get(vid, -1),
+                    masks.get(vid, ""),
+                )
+            )
+
+
+def _result(
+    engine: MergeEngine, job: EvalJob, outcome: EpisodeOutcome, rows: list[tuple[object, ...]]
 ) -> EpisodeResult:
-    """Run one episode and measure it."""
+    """Measure one finished episode."""
+    case = job.case
     scenario = case.scenario
-    sim.reset(scenario, sumo_args)
-    start = sim.time_s
-    rows: list[tuple[object, ...]] = []
-    collisions = hard_brakes = merge_zone_brakes = impedes = 0
-    ego_reward = 0.0
-    method_set = set(case.method_vehicles)
-    controlled = {v.id for v in scenario.vehicles if v.controlled}
-    while True:
-        agents = sim.active_agents
-        obs, masks = sim.observe(agents)
-        actions: dict[str, int] = {}
-        mine = [i for i, a in enumerate(agents) if a in method_set]
-        theirs = [i for i, a in enumerate(agents) if a not in method_set]
-        for idx, policy in ((mine, method_policy), (theirs, others_policy)):
-            if idx:
-                ids = [agents[i] for i in idx]
-                chosen = policy(sim, ids, obs[idx], masks[idx])
-                actions.update({a: int(c) for a, c in zip(ids, chosen, strict=True)})
-        _record(rows, sim, actions, dict(zip(agents, masks, strict=True)), method_set, method, controlled)
-        if sim.episode_over:
-            break
-        outcome = sim.step(actions)
-        collisions += len(outcome.collisions)
-        hard_brakes += len(outcome.hard_brakes)
-        merge_zone_brakes += outcome.hard_brakes_merge_zone
-        impedes += sum(1 for parts in outcome.reward_parts.values() if parts["impede"] < 0)
-        if case.ego in outcome.rewards:
-            ego_reward += outcome.rewards[case.ego]
     trajectory = pd.DataFrame(rows, columns=list(TRAJECTORY_COLUMNS))
     ego_spec = next(v for v in scenario.vehicles if v.id == case.ego)
     facts = EpisodeFacts(
         scenario=scenario.name,
         seed=case.seed,
-        method=method,
+        method=job.method,
         ego_id=case.ego,
         ego_road=ego_spec.road,
         ego_prio=scenario.prio(ego_spec.road),
         ego_type=ego_spec.b_type,
-        collisions=collisions,
-        hard_brakes=hard_brakes,
-        hard_brakes_merge_zone=merge_zone_brakes,
-        impedes=impedes,
-        all_finished=all(reason == "finished" for reason in sim.finished_agents.values())
-        and not sim.active_agents,
-        ego_total_reward=ego_reward,
-        duration_s=sim.time_s - start,
-        start_time_s=start,
-        free_flow_time_s=_free_flow_times(sim, scenario.vehicles),
+        collisions=outcome.collisions,
+        hard_brakes=outcome.hard_brakes,
+        hard_brakes_merge_zone=outcome.hard_brakes_merge_zone,
+        impedes=outcome.impedes,
+        all_finished=outcome.all_finished,
+        ego_total_reward=outcome.returns.get(case.ego, 0.0),
+        duration_s=outcome.duration_s,
+        start_time_s=outcome.start_time_s,
+        free_flow_time_s=_free_flow_times(engine, scenario.vehicles),
     )
     return EpisodeResult(episode_row(trajectory, facts), flow_row(trajectory, facts), trajectory)
 
 
-def _record(
-    rows: list[tuple[object, ...]],
-    sim: MergeSimulation,
-    actions: dict[str, int],
-    masks: dict[str, np.ndarray],
-    method_set: set[str],
-    method: str,
-    controlled: set[str],
-) -> None:
-    snap = sim.snapshot
-    t = round(sim.time_s, 3)
-    for i, vid in enumerate(snap.ids):
-        mask = masks.get(vid)
-        rows.append(
-            (
-                t,
-                vid,
-                vid in controlled,
-                method if vid in method_set else ("others" if vid in controlled else "sumo"),
-                ROAD_NAMES[int(snap.road[i])],
-                round(float(snap.dist_to_merge_m[i]), 3),
-                round(float(snap.speed_mps[i]), 4),
-                round(float(snap.accel_mps2[i]), 4),
-                actions.get(vid, -1),
-                "".join(str(int(b)) for b in mask) if mask is not None else "",
-            )
-        )
-
-
 def iterate_runs(
-    sim: MergeSimulation,
+    engine: MergeEngine,
     cases: list[EvalCase],
-    methods: dict[str, PolicyFn],
-    others_policy: PolicyFn,
+    methods: dict[str, Policy],
+    others_policy: Policy,
     tripinfo_dir: Path | None = None,
 ) -> Iterator[tuple[str, EvalCase, EpisodeResult]]:
-    """Every (method, case) pair in a fixed order; results are yielded as they complete."""
-    for method, policy in methods.items():
-        for case in cases:
-            args: tuple[str, ...] = ()
-            if tripinfo_dir is not None:
-                args = (
-                    "--tripinfo-output",
-                    str(tripinfo_dir / f"{method}-{case.scenario.name}.tripinfo.xml"),
-                    # The episode ends before every car has left the net; report those cars too.
-                    "--tripinfo-output.write-unfinished",
-                )
-            if method == "fsm_idm":  # FSM+IDM has no driver type: the paper runs it on one car only
-                case = replace(case, method_vehicles=(case.ego,))
-            yield method, case, run_case(sim, case, method, policy, others_policy, args)
+    """Every (method, case) pair in a fixed order (method by method); results are yielded in that order
+    as they complete. ``tripinfo_dir`` (SUMO's own per-episode output) needs an engine with one copy."""
+    jobs = eval_jobs(cases, list(methods))
+    names = list(methods)
+    policies = [*methods.values(), others_policy]
+    others = len(names)
+    method_sets = [frozenset(job.case.method_vehicles) for job in jobs]
+    method_index = [names.index(job.method) for job in jobs]
+
+    def assign(j: int, agent: str) -> int:
+        return method_index[j] if agent in method_sets[j] else others
+
+    sumo_args = None
+    if tripinfo_dir is not None:
+        directory = tripinfo_dir
+
+        def sumo_args(j: int) -> tuple[str, ...]:
+            job = jobs[j]
+            return (
+                "--tripinfo-output",
+                str(directory / f"{job.method}-{job.case.scenario.name}.tripinfo.xml"),
+                # The episode ends before every car has left the net; report those cars too.
+                "--tripinfo-output.write-unfinished",
+            )
+
+    recorder = _Recorder(jobs)
+    for j, _ in iter_episodes(
+        engine, [job.case.scenario for job in jobs], assign, policies, recorder, sumo_args
+    ):
+        yield jobs[j].method, jobs[j].case, recorder.results.pop(j)

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from idas_sumo.env.core import EnvConfig, MergeSimulation
+from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy
+from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.evaluation.metrics import (
     EPISODE_COLUMNS,
     FLOW_COLUMNS,
@@ -17,7 +18,7 @@ from idas_sumo.evaluation.metrics import (
     TRAJECTORY_COLUMNS,
     summary_rows,
 )
-from idas_sumo.evaluation.policies import LEARNED_METHODS, POLICY_DIR, PolicyFn, resolve_policy
+from idas_sumo.evaluation.policies import LEARNED_METHODS, POLICY_DIR, resolve_policy
 from idas_sumo.evaluation.protocol import (
     EvalConfig,
     Suite,
@@ -56,6 +57,9 @@ class EvalRequest:
     """TOML with [traffic] and max_episode_s for the paper suite (see scenarios/eval_paper.toml)."""
     scenario_files: tuple[Path, ...] = ()
     """Evaluate these scenario TOML files instead of a suite (the ego is each file's first vehicle)."""
+    copies: int = DEFAULT_EVAL_COPIES
+    """Episodes run side by side in one SUMO run (1 with ``gui`` or ``sumo_output``: SUMO's own output
+    and window are per episode). The CSVs do not depend on it."""
 
 
 def default_others() -> str:
@@ -78,7 +82,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
     net = read_merge_net(req.net)
     eval_config = load_eval_config(req.config) if req.config is not None else EvalConfig()
     others_name = req.others or default_others()
-    policies: dict[str, PolicyFn] = {
+    policies: dict[str, Policy] = {
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
     }
     others_policy = resolve_policy(others_name, None, req.seed)
@@ -88,22 +92,29 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         if req.sumo_output:
             tripinfo_dir = out / "sumo"
             tripinfo_dir.mkdir(exist_ok=True)
-        sim = MergeSimulation(
-            net, seed=req.seed, config=EnvConfig(max_episode_s=eval_config.max_episode_s), gui=req.gui
+        copies = 1 if req.gui or req.sumo_output else req.copies
+        engine = MergeEngine(
+            net,
+            copies=copies,
+            seed=req.seed,
+            config=EnvConfig(max_episode_s=eval_config.max_episode_s),
+            gui=req.gui,
         )
         try:
             if req.scenario_files:
-                cases = file_cases(list(req.scenario_files), req.seed, sim.speed_limits_mps)
+                cases = file_cases(list(req.scenario_files), req.seed, engine.speed_limits_mps)
             else:
                 cases = suite_cases(
-                    req.suite, req.scenarios, req.seed, sim.speed_limits_mps, eval_config.traffic
+                    req.suite, req.scenarios, req.seed, engine.speed_limits_mps, eval_config.traffic
                 )
             log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
             episodes, flows, trajectories = [], [], []
             total = len(cases) * len(policies)
             description = f"evaluate ({req.suite}, others: {others_name})"
             with _progress(req.progress, total, description) as advance:
-                for method, case, result in iterate_runs(sim, cases, policies, others_policy, tripinfo_dir):
+                for method, case, result in iterate_runs(
+                    engine, cases, policies, others_policy, tripinfo_dir
+                ):
                     episodes.append(result.episode)
                     flows.append(result.flow)
                     if req.trajectories:
@@ -112,7 +123,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
                         )
                     advance()
         finally:
-            sim.close()
+            engine.close()
         episode_frame = pd.DataFrame(episodes, columns=list(EPISODE_COLUMNS))
         summary = pd.DataFrame(summary_rows(episode_frame), columns=list(SUMMARY_COLUMNS))
         write_csv_atomic(episode_frame, out / "episodes.csv")
