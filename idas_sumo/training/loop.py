@@ -1,10 +1,11 @@
-"""The training loop, top to bottom: for each stage, collect episodes, update, log, checkpoint.
+"""The training loop, top to bottom: for each stage, rounds of collect, update, log, validate, checkpoint.
 
-``run_training`` is what ``idas-sumo train`` calls. One round = ``episodes_per_update`` episodes
-collected with the current actor (by 1 in-process worker or W processes), then one learner update
-on all their agent-steps, then one metrics row per episode. Randomness: one numpy generator draws
-the scenarios, one torch generator draws each episode's action-sampling seed; both are saved in
-every checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
+``run_training`` is what ``idas-sumo train`` calls; it reads as the run goes, and each part it
+calls follows it in this file in that order. One round = ``episodes_per_update`` episodes collected
+with the current actor (by 1 in-process worker or W processes), then one learner update on all
+their agent-steps, then one metrics row per episode. Randomness: one numpy generator draws the
+scenarios, one torch generator draws each episode's action-sampling seed; both are saved in every
+checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import logging
 import shutil
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, get_args
 
@@ -49,31 +50,455 @@ VALIDATION_NAME = "validation.csv"
 SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
 
 
-@dataclasses.dataclass
-class _Counters:
-    stage_index: int = 0
-    episode: int = 0  # within the current stage
-    global_episode: int = 0
-
-
-def _payload(
-    learner: Learner,
+def run_training(
+    net_path: Path | str,
     config: TrainConfig,
-    plan: StagePlan,
-    counters: _Counters,
-    np_rng_state: Mapping[str, Any],
-    torch_rng_state: torch.Tensor,
-) -> TrainingCheckpoint:
-    return TrainingCheckpoint(
-        learner=learner.state_dict(),
-        config=config,
-        stage=plan.name,
-        stage_index=counters.stage_index,
-        episode=counters.episode,
-        global_episode=counters.global_episode,
-        numpy_rng=dict(np_rng_state),
-        torch_rng=torch_rng_state.clone(),
+    out_dir: Path | str,
+    resume: bool = False,
+    progress: bool = True,
+    gui: bool = False,
+    force: bool = False,
+) -> Path:
+    """Train as ``config`` says; write checkpoints and ``metrics.csv`` under ``out_dir``.
+
+    Returns the final checkpoint (``out_dir/<last stage>.pt``). ``resume`` continues the run in
+    ``out_dir`` from its ``checkpoint.pt`` with the saved config, taking only ``RESUME_FIELDS``
+    (workers, the stage budgets) from ``config``: a larger budget extends a finished run. Without
+    ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which replaces the
+    files a run writes. ``gui`` shows the rollouts in sumo-gui (one worker only). Ctrl-C saves a
+    checkpoint of the completed rounds, then re-raises KeyboardInterrupt.
+    """
+    net_path, out_dir = Path(net_path), Path(out_dir)
+    _check_request(net_path, config, out_dir, resume=resume, gui=gui, force=force)
+    resumed = _read_resume_point(out_dir) if resume else None
+    if resumed is not None:
+        config = _resumed_config(resumed.config, config)
+    elif not force:
+        _refuse_used_out_dir(out_dir)
+    init_weights = _init_weights(config) if resumed is None else None
+    ensure_writable_dir(out_dir)
+
+    plans = plan_stages(config)
+    net = read_merge_net(net_path)
+    if resumed is not None:
+        state = _RunState.resume(resumed, plans, out_dir / CHECKPOINT_NAME)
+        _drop_best_after(out_dir, state.global_episode)
+    else:
+        state = _RunState.start(config.seed)
+        if force:
+            _remove_run_outputs(out_dir)
+
+    run = _Run(config, out_dir, {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps})
+    env_config = EnvConfig(max_episode_s=config.max_episode_s, reward=config.reward)
+    # On resume, the metrics rows past the checkpoint go (they are written again).
+    keep_below = state.global_episode if resumed is not None else None
+    final = run.latest
+    learner: Learner | None = None
+    with (
+        make_workers(net_path, env_config, config.seed, config.workers, gui=gui) as workers,
+        MetricsSink(out_dir, keep_below) as sink,
+        (
+            _validation_sink(out_dir, keep_below) if config.validate_every else contextlib.nullcontext()
+        ) as validation_sink,
+        _make_progress(progress and sys.stderr.isatty()) as bar,
+    ):
+        for stage_index in range(state.stage_index, len(plans)):
+            plan = plans[stage_index]
+            # The checkpoint's own stage continues from it; a later stage starts afresh.
+            resumed_here = resumed if resumed is not None and stage_index == resumed.stage_index else None
+            learner = _stage_learner(
+                plan,
+                seed=config.seed + stage_index,
+                resumed=resumed_here,
+                previous=learner,
+                init_weights=init_weights if stage_index == 0 else None,
+            )
+            state.enter_stage(stage_index)
+            validation = (
+                None
+                if validation_sink is None
+                else _StageValidation.start(run, plan, workers, validation_sink, resumed_here)
+            )
+            _train_stage(run, plan, learner, state, workers, sink, validation, bar)
+            final = _finish_stage(run, plan, learner, state, validation)
+    return final
+
+
+# --- preparing the run directory --------------------------------------------------------------------
+
+
+def _check_request(
+    net_path: Path, config: TrainConfig, out_dir: Path, *, resume: bool, gui: bool, force: bool
+) -> None:
+    """Refuse a request that cannot run, before anything is read or written."""
+    if not net_path.is_file():
+        raise InputError(f"{net_path}: network file not found")
+    if gui and config.workers > 1:
+        raise InputError("--gui needs --workers 1")
+    require_display(gui)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir}: exists and is not a directory")
+    if resume and force:
+        raise InputError("--resume and --force exclude each other")
+
+
+def _read_resume_point(out_dir: Path) -> TrainingCheckpoint:
+    latest = out_dir / CHECKPOINT_NAME
+    if not latest.exists():
+        raise InputError(f"{latest}: no checkpoint to resume from")
+    return load_checkpoint(latest)
+
+
+def stored_config(out_dir: Path) -> TrainConfig:
+    """The config of the run in ``out_dir`` (from its ``checkpoint.pt``), as ``--resume`` continues it."""
+    return load_checkpoint(out_dir / CHECKPOINT_NAME).config
+
+
+def _resumed_config(saved: TrainConfig, requested: TrainConfig) -> TrainConfig:
+    """The run's own config with ``RESUME_FIELDS`` from ``requested``; other new values are ignored."""
+    ignored = [
+        f.name
+        for f in dataclasses.fields(TrainConfig)
+        if f.name not in RESUME_FIELDS and getattr(saved, f.name) != getattr(requested, f.name)
+    ]
+    if ignored:
+        log.warning("resuming with the checkpoint's config; ignoring new values for %s", ", ".join(ignored))
+    return dataclasses.replace(saved, **{name: getattr(requested, name) for name in RESUME_FIELDS})
+
+
+def _refuse_used_out_dir(out_dir: Path) -> None:
+    """A new run (no ``force``) writes only into an empty or new ``out_dir``."""
+    if not (out_dir.is_dir() and any(out_dir.iterdir())):
+        return
+    if (out_dir / CHECKPOINT_NAME).exists():
+        raise InputError(
+            f"{out_dir}: already holds a training run; pass --resume to continue it, --force to "
+            "start over, or choose another --out"
+        )
+    raise InputError(
+        f"--out {out_dir}: directory exists and is not empty (use --force to overwrite its files)"
     )
+
+
+def _init_weights(config: TrainConfig) -> dict[str, Any] | None:
+    """The learner state ``init_from`` names, which starts the first stage (None without one)."""
+    if not config.init_from:
+        return None
+    try:
+        return load_checkpoint(config.init_from).learner
+    except InputError as err:
+        raise InputError(
+            f"init_from: {err} (a path from the working directory; the shipped recipe makes "
+            "runs/imitation.pt with scripts/pretrain_imitation.py)"
+        ) from None
+
+
+def _run_outputs(out_dir: Path) -> list[Path]:
+    """Every file or folder a training run writes into ``out_dir`` (what ``force`` replaces)."""
+    stages = {plan.name for stage in get_args(Stage) for plan in plan_stages(TrainConfig(stage=stage))}
+    names = [CHECKPOINT_NAME, METRICS_NAME, VALIDATION_NAME, TENSORBOARD_DIR]
+    names += [f"{stage}{suffix}" for stage in sorted(stages) for suffix in (".pt", "_best.pt")]
+    return [out_dir / name for name in names]
+
+
+def _remove_run_outputs(out_dir: Path) -> None:
+    for path in _run_outputs(out_dir):
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)
+
+
+def _drop_best_after(out_dir: Path, global_episode: int) -> None:
+    """Delete every ``<stage>_best.pt`` saved after ``global_episode``: its weights come from training
+    that resuming from that checkpoint discards."""
+    for path in _run_outputs(out_dir):
+        stale = (
+            path.name.endswith("_best.pt")
+            and path.is_file()
+            and load_checkpoint(path).global_episode > global_episode
+        )
+        if stale:
+            log.info("removing %s: saved after the checkpoint the run resumes from", path)
+            path.unlink()
+
+
+def _validation_sink(out_dir: Path, keep_below: int | None) -> MetricsSink:
+    """``validation.csv``. A validation row is stamped with the episode count it was scored at, so on
+    resume the one at the checkpoint's own count stays."""
+    return MetricsSink(
+        out_dir,
+        None if keep_below is None else keep_below + 1,
+        name=VALIDATION_NAME,
+        columns=VALIDATION_COLUMNS,
+        tensorboard_keys=(),
+    )
+
+
+# --- the run's state --------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What stays fixed while a run trains."""
+
+    config: TrainConfig
+    out_dir: Path
+    speed_limits: dict[Road, float]
+    started: float = dataclasses.field(default_factory=time.perf_counter)
+
+    @property
+    def latest(self) -> Path:
+        return self.out_dir / CHECKPOINT_NAME
+
+    def wall_s(self) -> float:
+        """Seconds since the run (this process's part of it) started."""
+        return time.perf_counter() - self.started
+
+
+_RngStates = tuple[Mapping[str, Any], torch.Tensor]
+
+
+@dataclasses.dataclass
+class _RunState:
+    """Where the run stands and the generators that continue it: what a checkpoint saves."""
+
+    np_rng: np.random.Generator
+    """Draws the scenarios."""
+    torch_rng: torch.Generator
+    """Draws each episode's action-sampling seed."""
+    stage_index: int = 0
+    episode: int = 0
+    """Episodes completed in the current stage."""
+    global_episode: int = 0
+    """Episodes completed in every stage of the run."""
+
+    @classmethod
+    def start(cls, seed: int) -> _RunState:
+        return cls(np.random.default_rng(seed), torch.Generator().manual_seed(seed))
+
+    @classmethod
+    def resume(cls, checkpoint: TrainingCheckpoint, plans: list[StagePlan], path: Path) -> _RunState:
+        """Where ``checkpoint`` (read from ``path``) left off, if it fits this run's plan and budgets."""
+        c = checkpoint
+        if c.stage_index >= len(plans) or plans[c.stage_index].name != c.stage:
+            raise InputError(f"{path}: stage {c.stage!r} does not belong to this run's plan")
+        budget = plans[c.stage_index].episodes
+        if c.episode > budget:
+            raise InputError(
+                f"{path}: the run is at episode {c.episode} of stage {c.stage!r}; a budget of {budget} "
+                f"episodes ends before that (give --episodes {c.episode} or more)"
+            )
+        state = cls.start(c.config.seed)
+        state.stage_index, state.episode, state.global_episode = c.stage_index, c.episode, c.global_episode
+        state.np_rng.bit_generator.state = c.numpy_rng
+        state.torch_rng.set_state(c.torch_rng)
+        return state
+
+    def enter_stage(self, stage_index: int) -> None:
+        """Count the episodes of ``stage_index`` from 0, unless the run is in that stage already."""
+        if stage_index != self.stage_index:
+            self.stage_index, self.episode = stage_index, 0
+
+    def advance(self, episodes: int) -> None:
+        self.episode += episodes
+        self.global_episode += episodes
+
+    def rng_states(self) -> _RngStates:
+        return self.np_rng.bit_generator.state, self.torch_rng.get_state()
+
+    def checkpoint(
+        self, learner: Learner, config: TrainConfig, plan: StagePlan, rng: _RngStates | None = None
+    ) -> TrainingCheckpoint:
+        """The run as it stands, with the generators' states ``rng`` (default: as they are now)."""
+        numpy_state, torch_state = rng if rng is not None else self.rng_states()
+        return TrainingCheckpoint(
+            learner=learner.state_dict(),
+            config=config,
+            stage=plan.name,
+            stage_index=self.stage_index,
+            episode=self.episode,
+            global_episode=self.global_episode,
+            numpy_rng=dict(numpy_state),
+            torch_rng=torch_state.clone(),
+        )
+
+
+# --- one stage --------------------------------------------------------------------------------------
+
+
+def _stage_learner(
+    plan: StagePlan,
+    seed: int,
+    resumed: TrainingCheckpoint | None,
+    previous: Learner | None,
+    init_weights: dict[str, Any] | None,
+) -> Learner:
+    """The stage's learner: the checkpoint's when the run resumes in this stage, else the previous
+    stage's networks (the curriculum's stage 2), else ``init_weights``, else fresh ones."""
+    learner = Learner(plan.learner, seed=seed)
+    if resumed is not None:
+        learner.load_state_dict(resumed.learner)
+    elif plan.init_from_previous and previous is not None:
+        learner.load_state_dict(previous.state_dict(), load_optimisers=False)
+    elif init_weights is not None:
+        learner.load_state_dict(init_weights, load_optimisers=False)
+    return learner
+
+
+@dataclasses.dataclass
+class _StageValidation:
+    """One stage's held-out scenarios, its ``validation.csv`` sink and the best score so far."""
+
+    workers: RolloutWorkers
+    tasks: list[EpisodeTask]
+    sink: MetricsSink
+    best_path: Path
+    best: float = float("-inf")
+    validated_at: int = -1
+    """The stage episode of the last validation."""
+
+    @classmethod
+    def start(
+        cls,
+        run: _Run,
+        plan: StagePlan,
+        workers: RolloutWorkers,
+        sink: MetricsSink,
+        resumed: TrainingCheckpoint | None,
+    ) -> _StageValidation:
+        """The stage's validation; ``resumed``: the checkpoint a run resumes from in this stage."""
+        config = run.config
+        tasks = validation_tasks(
+            plan.traffic, run.speed_limits, config.validation_scenarios, config.validation_seed
+        )
+        validation = cls(workers, tasks, sink, run.out_dir / f"{plan.name}_best.pt")
+        if resumed is not None:
+            # The stage's validations before the checkpoint: the best so far, and whether the
+            # checkpoint's own episode was validated already (then not twice).
+            kept = [r for r in sink.kept if r["stage"] == plan.name]
+            validation.best = max((float(r["joint_return"]) for r in kept), default=float("-inf"))
+            if kept and int(kept[-1]["episode"]) == resumed.episode:
+                validation.validated_at = resumed.episode
+        return validation
+
+    def run(self, learner: Learner, checkpoint: TrainingCheckpoint, wall_s: float) -> None:
+        """Score the greedy policy; save ``checkpoint`` as ``best_path`` when it beats the best so far."""
+        score = score_episodes([e.stats for e in self.workers.run(learner, self.tasks)])
+        improved = score.joint_return > self.best
+        if improved:
+            self.best = score.joint_return
+            save_checkpoint(self.best_path, dataclasses.replace(checkpoint, validation=score))
+        self.validated_at = checkpoint.episode
+        row = {
+            "stage": checkpoint.stage,
+            "episode": checkpoint.episode,
+            "global_episode": checkpoint.global_episode,
+            **dataclasses.asdict(score),
+            "best": improved,
+            "wall_time_s": wall_s,
+        }
+        self.sink.write([row])
+        log.info(
+            "validation at episode %d (%s): joint return %.2f, perfect %.0f%%%s",
+            checkpoint.global_episode,
+            checkpoint.stage,
+            score.joint_return,
+            100 * score.perfect_rate,
+            " (best so far)" if improved else "",
+        )
+
+
+def _train_stage(
+    run: _Run,
+    plan: StagePlan,
+    learner: Learner,
+    state: _RunState,
+    workers: RolloutWorkers,
+    sink: MetricsSink,
+    validation: _StageValidation | None,
+    bar: Progress,
+) -> None:
+    """Rounds until the stage's budget is spent. Ctrl-C saves a checkpoint of the completed rounds,
+    then re-raises KeyboardInterrupt."""
+    stage_bar = _StageBar(bar, plan, state.episode)
+    round_rng = state.rng_states()
+    try:
+        while state.episode < plan.episodes:
+            # The RNG state at the start of a round is what a checkpoint of complete work holds.
+            round_rng = state.rng_states()
+            _round(run, plan, learner, state, workers, sink, validation, stage_bar)
+    except KeyboardInterrupt:
+        save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan, round_rng))
+        log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
+        raise
+
+
+def _round(
+    run: _Run,
+    plan: StagePlan,
+    learner: Learner,
+    state: _RunState,
+    workers: RolloutWorkers,
+    sink: MetricsSink,
+    validation: _StageValidation | None,
+    stage_bar: _StageBar,
+) -> None:
+    """One round: collect episodes with the current actor, one update on them, their metrics rows;
+    then a checkpoint and a validation when the round passed a multiple of ``checkpoint_every`` /
+    ``validate_every`` episodes."""
+    config = run.config
+    tasks = _episode_tasks(run, plan, state)
+    episodes = workers.run(learner, tasks)
+    losses = learner.update(batch_from_episodes(episodes, central=plan.central))
+
+    wall_s = run.wall_s()
+    sink.write(
+        [
+            {
+                **_episode_row(plan, state.episode + i, state.global_episode + i, e),
+                **losses,
+                "wall_time_s": wall_s,
+            }
+            for i, e in enumerate(episodes)
+        ]
+    )
+    before = state.global_episode
+    state.advance(len(tasks))
+    stage_bar.episodes_done(state.episode, [e.stats.success for e in episodes])
+
+    checkpoint_due = _passed_multiple(before, state.global_episode, config.checkpoint_every)
+    validation_due = validation is not None and _passed_multiple(
+        before, state.global_episode, config.validate_every
+    )
+    if checkpoint_due or validation_due:
+        checkpoint = state.checkpoint(learner, config, plan)
+        if checkpoint_due:
+            save_checkpoint(run.latest, checkpoint)
+            log.info("checkpoint at episode %d (%s)", state.global_episode, plan.name)
+        if validation is not None and validation_due:
+            validation.run(learner, checkpoint, run.wall_s())
+            stage_bar.validated(validation.best)
+
+
+def _episode_tasks(run: _Run, plan: StagePlan, state: _RunState) -> list[EpisodeTask]:
+    """The round's episodes (``episodes_per_update``, fewer at the stage's end): each a scenario, then
+    an action seed, drawn in that order from the run's generators."""
+    n = min(run.config.episodes_per_update, plan.episodes - state.episode)
+    return [
+        EpisodeTask(
+            scenario=generate_scenario(
+                state.np_rng, plan.traffic, run.speed_limits, name=f"{plan.name}-{state.episode + i}"
+            ),
+            action_seed=int(torch.randint(0, 2**62, (1,), generator=state.torch_rng).item()),
+        )
+        for i in range(n)
+    ]
+
+
+def _passed_multiple(before: int, after: int, every: int) -> bool:
+    """Whether counting from ``before`` to ``after`` passed a multiple of ``every``."""
+    return after // every > before // every
 
 
 def _episode_row(plan: StagePlan, episode: int, global_episode: int, e: EpisodeData) -> dict[str, Any]:
@@ -95,89 +520,26 @@ def _episode_row(plan: StagePlan, episode: int, global_episode: int, e: EpisodeD
     }
 
 
-@dataclasses.dataclass
-class _StageValidation:
-    """One stage's held-out scenarios, its ``validation.csv`` sink and the best score so far."""
-
-    workers: RolloutWorkers
-    tasks: list[EpisodeTask]
-    sink: MetricsSink
-    best_path: Path
-    best: float = float("-inf")
-    validated_at: int = -1
-    """The stage episode of the last validation."""
-
-    def run(
-        self,
-        learner: Learner,
-        plan: StagePlan,
-        counters: _Counters,
-        payload: TrainingCheckpoint,
-        wall_s: float,
-    ) -> None:
-        """Score the greedy policy; save ``payload`` as ``best_path`` when it beats the best so far."""
-        score = score_episodes([e.stats for e in self.workers.run(learner, self.tasks)])
-        improved = score.joint_return > self.best
-        if improved:
-            self.best = score.joint_return
-            save_checkpoint(self.best_path, dataclasses.replace(payload, validation=score))
-        self.validated_at = counters.episode
-        row = {
-            "stage": plan.name,
-            "episode": counters.episode,
-            "global_episode": counters.global_episode,
-            **dataclasses.asdict(score),
-            "best": improved,
-            "wall_time_s": wall_s,
-        }
-        self.sink.write([row])
-        log.info(
-            "validation at episode %d (%s): joint return %.2f, perfect %.0f%%%s",
-            counters.global_episode,
-            plan.name,
-            score.joint_return,
-            100 * score.perfect_rate,
-            " (best so far)" if improved else "",
-        )
+def _finish_stage(
+    run: _Run,
+    plan: StagePlan,
+    learner: Learner,
+    state: _RunState,
+    validation: _StageValidation | None,
+) -> Path:
+    """The stage's end: a last validation (unless its last round had one), then ``<stage>.pt`` and
+    ``checkpoint.pt``. Returns ``<stage>.pt``."""
+    checkpoint = state.checkpoint(learner, run.config, plan)
+    if validation is not None and validation.validated_at != state.episode:
+        validation.run(learner, checkpoint, run.wall_s())
+    final = run.out_dir / f"{plan.name}.pt"
+    save_checkpoint(final, checkpoint)
+    save_checkpoint(run.latest, checkpoint)
+    log.info("stage %s done: %d episodes, %s", plan.name, state.episode, final)
+    return final
 
 
-def _drop_best_after(out_dir: Path, global_episode: int) -> None:
-    """Delete every ``<stage>_best.pt`` saved after ``global_episode``: its weights come from training
-    that resuming from that checkpoint discards."""
-    for path in _run_outputs(out_dir):
-        stale = (
-            path.name.endswith("_best.pt")
-            and path.is_file()
-            and load_checkpoint(path).global_episode > global_episode
-        )
-        if stale:
-            log.info("removing %s: saved after the checkpoint the run resumes from", path)
-            path.unlink()
-
-
-def stored_config(out_dir: Path) -> TrainConfig:
-    """The config of the run in ``out_dir`` (from its ``checkpoint.pt``), as ``--resume`` continues it."""
-    return load_checkpoint(out_dir / CHECKPOINT_NAME).config
-
-
-def _resumed_config(saved: TrainConfig, requested: TrainConfig) -> TrainConfig:
-    """The run's own config with ``RESUME_FIELDS`` from ``requested``; other new values are ignored."""
-    ignored = [
-        f.name
-        for f in dataclasses.fields(TrainConfig)
-        if f.name not in RESUME_FIELDS and getattr(saved, f.name) != getattr(requested, f.name)
-    ]
-    if ignored:
-        log.warning("resuming with the checkpoint's config; ignoring new values for %s", ", ".join(ignored))
-    return dataclasses.replace(saved, **{name: getattr(requested, name) for name in RESUME_FIELDS})
-
-
-def _run_outputs(out_dir: Path) -> list[Path]:
-    """Every file or folder a training run writes into ``out_dir`` (what ``force`` replaces)."""
-    stages = {plan.name for stage in get_args(Stage) for plan in plan_stages(TrainConfig(stage=stage))}
-    names = [CHECKPOINT_NAME, METRICS_NAME, VALIDATION_NAME, TENSORBOARD_DIR]
-    names += [f"{stage}{suffix}" for stage in sorted(stages) for suffix in (".pt", "_best.pt")]
-    return [out_dir / name for name in names]
+# --- the progress bar -------------------------------------------------------------------------------
 
 
 def _make_progress(enabled: bool) -> Progress:
@@ -194,214 +556,21 @@ def _make_progress(enabled: bool) -> Progress:
     )
 
 
-def run_training(
-    net_path: Path | str,
-    config: TrainConfig,
-    out_dir: Path | str,
-    resume: bool = False,
-    progress: bool = True,
-    gui: bool = False,
-    force: bool = False,
-) -> Path:
-    """Train as ``config`` says; write checkpoints and ``metrics.csv`` under ``out_dir``.
+class _StageBar:
+    """One stage's line of the progress bar: episodes done, episodes per second, recent success rate."""
 
-    Returns the final checkpoint (``out_dir/<last stage>.pt``). ``resume`` continues the run in
-    ``out_dir`` from its ``checkpoint.pt`` with the saved config, taking only ``RESUME_FIELDS``
-    (workers, the stage budgets) from ``config``: a larger budget extends a finished run. Without
-    ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which replaces the
-    files a run writes. ``gui`` shows the rollouts in sumo-gui (one worker only). Ctrl-C saves a
-    checkpoint of the completed rounds, then re-raises KeyboardInterrupt.
-    """
-    net_path = Path(net_path)
-    out_dir = Path(out_dir)
-    latest = out_dir / CHECKPOINT_NAME
-    if not net_path.is_file():
-        raise InputError(f"{net_path}: network file not found")
-    if gui and config.workers > 1:
-        raise InputError("--gui needs --workers 1")
-    require_display(gui)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"--out {out_dir}: exists and is not a directory")
-    if resume and force:
-        raise InputError("--resume and --force exclude each other")
-    resumed: TrainingCheckpoint | None = None
-    if resume:
-        if not latest.exists():
-            raise InputError(f"{latest}: no checkpoint to resume from")
-        resumed = load_checkpoint(latest)
-        config = _resumed_config(resumed.config, config)
-    elif not force and out_dir.is_dir() and any(out_dir.iterdir()):
-        if latest.exists():
-            raise InputError(
-                f"{out_dir}: already holds a training run; pass --resume to continue it, --force to "
-                "start over, or choose another --out"
-            )
-        raise InputError(
-            f"--out {out_dir}: directory exists and is not empty (use --force to overwrite its files)"
+    def __init__(self, bar: Progress, plan: StagePlan, episode: int) -> None:
+        self.bar = bar
+        self.task = bar.add_task(
+            plan.name, total=plan.episodes, completed=episode, eps=0.0, success=0.0, validation=""
         )
-    if config.init_from and resumed is None:
-        try:
-            init_state = load_checkpoint(config.init_from).learner
-        except InputError as err:
-            raise InputError(
-                f"init_from: {err} (a path from the working directory; the shipped recipe makes "
-                "runs/imitation.pt with scripts/pretrain_imitation.py)"
-            ) from None
-    else:
-        init_state = None
-    ensure_writable_dir(out_dir)
+        self.recent: collections.deque[bool] = collections.deque(maxlen=SUCCESS_WINDOW)
+        self.started, self.start_episode = time.perf_counter(), episode
 
-    plans = plan_stages(config)
-    net = read_merge_net(net_path)
-    limits: dict[Road, float] = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
-    env_config = EnvConfig(max_episode_s=config.max_episode_s, reward=config.reward)
+    def episodes_done(self, episode: int, successes: Iterable[bool]) -> None:
+        self.recent.extend(successes)
+        rate = (episode - self.start_episode) / max(time.perf_counter() - self.started, 1e-9)
+        self.bar.update(self.task, completed=episode, eps=rate, success=float(np.mean(self.recent)))
 
-    np_rng = np.random.default_rng(config.seed)
-    torch_rng = torch.Generator().manual_seed(config.seed)
-    counters = _Counters()
-    if resumed is not None:
-        if resumed.stage_index >= len(plans) or plans[resumed.stage_index].name != resumed.stage:
-            raise InputError(f"{latest}: stage {resumed.stage!r} does not belong to this run's plan")
-        budget = plans[resumed.stage_index].episodes
-        if resumed.episode > budget:
-            raise InputError(
-                f"{latest}: the run is at episode {resumed.episode} of stage {resumed.stage!r}; "
-                f"a budget of {budget} episodes ends before that (give --episodes {resumed.episode} "
-                "or more)"
-            )
-        np_rng.bit_generator.state = resumed.numpy_rng
-        torch_rng.set_state(resumed.torch_rng)
-        counters = _Counters(resumed.stage_index, resumed.episode, resumed.global_episode)
-        _drop_best_after(out_dir, counters.global_episode)
-    elif force:
-        for path in _run_outputs(out_dir):
-            if path.is_dir():
-                shutil.rmtree(path)
-            else:
-                path.unlink(missing_ok=True)
-
-    show = progress and sys.stderr.isatty()
-    started = time.perf_counter()
-    final = latest
-    learner: Learner | None = None
-    with (
-        make_workers(net_path, env_config, config.seed, config.workers, gui=gui) as workers,
-        # On resume, rows past the checkpoint go: an episode row is stamped with its own index, a
-        # validation row with the episode count it was scored at (one at the checkpoint's count stays).
-        MetricsSink(out_dir, counters.global_episode if resumed else None) as sink,
-        (
-            MetricsSink(
-                out_dir,
-                counters.global_episode + 1 if resumed else None,
-                name=VALIDATION_NAME,
-                columns=VALIDATION_COLUMNS,
-                tensorboard_keys=(),
-            )
-            if config.validate_every
-            else contextlib.nullcontext()
-        ) as validation_sink,
-        _make_progress(show) as bar,
-    ):
-        for stage_index in range(counters.stage_index, len(plans)):
-            plan = plans[stage_index]
-            previous = learner
-            learner = Learner(plan.learner, seed=config.seed + stage_index)
-            if resumed is not None and stage_index == resumed.stage_index:
-                learner.load_state_dict(resumed.learner)
-            elif plan.init_from_previous and previous is not None:
-                learner.load_state_dict(previous.state_dict(), load_optimisers=False)
-            elif init_state is not None and stage_index == 0:
-                learner.load_state_dict(init_state, load_optimisers=False)
-            if stage_index != counters.stage_index:
-                counters = _Counters(stage_index, 0, counters.global_episode)
-            task = bar.add_task(
-                plan.name,
-                total=plan.episodes,
-                completed=counters.episode,
-                eps=0.0,
-                success=0.0,
-                validation="",
-            )
-            recent: collections.deque[bool] = collections.deque(maxlen=SUCCESS_WINDOW)
-            validation = None
-            if validation_sink is not None:
-                best_path = out_dir / f"{plan.name}_best.pt"
-                validation = _StageValidation(
-                    workers,
-                    validation_tasks(
-                        plan.traffic, limits, config.validation_scenarios, config.validation_seed
-                    ),
-                    validation_sink,
-                    best_path,
-                )
-                if resumed is not None and stage_index == resumed.stage_index:
-                    # The stage's validations before the checkpoint: the best so far, and whether the
-                    # checkpoint's own episode was validated already (then not twice).
-                    kept = [r for r in validation_sink.kept if r["stage"] == plan.name]
-                    validation.best = max((float(r["joint_return"]) for r in kept), default=float("-inf"))
-                    if kept and int(kept[-1]["episode"]) == counters.episode:
-                        validation.validated_at = counters.episode
-            stage_start, stage_start_episode = time.perf_counter(), counters.episode
-            round_rng = (np_rng.bit_generator.state, torch_rng.get_state())
-            try:
-                while counters.episode < plan.episodes:
-                    # The RNG state at the start of a round is what a checkpoint of complete work holds.
-                    round_rng = (np_rng.bit_generator.state, torch_rng.get_state())
-                    n = min(config.episodes_per_update, plan.episodes - counters.episode)
-                    tasks = [
-                        EpisodeTask(
-                            scenario=generate_scenario(
-                                np_rng, plan.traffic, limits, name=f"{plan.name}-{counters.episode + i}"
-                            ),
-                            action_seed=int(torch.randint(0, 2**62, (1,), generator=torch_rng).item()),
-                        )
-                        for i in range(n)
-                    ]
-                    episodes = workers.run(learner, tasks)
-                    losses = learner.update(batch_from_episodes(episodes, central=plan.central))
-
-                    wall = time.perf_counter() - started
-                    rows = []
-                    for i, e in enumerate(episodes):
-                        row = _episode_row(plan, counters.episode + i, counters.global_episode + i, e)
-                        rows.append({**row, **losses, "wall_time_s": wall})
-                        recent.append(e.stats.success)
-                    sink.write(rows)
-                    before = counters.global_episode
-                    counters.episode += n
-                    counters.global_episode += n
-                    rate = (counters.episode - stage_start_episode) / max(
-                        time.perf_counter() - stage_start, 1e-9
-                    )
-                    bar.update(task, completed=counters.episode, eps=rate, success=float(np.mean(recent)))
-                    checkpoint_due = (
-                        counters.global_episode // config.checkpoint_every > before // config.checkpoint_every
-                    )
-                    validation_due = validation is not None and (
-                        counters.global_episode // config.validate_every > before // config.validate_every
-                    )
-                    if checkpoint_due or validation_due:
-                        payload = _payload(
-                            learner, config, plan, counters, np_rng.bit_generator.state, torch_rng.get_state()
-                        )
-                        if checkpoint_due:
-                            save_checkpoint(latest, payload)
-                            log.info("checkpoint at episode %d (%s)", counters.global_episode, plan.name)
-                        if validation is not None and validation_due:
-                            validation.run(learner, plan, counters, payload, time.perf_counter() - started)
-                            bar.update(task, validation=f"best validation {validation.best:.1f}")
-            except KeyboardInterrupt:
-                # Save the completed rounds: the RNG as it was before the interrupted round's draws.
-                save_checkpoint(latest, _payload(learner, config, plan, counters, *round_rng))
-                log.warning("interrupted: saved %s at episode %d of %s", latest, counters.episode, plan.name)
-                raise
-            payload = _payload(
-                learner, config, plan, counters, np_rng.bit_generator.state, torch_rng.get_state()
-            )
-            if validation is not None and validation.validated_at != counters.episode:
-                validation.run(learner, plan, counters, payload, time.perf_counter() - started)
-            final = out_dir / f"{plan.name}.pt"
-            save_checkpoint(final, payload)
-            save_checkpoint(latest, payload)
-            log.info("stage %s done: %d episodes, %s", plan.name, counters.episode, final)
-    return final
+    def validated(self, best: float) -> None:
+        self.bar.update(self.task, validation=f"best validation {best:.1f}")
