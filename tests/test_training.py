@@ -366,6 +366,54 @@ def test_interrupt_then_resume_continues_exactly(
 
 
 @pytest.mark.sumo
+def test_ctrl_c_during_a_validation_then_resume_continues_exactly(
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C while the greedy policy is validated after round 2: the round is counted, so the
+    checkpoint must hold the generators after its draws (it held those before them, and the resumed
+    run drew round 2's scenario again), and the resumed run owes that validation."""
+    from idas_sumo.training import loop
+    from idas_sumo.training.loop import run_training
+
+    config = tiny_config(stage="robot", robot_episodes=4, validate_every=1, validation_scenarios=1)
+    straight = tmp_path / "straight"
+    run_training(net_path, config, straight, progress=False)
+
+    real_score = loop.score_episodes
+    calls = {"n": 0}
+
+    def score_then_interrupt(stats: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real_score(stats)
+
+    monkeypatch.setattr(loop, "score_episodes", score_then_interrupt)
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_training(net_path, config, run, progress=False)
+    monkeypatch.undo()
+    assert load_checkpoint(run / "checkpoint.pt").episode == 2  # round 2 is counted
+    run_training(net_path, config, run, resume=True, progress=False)
+
+    def strip(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+        return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]
+
+    assert strip(read_metrics(run)) == strip(read_metrics(straight))
+    validated = [
+        strip(list(csv.DictReader((d / "validation.csv").open(newline="")))) for d in (run, straight)
+    ]
+    assert [r["episode"] for r in validated[0]] == ["1", "2", "3", "4"]
+    assert validated[0] == validated[1]
+    a, b = load_checkpoint(run / "robot.pt"), load_checkpoint(straight / "robot.pt")
+    for k, v in a.learner["actor"].items():
+        assert torch.equal(v, b.learner["actor"][k])
+    assert (
+        load_checkpoint(run / "robot_best.pt").episode == load_checkpoint(straight / "robot_best.pt").episode
+    )
+
+
+@pytest.mark.sumo
 def test_two_workers_collect_the_same_episodes(net_path: Path, tmp_path: Path) -> None:
     from idas_sumo.training.loop import run_training
 

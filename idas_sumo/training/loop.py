@@ -261,7 +261,12 @@ _RngStates = tuple[Mapping[str, Any], torch.Tensor]
 
 @dataclasses.dataclass
 class _RunState:
-    """Where the run stands and the generators that continue it: what a checkpoint saves."""
+    """Where the run stands and the generators that continue it: what a checkpoint saves.
+
+    A round draws its episodes first and counts them when they are done, so between the two the
+    generators are ahead of the counts; a checkpoint holds the generators as they were when the
+    counts were last advanced (``counted_rng``), whenever it is taken, Ctrl-C included.
+    """
 
     np_rng: np.random.Generator
     """Draws the scenarios."""
@@ -272,6 +277,11 @@ class _RunState:
     """Episodes completed in the current stage."""
     global_episode: int = 0
     """Episodes completed in every stage of the run."""
+    counted_rng: _RngStates = dataclasses.field(init=False)
+    """The generators' states when the counts were last advanced (or set)."""
+
+    def __post_init__(self) -> None:
+        self.counted_rng = self.rng_states()
 
     @classmethod
     def start(cls, seed: int) -> _RunState:
@@ -289,11 +299,10 @@ class _RunState:
                 f"{path}: the run is at episode {c.episode} of stage {c.stage!r}; a budget of {budget} "
                 f"episodes ends before that (give --episodes {c.episode} or more)"
             )
-        state = cls.start(c.config.seed)
-        state.stage_index, state.episode, state.global_episode = c.stage_index, c.episode, c.global_episode
-        state.np_rng.bit_generator.state = c.numpy_rng
-        state.torch_rng.set_state(c.torch_rng)
-        return state
+        np_rng, torch_rng = np.random.default_rng(c.config.seed), torch.Generator()
+        np_rng.bit_generator.state = c.numpy_rng
+        torch_rng.set_state(c.torch_rng)
+        return cls(np_rng, torch_rng, c.stage_index, c.episode, c.global_episode)
 
     def enter_stage(self, stage_index: int) -> None:
         """Count the episodes of ``stage_index`` from 0, unless the run is in that stage already."""
@@ -301,17 +310,17 @@ class _RunState:
             self.stage_index, self.episode = stage_index, 0
 
     def advance(self, episodes: int) -> None:
+        """Count ``episodes`` as done (their draws came before)."""
         self.episode += episodes
         self.global_episode += episodes
+        self.counted_rng = self.rng_states()
 
     def rng_states(self) -> _RngStates:
         return self.np_rng.bit_generator.state, self.torch_rng.get_state()
 
-    def checkpoint(
-        self, learner: Learner, config: TrainConfig, plan: StagePlan, rng: _RngStates | None = None
-    ) -> TrainingCheckpoint:
-        """The run as it stands, with the generators' states ``rng`` (default: as they are now)."""
-        numpy_state, torch_state = rng if rng is not None else self.rng_states()
+    def checkpoint(self, learner: Learner, config: TrainConfig, plan: StagePlan) -> TrainingCheckpoint:
+        """The run's completed work: ``learner``, the counts, and the generators as counted."""
+        numpy_state, torch_state = self.counted_rng
         return TrainingCheckpoint(
             learner=learner.state_dict(),
             config=config,
@@ -357,6 +366,8 @@ class _StageValidation:
     best: float = float("-inf")
     validated_at: int = -1
     """The stage episode of the last validation."""
+    owed: bool = False
+    """A resumed run owes the validation of the checkpoint's last round (Ctrl-C or a kill came during it)."""
 
     @classmethod
     def start(
@@ -380,6 +391,10 @@ class _StageValidation:
             validation.best = max((float(r["joint_return"]) for r in kept), default=float("-inf"))
             if kept and int(kept[-1]["episode"]) == resumed.episode:
                 validation.validated_at = resumed.episode
+            validated_to = (
+                int(kept[-1]["global_episode"]) if kept else resumed.global_episode - resumed.episode
+            )
+            validation.owed = _passed_multiple(validated_to, resumed.global_episode, config.validate_every)
         return validation
 
     def run(self, learner: Learner, checkpoint: TrainingCheckpoint, wall_s: float) -> None:
@@ -422,14 +437,14 @@ def _train_stage(
     """Rounds until the stage's budget is spent. Ctrl-C saves a checkpoint of the completed rounds,
     then re-raises KeyboardInterrupt."""
     stage_bar = _StageBar(bar, plan, state.episode)
-    round_rng = state.rng_states()
     try:
+        if validation is not None and validation.owed:
+            validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
+            stage_bar.validated(validation.best)
         while state.episode < plan.episodes:
-            # The RNG state at the start of a round is what a checkpoint of complete work holds.
-            round_rng = state.rng_states()
             _round(run, plan, learner, state, workers, sink, validation, stage_bar)
     except KeyboardInterrupt:
-        save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan, round_rng))
+        save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
         log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
         raise
 
