@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.io_utils import atomic_path
 from idas_sumo.sim.netgen import MergeNet, RoadInfo, read_merge_net, sumo_binary
 
@@ -174,11 +174,16 @@ def check_copies(source: Path, built: Path, copies: int) -> None:
 # -- building ---------------------------------------------------------------------------------------
 
 
-def _netconvert(args: list[str]) -> None:
+def _netconvert(args: list[str], refused_source: Path | None = None) -> None:
+    """Run netconvert; with ``refused_source`` a failure means SUMO refused the user's net (bad input)."""
     cmd = [str(sumo_binary("netconvert")), *args, "--no-warnings", "true"]
     result = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if result.returncode != 0:
-        reason = (result.stderr.strip().splitlines() or ["no message"])[-1]
+        lines = [ln.strip() for ln in result.stderr.splitlines() if ln.strip()]
+        errors = [ln for ln in lines if ln.startswith("Error")]
+        reason = "; ".join(errors[-2:]) if errors else (lines or ["no message"])[-1]
+        if refused_source is not None:
+            raise SumoRefusedInput(f"SUMO could not load {refused_source}: {reason}")
         raise SimulationError(f"netconvert failed: {reason}")
 
 
@@ -201,7 +206,8 @@ def _build(source: Path, copies: int, out: Path, workdir: Path) -> None:
                 "true",
                 "--output-file",
                 str(part),
-            ]
+            ],
+            refused_source=source,
         )
         parts.append(str(part))
     _netconvert(
