@@ -234,6 +234,13 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--no-progress", action="store_true", help="no progress bar")
     ev.add_argument("--gui", action="store_true", help="show the episodes in sumo-gui (needs a display)")
     ev.add_argument(
+        "--workers",
+        type=_positive_int,
+        default=1,
+        help="processes sharing the episodes, one SUMO each (2 keeps both cores busy); "
+        "results do not depend on it (default: %(default)s)",
+    )
+    ev.add_argument(
         "--copies",
         type=_positive_int,
         default=DEFAULT_EVAL_COPIES,
@@ -287,6 +294,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             config=args.config,
             scenario_files=tuple(args.scenario),
             copies=args.copies,
+            workers=args.workers,
         )
     )
     if args.others is None and others == "idm":

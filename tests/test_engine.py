@@ -236,28 +236,30 @@ def test_single_episode_path_gives_the_golden_file(net_path: Path) -> None:
 
 
 @pytest.mark.sumo
-def test_evaluation_csvs_do_not_depend_on_copies(tmp_path: Path, net_path: Path) -> None:
+def test_evaluation_csvs_do_not_depend_on_copies_or_workers(tmp_path: Path, net_path: Path) -> None:
     from idas_sumo.cli import main
 
     outs = []
-    for copies in (1, 4):
-        out = tmp_path / f"k{copies}"
-        args = [
-            "evaluate",
-            "--net",
-            str(net_path),
-            "--baseline",
-            "all",
-            "--others",
-            "idm",
-            "--scenarios",
-            "6",
-        ]
-        args += ["--seed", "3", "--trajectories", "--no-progress", "--copies", str(copies), "--out", str(out)]
-        assert main(args) == 0
+    base = ["evaluate", "--net", str(net_path), "--baseline", "all", "--others", "idm", "--scenarios", "6"]
+    for copies, workers in ((1, 1), (4, 1), (2, 2)):
+        out = tmp_path / f"k{copies}-w{workers}"
+        args = [*base, "--seed", "3", "--trajectories", "--no-progress", "--out", str(out)]
+        assert main([*args, "--copies", str(copies), "--workers", str(workers)]) == 0
         outs.append(out)
     names = ["episodes.csv", "summary.csv", "flow.csv", "trajectories.csv"]
-    for name in names:
-        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
+    for other in outs[1:]:
+        for name in names:
+            assert (outs[0] / name).read_bytes() == (other / name).read_bytes(), (other.name, name)
     # Several methods and scenarios ran side by side: the comparison saw more than one job per SUMO run.
     assert len((outs[0] / "episodes.csv").read_text().splitlines()) == 1 + 5 * 6
+
+
+def test_split_jobs_covers_every_job_once_in_order() -> None:
+    from idas_sumo.evaluation.workers import split_jobs
+
+    for n in (1, 2, 5, 500):
+        for workers in (1, 2, 3, 7):
+            shares = split_jobs(n, workers)
+            assert [j for share in shares for j in share] == list(range(n))
+            assert all(len(share) > 0 for share in shares)
+            assert len(shares) == min(n, workers)

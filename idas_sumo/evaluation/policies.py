@@ -35,9 +35,16 @@ def check_method(name: str, flag: str = "--baseline", also: tuple[str, ...] = ()
 
 def learned_policy(path: Path, seed: int = 0) -> Policy:
     """A shipped or trained actor, acting greedily (the most probable allowed action)."""
+    import torch
+
     from idas_sumo.agents.checkpoint_file import load_actor  # lazy: torch only for learned methods
     from idas_sumo.agents.policy import ActorPolicy
 
+    # One thread in an evaluation process (the parent's or a --workers child's): a step's forward (a few
+    # dozen agents) gains little from a second one, and while the other core is busy (SUMO, the other
+    # worker) torch's waiting threads made a one-agent forward 20x slower (2.3 ms instead of 0.12 ms)
+    # and --workers 2 four times slower than one process (measured on this 2-core machine).
+    torch.set_num_threads(1)
     return ActorPolicy(load_actor(path), seed=seed, deterministic=True)
 
 

@@ -239,7 +239,20 @@ def iterate_runs(
 ) -> Iterator[tuple[str, EvalCase, EpisodeResult]]:
     """Every (method, case) pair in a fixed order (method by method); results are yielded in that order
     as they complete. ``tripinfo_dir`` (SUMO's own per-episode output) needs an engine with one copy."""
-    jobs = eval_jobs(cases, list(methods))
+    for job, result in run_jobs(
+        engine, eval_jobs(cases, list(methods)), methods, others_policy, tripinfo_dir
+    ):
+        yield job.method, job.case, result
+
+
+def run_jobs(
+    engine: MergeEngine,
+    jobs: Sequence[EvalJob],
+    methods: dict[str, Policy],
+    others_policy: Policy,
+    tripinfo_dir: Path | None = None,
+) -> Iterator[tuple[EvalJob, EpisodeResult]]:
+    """Run ``jobs`` on the engine, ``engine.copies`` at a time; yield their results in job order."""
     names = list(methods)
     policies = [*methods.values(), others_policy]
     others = len(names)
@@ -266,4 +279,4 @@ def iterate_runs(
     for j, _ in iter_episodes(
         engine, [job.case.scenario for job in jobs], assign, policies, recorder, sumo_args
     ):
-        yield jobs[j].method, jobs[j].case, recorder.results.pop(j)
+        yield jobs[j], recorder.results.pop(j)

@@ -10,6 +10,7 @@ from pathlib import Path
 import pandas as pd
 
 from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy
+from idas_sumo.errors import InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.evaluation.metrics import (
     EPISODE_COLUMNS,
@@ -20,16 +21,19 @@ from idas_sumo.evaluation.metrics import (
 )
 from idas_sumo.evaluation.policies import LEARNED_METHODS, POLICY_DIR, resolve_policy
 from idas_sumo.evaluation.protocol import (
+    EpisodeResult,
     EvalConfig,
+    EvalJob,
     Suite,
+    eval_jobs,
     file_cases,
-    iterate_runs,
     load_eval_config,
+    run_jobs,
     suite_cases,
 )
 from idas_sumo.io_utils import output_directory, write_csv_atomic
 from idas_sumo.sim.backend import require_display
-from idas_sumo.sim.netgen import read_merge_net
+from idas_sumo.sim.netgen import MergeNet, read_merge_net
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +61,9 @@ class EvalRequest:
     """TOML with [traffic] and max_episode_s for the paper suite (see scenarios/eval_paper.toml)."""
     scenario_files: tuple[Path, ...] = ()
     """Evaluate these scenario TOML files instead of a suite (the ego is each file's first vehicle)."""
+    workers: int = 1
+    """Processes that share the episodes, each with its own SUMO (``evaluate --workers``); the CSVs do
+    not depend on it."""
     copies: int = DEFAULT_EVAL_COPIES
     """Episodes run side by side in one SUMO run (1 with ``gui`` or ``sumo_output``: SUMO's own output
     and window are per episode). The CSVs do not depend on it."""
@@ -86,51 +93,35 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
     }
     others_policy = resolve_policy(others_name, None, req.seed)
-    if any(m in LEARNED_METHODS for m in (*req.methods, others_name)):
-        import torch
-
-        # One thread: an evaluation step's forward (a few dozen agents) gains little from a second
-        # one, and while the other core is busy (SUMO, another worker) torch's waiting threads made a
-        # one-agent forward 20x slower (2.3 ms instead of 0.12 ms, measured on this 2-core machine).
-        torch.set_num_threads(1)
     require_display(req.gui)
+    if req.gui and req.workers > 1:
+        raise InputError("--gui shows one simulation: use it without --workers")
     with output_directory(req.out, req.force, fresh=req.fresh_out) as out:
         tripinfo_dir = None
         if req.sumo_output:
             tripinfo_dir = out / "sumo"
             tripinfo_dir.mkdir(exist_ok=True)
-        copies = 1 if req.gui or req.sumo_output else req.copies
-        engine = MergeEngine(
-            net,
-            copies=copies,
-            seed=req.seed,
-            config=EnvConfig(max_episode_s=eval_config.max_episode_s),
-            gui=req.gui,
-        )
-        try:
-            if req.scenario_files:
-                cases = file_cases(list(req.scenario_files), req.seed, engine.speed_limits_mps)
+        speed_limits = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
+        if req.scenario_files:
+            cases = file_cases(list(req.scenario_files), req.seed, speed_limits)
+        else:
+            cases = suite_cases(req.suite, req.scenarios, req.seed, speed_limits, eval_config.traffic)
+        log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
+        jobs = eval_jobs(cases, list(policies))
+        episodes, flows, trajectories = [], [], []
+        description = f"evaluate ({req.suite}, others: {others_name})"
+        with _progress(req.progress, len(jobs), description) as advance:
+            if req.workers > 1 and len(jobs) > 1:
+                results = _in_workers(req, jobs, others_name, eval_config, tripinfo_dir, advance)
             else:
-                cases = suite_cases(
-                    req.suite, req.scenarios, req.seed, engine.speed_limits_mps, eval_config.traffic
-                )
-            log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
-            episodes, flows, trajectories = [], [], []
-            total = len(cases) * len(policies)
-            description = f"evaluate ({req.suite}, others: {others_name})"
-            with _progress(req.progress, total, description) as advance:
-                for method, case, result in iterate_runs(
-                    engine, cases, policies, others_policy, tripinfo_dir
-                ):
-                    episodes.append(result.episode)
-                    flows.append(result.flow)
-                    if req.trajectories:
-                        trajectories.append(
-                            result.trajectory.assign(scenario=case.scenario.name, run_method=method)
-                        )
-                    advance()
-        finally:
-            engine.close()
+                results = _here(req, net, jobs, policies, others_policy, eval_config, tripinfo_dir, advance)
+            for job, result in results:
+                episodes.append(result.episode)
+                flows.append(result.flow)
+                if req.trajectories:
+                    trajectories.append(
+                        result.trajectory.assign(scenario=job.case.scenario.name, run_method=job.method)
+                    )
         episode_frame = pd.DataFrame(episodes, columns=list(EPISODE_COLUMNS))
         summary = pd.DataFrame(summary_rows(episode_frame), columns=list(SUMMARY_COLUMNS))
         write_csv_atomic(episode_frame, out / "episodes.csv")
@@ -140,6 +131,79 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
             columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
             write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
     return EvalOutput(out, summary)
+
+
+def _copies(req: EvalRequest) -> int:
+    """SUMO's window and its own output files show one episode per run."""
+    return 1 if req.gui or req.sumo_output else req.copies
+
+
+def _here(
+    req: EvalRequest,
+    net: MergeNet,
+    jobs: list[EvalJob],
+    policies: dict[str, Policy],
+    others_policy: Policy,
+    eval_config: EvalConfig,
+    tripinfo_dir: Path | None,
+    advance: Callable[[], None],
+) -> list[tuple[EvalJob, EpisodeResult]]:
+    """Every job in this process, on one engine."""
+    engine = MergeEngine(
+        net,
+        copies=_copies(req),
+        seed=req.seed,
+        config=EnvConfig(max_episode_s=eval_config.max_episode_s),
+        gui=req.gui,
+    )
+    results = []
+    try:
+        for job, result in run_jobs(engine, jobs, policies, others_policy, tripinfo_dir):
+            results.append((job, result))
+            advance()
+    finally:
+        engine.close()
+    return results
+
+
+def _in_workers(
+    req: EvalRequest,
+    jobs: list[EvalJob],
+    others_name: str,
+    eval_config: EvalConfig,
+    tripinfo_dir: Path | None,
+    advance: Callable[[], None],
+) -> list[tuple[EvalJob, EpisodeResult]]:
+    """The jobs split over ``req.workers`` processes (evaluation/workers.py), back in job order."""
+    from idas_sumo.evaluation.workers import WorkerTask, run_in_workers, split_jobs
+
+    shares = split_jobs(len(jobs), req.workers)
+    tasks = [
+        WorkerTask(
+            net=req.net,
+            jobs=tuple(jobs[share.start : share.stop]),
+            methods=req.methods,
+            policy=req.policy,
+            others=others_name,
+            seed=req.seed,
+            max_episode_s=eval_config.max_episode_s,
+            copies=_copies(req),
+            tripinfo_dir=tripinfo_dir,
+            trajectories=req.trajectories,
+        )
+        for share in shares
+    ]
+
+    def done(i: int) -> None:
+        for _ in shares[i]:
+            advance()
+
+    per_task = run_in_workers(tasks, done)
+    return [
+        (job, result)
+        for task, results in zip(tasks, per_task, strict=True)
+        for job, result in zip(task.jobs, results, strict=True)
+    ]
 
 
 class _progress:
