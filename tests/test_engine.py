@@ -12,6 +12,7 @@ import hashlib
 import json
 import zlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -22,6 +23,9 @@ from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot, lane_relations, leaders
 from idas_sumo.evaluation.protocol import suite_cases
 from idas_sumo.sim.netgen import read_merge_net
+
+if TYPE_CHECKING:
+    from idas_sumo.agents.learner import Learner
 
 GOLDEN = Path(__file__).parent / "data" / "engine_golden.json"
 GOLDEN_SEED = 7
@@ -263,3 +267,62 @@ def test_split_jobs_covers_every_job_once_in_order() -> None:
             assert [j for share in shares for j in share] == list(range(n))
             assert all(len(share) > 0 for share in shares)
             assert len(shares) == min(n, workers)
+
+
+def _old_rollouts(net_path: Path, tasks: list, learner: Learner) -> list:
+    import torch
+
+    from idas_sumo.agents.rollout import collect_episode
+    from idas_sumo.env.core import MergeSimulation
+
+    sim = MergeSimulation(net_path, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+    try:
+        return [
+            collect_episode(
+                sim, learner, t.scenario, torch.Generator().manual_seed(t.action_seed), t.deterministic
+            )
+            for t in tasks
+        ]
+    finally:
+        sim.close()
+
+
+@pytest.mark.sumo
+def test_rollouts_on_the_engine_match_the_single_episode_path(net_path: Path) -> None:
+    import dataclasses
+
+    from idas_sumo.agents.learner import Learner, LearnerConfig
+    from idas_sumo.agents.rollout import RolloutTask, collect_episodes
+
+    learner = Learner(LearnerConfig(), seed=3)  # random weights: erratic drivers, timeouts, cut-off agents
+    cases = golden_cases(net_path)[:5]
+    tasks = [
+        RolloutTask(c.scenario, action_seed=100 + i, deterministic=(i == 2)) for i, c in enumerate(cases)
+    ]
+    old = _old_rollouts(net_path, tasks, learner)
+    for copies in (1, 3):
+        engine = MergeEngine(net_path, copies=copies, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+        assert engine.copies == copies
+        try:
+            new = collect_episodes(engine, learner, tasks)
+        finally:
+            engine.close()
+        for a, b in zip(old, new, strict=True):
+            for f in dataclasses.fields(a):
+                if f.name == "stats":
+                    continue
+                np.testing.assert_array_equal(
+                    getattr(a, f.name), getattr(b, f.name), err_msg=f"{copies} {f.name}"
+                )
+            sa, sb = dataclasses.asdict(a.stats), dataclasses.asdict(b.stats)
+            # Success takes the evaluation's meaning (every controlled car finished), the rest is equal.
+            assert sb.pop("success") == (
+                sb["collisions"] == 0
+                and all(r == "finished" for r in sb["end_reasons"].values())
+                and len(sb["end_reasons"]) == len(a.stats.end_reasons)
+            )
+            sa.pop("success"), sa.pop("perfect"), sb.pop("perfect")
+            assert sa == sb
+    # The comparison covered cut-off agents (bootstrapped from their last observation) and finished ones.
+    assert any(e.stats.timed_out for e in old)
+    assert any("finished" in e.stats.end_reasons.values() for e in old)

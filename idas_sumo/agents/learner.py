@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -244,6 +245,17 @@ class Learner:
         deterministic: bool = False,
     ) -> npt.NDArray[np.int64]:
         """Actions (B,) for B agents; never a masked one. ``generator`` must be a CPU generator."""
+        return self.act_grouped(obs, mask, [(np.arange(obs.shape[0]), generator)], deterministic)
+
+    def act_grouped(
+        self,
+        obs: npt.NDArray[np.float32],
+        mask: npt.NDArray[np.int8],
+        groups: Sequence[tuple[npt.NDArray[np.int64], torch.Generator]],
+        deterministic: bool = False,
+    ) -> npt.NDArray[np.int64]:
+        """``act`` for agents of several episodes in one forward pass; each episode's rows (``groups``:
+        rows, that episode's CPU generator) sample with their own generator, as they would alone."""
         if obs.ndim != 2 or obs.shape[1] != OBS_DIM or mask.shape != (obs.shape[0], N_ACTIONS):
             raise ValueError(
                 f"expected obs (B, {OBS_DIM}) and mask (B, {N_ACTIONS}), got {obs.shape} and {mask.shape}"
@@ -260,7 +272,10 @@ class Learner:
                 # Categorical.sample takes no generator; multinomial does, and never draws a 0-probability
                 # entry, so masked actions (probability exactly 0) cannot come out.
                 probs = torch.softmax(logits, dim=1)
-                actions = torch.multinomial(probs, 1, generator=generator).squeeze(1)
+                actions = torch.zeros(obs.shape[0], dtype=torch.int64)
+                for rows, generator in groups:
+                    index = torch.from_numpy(np.asarray(rows, dtype=np.int64))
+                    actions[index] = torch.multinomial(probs[index], 1, generator=generator).squeeze(1)
         chosen = allowed.gather(1, actions.unsqueeze(1))
         assert bool(chosen.all()), "sampled a masked action"
         out: npt.NDArray[np.int64] = actions.numpy().astype(np.int64)

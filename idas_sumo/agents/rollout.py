@@ -12,6 +12,7 @@ Observations are stored once in an ``obs_bank`` and referenced by index (``obs_i
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -23,12 +24,21 @@ from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_one
 from idas_sumo.agents.learner import Batch
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.core import MergeSimulation
+from idas_sumo.env.engine import AgentBatch, EpisodeOutcome, MergeEngine, StepResult, run_episodes
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
 
-__all__ = ["ActPolicy", "EpisodeData", "EpisodeStats", "batch_from_episodes", "collect_episode"]
+__all__ = [
+    "ActPolicy",
+    "EpisodeData",
+    "EpisodeStats",
+    "RolloutTask",
+    "batch_from_episodes",
+    "collect_episode",
+    "collect_episodes",
+]
 
 DONE_REASONS = frozenset({"finished", "collided", "removed"})
 """End reasons after which nothing is bootstrapped (a timeout is not one of them)."""
@@ -298,3 +308,268 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
         batch.next_action = cat("next_action")
         batch.next_valid = cat("next_valid")
     return batch
+
+
+# -- on the episode engine: K episodes side by side, one forward per step -----------------------------
+
+
+class _EpisodeRecorder:
+    """One episode's agent-steps as ``collect_episode`` records them, filled from the engine's hooks."""
+
+    def __init__(self) -> None:
+        self.obs_rows: list[npt.NDArray[np.float32]] = []
+        self.n_obs = 0
+        self.obs_index: list[int] = []
+        self.next_obs_index: list[int] = []
+        self.masks: list[npt.NDArray[np.int8]] = []
+        self.actions: list[int] = []
+        self.rewards: list[float] = []
+        self.dones: list[float] = []
+        self.states: list[npt.NDArray[np.float32]] = []
+        self.others: list[npt.NDArray[np.float32]] = []
+        self.slots: list[int] = []
+        self.joints: list[float] = []
+        self.next_row: list[int] = []
+        self.pending: dict[str, int] = {}
+        self.returns: dict[str, float] = {}
+        self.parts = dict.fromkeys(REWARD_PART_NAMES, 0.0)
+        self.collisions = 0
+        self.steps = 0
+        self.end_reasons: dict[str, str] = {}
+        self.state: npt.NDArray[np.float32] | None = None
+
+    def step(
+        self,
+        ids: list[str],
+        obs: npt.NDArray[np.float32],
+        mask: npt.NDArray[np.int8],
+        agent_slots: npt.NDArray[np.int64],
+        applied: npt.NDArray[np.int64],
+        rewards: npt.NDArray[np.float64],
+        parts: npt.NDArray[np.float64],
+        reasons: list[str],
+        joint: float,
+        collisions: int,
+    ) -> None:
+        assert self.state is not None, "the state is taken before the step"
+        state = self.state
+        slot_actions = np.zeros(STATE_SLOTS, dtype=np.int64)
+        acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
+        in_range = agent_slots >= 0
+        slot_actions[agent_slots[in_range]] = applied[in_range]
+        acting[agent_slots[in_range]] = True
+        onehot = others_actions_onehot(slot_actions, acting)
+        self.obs_rows.append(obs)
+        first_obs = self.n_obs
+        self.n_obs += len(ids)
+        finish, collide, impede = (REWARD_PART_NAMES.index(p) for p in ("finish", "collide", "impede"))
+        for i, a in enumerate(ids):
+            row = len(self.actions)
+            if a in self.pending:
+                self.next_row[self.pending.pop(a)] = row
+            self.obs_index.append(first_obs + i)
+            self.next_obs_index.append(-1)
+            self.masks.append(mask[i])
+            self.actions.append(int(applied[i]))
+            r = float(rewards[i])
+            self.rewards.append(r)
+            self.returns[a] = self.returns.get(a, 0.0) + r
+            self.parts["finish"] += float(parts[i, finish])
+            self.parts["collide"] += float(parts[i, collide])
+            self.parts["impede"] += float(parts[i, impede])
+            reason = reasons[i] or None
+            self.dones.append(1.0 if reason in DONE_REASONS else 0.0)
+            self.states.append(state)
+            slot = int(agent_slots[i])
+            self.others.append(onehot[slot] if slot >= 0 else np.zeros(OTHERS_ACTIONS_DIM, dtype=np.float32))
+            self.slots.append(slot)
+            self.joints.append(joint)
+            self.next_row.append(-1)
+            if reason is not None:
+                self.end_reasons[a] = reason
+            if reason not in DONE_REASONS:  # still driving, or cut off: needs a next observation
+                self.pending[a] = row
+        if len(ids):
+            self.parts["flow"] += float(parts[0, REWARD_PART_NAMES.index("flow")])
+        self.collisions += collisions
+        self.steps += 1
+
+    def finish(self, engine: MergeEngine, k: int, outcome: EpisodeOutcome) -> EpisodeData:
+        # Agents still pending were cut off (timeout): their final observation bootstraps V.
+        cut = [a for a in self.pending if engine.row(k, a) is not None]
+        if cut:
+            self.obs_rows.append(engine.observe_agents(k, cut))
+            for i, a in enumerate(cut):
+                self.next_obs_index[self.pending[a]] = self.n_obs + i
+            self.n_obs += len(cut)
+        timed_out = bool(any(r == "timeout" for r in self.end_reasons.values()) or cut)
+        return _episode_data(self, engine.time_s, timed_out, outcome)
+
+
+def _episode_data(
+    rec: _EpisodeRecorder, time_s: float, timed_out: bool, outcome: EpisodeOutcome
+) -> EpisodeData:
+    n = len(rec.actions)
+    nxt = np.asarray(rec.next_row, dtype=np.int64)
+    has_next = nxt >= 0
+    obs_idx = np.asarray(rec.obs_index, dtype=np.int64)
+    next_obs_idx = np.asarray(rec.next_obs_index, dtype=np.int64)
+    next_obs_idx[has_next] = obs_idx[nxt[has_next]]
+    state_arr = np.asarray(rec.states, dtype=np.float32).reshape(n, STATE_DIM)
+    others_arr = np.asarray(rec.others, dtype=np.float32).reshape(n, OTHERS_ACTIONS_DIM)
+    slot_arr = np.asarray(rec.slots, dtype=np.int64)
+    action_arr = np.asarray(rec.actions, dtype=np.int64)
+    next_state = np.zeros_like(state_arr)
+    next_others = np.zeros_like(others_arr)
+    next_slot = np.zeros(n, dtype=np.int64)
+    next_action = np.zeros(n, dtype=np.int64)
+    next_state[has_next] = state_arr[nxt[has_next]]
+    next_others[has_next] = others_arr[nxt[has_next]]
+    next_slot[has_next] = slot_arr[nxt[has_next]]
+    next_action[has_next] = action_arr[nxt[has_next]]
+    agent_returns = list(rec.returns.values())
+    stats = EpisodeStats(
+        agents=len(rec.returns),
+        steps=rec.steps,
+        agent_steps=n,
+        sim_time_s=float(time_s),
+        return_mean=float(np.mean(agent_returns)) if agent_returns else 0.0,
+        reward_parts=rec.parts,
+        collisions=rec.collisions,
+        timed_out=timed_out,
+        # The one definition (env/engine.py): no collision and every controlled car finished.
+        success=outcome.success,
+        perfect=outcome.perfect,
+        end_reasons=rec.end_reasons,
+    )
+    bank = (
+        np.concatenate(rec.obs_rows).astype(np.float32, copy=False)
+        if rec.obs_rows
+        else np.zeros((0, OBS_DIM), np.float32)
+    )
+    return EpisodeData(
+        obs_bank=bank,
+        obs_index=obs_idx,
+        next_obs_index=next_obs_idx,
+        mask=np.asarray(rec.masks, dtype=np.int8).reshape(n, N_ACTIONS),
+        action=action_arr,
+        reward=np.asarray(rec.rewards, dtype=np.float32),
+        done=np.asarray(rec.dones, dtype=np.float32),
+        state=state_arr,
+        others_actions=others_arr,
+        slot=slot_arr,
+        joint_reward=np.asarray(rec.joints, dtype=np.float32),
+        next_state=next_state,
+        next_others_actions=next_others,
+        next_slot=next_slot,
+        next_action=next_action,
+        next_valid=has_next.astype(np.float32),
+        next_row=nxt,
+        stats=stats,
+    )
+
+
+class GroupedActor(Protocol):
+    """``Learner.act_grouped``: one forward for agents of several episodes, each with its generator."""
+
+    def act_grouped(
+        self,
+        obs: npt.NDArray[np.float32],
+        mask: npt.NDArray[np.int8],
+        groups: Sequence[tuple[npt.NDArray[np.int64], torch.Generator]],
+        deterministic: bool = False,
+    ) -> npt.NDArray[np.int64]: ...
+
+
+@dataclass(frozen=True)
+class RolloutTask:
+    """One episode to collect: the scenario, the seed of its action sampling, greedy or not."""
+
+    scenario: Scenario
+    action_seed: int
+    deterministic: bool = False
+
+
+class _LearningPolicy:
+    """Every learning agent of every copy in one forward; each episode samples with its own generator."""
+
+    def __init__(self, actor: GroupedActor, tasks: Sequence[RolloutTask]) -> None:
+        self.actor = actor
+        self.tasks = tasks
+        self.generators = [torch.Generator().manual_seed(t.action_seed) for t in tasks]
+
+    def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        assert batch.job is not None, "the episode loop names each agent's job"
+        jobs = batch.job[rows]
+        out = np.zeros(len(rows), dtype=np.int64)
+        # Greedy and sampling episodes may share a step: one forward per kind.
+        greedy = np.array([self.tasks[j].deterministic for j in jobs.tolist()], dtype=np.bool_)
+        for det in (False, True):
+            part = np.flatnonzero(greedy == det)
+            if not len(part):
+                continue
+            groups = [
+                (np.flatnonzero(jobs[part] == j), self.generators[j]) for j in np.unique(jobs[part]).tolist()
+            ]
+            sel = rows[part]
+            out[part] = self.actor.act_grouped(batch.obs[sel], batch.masks[sel], groups, deterministic=det)
+        return out
+
+
+class _Collector:
+    """The engine observer of a rollout: one ``_EpisodeRecorder`` per job."""
+
+    def __init__(self, n_jobs: int) -> None:
+        self.recorders = [_EpisodeRecorder() for _ in range(n_jobs)]
+        self.episodes: dict[int, EpisodeData] = {}
+
+    def decided(
+        self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: npt.NDArray[np.int64]
+    ) -> None:
+        for k in np.unique(batch.copy).tolist():
+            self.recorders[jobs[k]].state = engine.state(k)
+
+    def stepped(
+        self,
+        engine: MergeEngine,
+        jobs: Sequence[int],
+        batch: AgentBatch,
+        actions: npt.NDArray[np.int64],
+        result: StepResult,
+    ) -> None:
+        if not len(batch):
+            return
+        obs = batch.obs
+        for k in np.unique(batch.copy).tolist():
+            rows = np.flatnonzero(batch.copy == k)
+            ids = [batch.ids[r] for r in rows]
+            state_slot = engine.slots[k].state_slot
+            agent_slots = np.array([state_slot.get(a, -1) for a in ids], dtype=np.int64)
+            self.recorders[jobs[k]].step(
+                ids,
+                obs[rows],
+                batch.masks[rows],
+                agent_slots,
+                result.applied[rows],
+                result.rewards[rows],
+                result.reward_parts[rows],
+                [result.end_reason[r] for r in rows],
+                float(result.joint_reward[k]),
+                len(result.collisions[k]),
+            )
+
+    def ended(self, engine: MergeEngine, slot: int, job: int, outcome: EpisodeOutcome) -> None:
+        self.episodes[job] = self.recorders[job].finish(engine, slot, outcome)
+        self.recorders[job] = _EpisodeRecorder()  # free its lists
+
+
+def collect_episodes(
+    engine: MergeEngine, actor: GroupedActor, tasks: Sequence[RolloutTask]
+) -> list[EpisodeData]:
+    """Run every task's scenario to its end on ``engine`` (``engine.copies`` side by side), every learning
+    agent on ``actor``; the recorded episodes in task order. Each episode samples with its own generator
+    (``action_seed``), so its draws do not depend on which episodes ran beside it."""
+    collector = _Collector(len(tasks))
+    policy = _LearningPolicy(actor, tasks)
+    run_episodes(engine, [t.scenario for t in tasks], lambda job, agent: 0, [policy], collector)
+    return [collector.episodes[j] for j in range(len(tasks))]

@@ -183,6 +183,8 @@ class AgentBatch:
     b_prio: FloatArray
     b_type: FloatArray
     time_s: float
+    job: IntArray | None = None
+    """Each agent's job (its scenario's index in ``run_episodes``), set by the episode loop."""
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -537,6 +539,23 @@ class MergeEngine:
         self._batch = batch
         return batch
 
+    def observe_agents(self, k: int, agent_ids: Sequence[str]) -> npt.NDArray[np.float32]:
+        """Observations of slot k's agents that are on the road now, acting or not (e.g. the state a
+        timeout cut an agent off in, to bootstrap from)."""
+        slot = self.slots[k]
+        egos = np.array([self._rows[k][a] for a in agent_ids], dtype=np.int64)
+        if not len(egos):
+            return np.zeros((0, OBS_DIM), dtype=np.float32)
+        s = slot.scenario
+        table = np.array([s.main_prio, s.merge_prio, max(s.main_prio, s.merge_prio)], dtype=np.float64)
+        return build_observations(
+            self.snapshot,
+            egos,
+            np.array([slot.accel[a] for a in agent_ids]),
+            table[self.snapshot.road[egos]],
+            np.array([slot.spec[a].b_type for a in agent_ids]),
+        )
+
     def _masks(self, egos: IntArray, prev: FloatArray) -> npt.NDArray[np.int8]:
         if len(egos) == 0:
             return np.zeros((0, N_ACTIONS), dtype=np.int8)
@@ -873,6 +892,7 @@ def iter_episodes(
             if len(reported) == len(jobs):
                 break
             batch = engine.observe()
+            batch.job = np.asarray(jobs, dtype=np.int64)[batch.copy]
             actions = np.zeros(len(batch), dtype=np.int64)
             if len(batch):
                 which = np.empty(len(batch), dtype=np.int64)
