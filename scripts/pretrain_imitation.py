@@ -18,12 +18,13 @@ import numpy as np
 import torch
 
 from idas_sumo.agents.learner import Learner
-from idas_sumo.env.core import EnvConfig, MergeSimulation
+from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
 from idas_sumo.training.checkpoint import TrainingCheckpoint, save_checkpoint
 from idas_sumo.training.config import load_train_config
 from idas_sumo.training.imitation import collect_demonstrations, imitate
+from idas_sumo.training.workers import TRAIN_COPIES
 
 
 def main() -> None:
@@ -41,13 +42,15 @@ def main() -> None:
     args = parser.parse_args()
 
     config = load_train_config(args.config)
-    sim = MergeSimulation(args.net, seed=args.seed, config=EnvConfig(max_episode_s=config.max_episode_s))
+    engine = MergeEngine(
+        args.net, copies=TRAIN_COPIES, seed=args.seed, config=EnvConfig(max_episode_s=config.max_episode_s)
+    )
     rng = np.random.default_rng(args.seed)
     started = time.perf_counter()
     demos = collect_demonstrations(
-        sim, args.teacher, [config.intelligent_traffic, TrafficConfig()], args.episodes, rng
+        engine, args.teacher, [config.intelligent_traffic, TrafficConfig()], args.episodes, rng
     )
-    sim.close()
+    engine.close()
     print(
         f"{sum(len(e) for e in demos)} agent-steps from {args.episodes} episodes in {time.perf_counter() - started:.0f} s"
     )

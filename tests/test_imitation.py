@@ -80,17 +80,19 @@ def test_imitate_fits_a_learnable_teacher_and_v_fits_the_returns() -> None:
 
 @pytest.mark.sumo
 def test_idm_demonstrations_teach_the_actor_idm_actions(net_path: Path, small_budget: SmallBudget) -> None:
-    from idas_sumo.env.core import EnvConfig, MergeSimulation
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
     from idas_sumo.env.scenario import TrafficConfig
 
-    sim = MergeSimulation(net_path, seed=0, config=EnvConfig(max_episode_s=small_budget.max_episode_s))
+    engine = MergeEngine(net_path, copies=2, config=EnvConfig(max_episode_s=small_budget.max_episode_s))
     try:
         traffic = TrafficConfig(
             min_vehicles_per_road=2, max_vehicles_per_road=small_budget.max_vehicles_per_road
         )
-        demos = collect_demonstrations(sim, "idm", [traffic], small_budget.episodes, np.random.default_rng(0))
+        demos = collect_demonstrations(
+            engine, "idm", [traffic], small_budget.episodes, np.random.default_rng(0)
+        )
     finally:
-        sim.close()
+        engine.close()
     assert len(demos) == small_budget.episodes
     for e in demos:
         assert bool(e.mask[np.arange(len(e)), e.action].all())  # the teacher only took allowed actions

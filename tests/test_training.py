@@ -255,26 +255,19 @@ def test_evaluation_reads_only_the_policy_part(tmp_path: Path) -> None:
 # --- rollouts and the loop (SUMO) ----------------------------------------------------------------
 @pytest.mark.sumo
 def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
-    from idas_sumo.agents.rollout import batch_from_episodes, collect_episode
-    from idas_sumo.env.core import EnvConfig, MergeSimulation
+    from idas_sumo.agents.rollout import RolloutTask, batch_from_episodes, collect_episodes
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
     from idas_sumo.env.scenario import generate_scenario
 
-    sim = MergeSimulation(net_path, config=EnvConfig(max_episode_s=15.0))
+    engine = MergeEngine(net_path, copies=2, config=EnvConfig(max_episode_s=15.0))
     learner = Learner(LearnerConfig(use_central_critic=True), seed=0)
     rng = np.random.default_rng(4)
     traffic = TrafficConfig(min_vehicles_per_road=3, max_vehicles_per_road=3)
     try:
-        episodes = [
-            collect_episode(
-                sim,
-                learner,
-                generate_scenario(rng, traffic, sim.speed_limits_mps),
-                torch.Generator().manual_seed(i),
-            )
-            for i in range(2)
-        ]
+        tasks = [RolloutTask(generate_scenario(rng, traffic, engine.speed_limits_mps), i) for i in range(2)]
+        episodes = collect_episodes(engine, learner, tasks)
     finally:
-        sim.close()
+        engine.close()
     for e in episodes:
         n = len(e)
         assert n == e.stats.agent_steps > 0 and e.stats.agents == 6
@@ -286,7 +279,10 @@ def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
         assert np.isfinite(e.obs).all() and np.isfinite(e.next_obs).all()
         no_next = ~valid & (e.done == 0)  # cut off by the timeout: bootstraps from its last observation
         assert (np.abs(e.next_obs[no_next]).sum(axis=1) > 0).all()
-        assert e.stats.success == (e.stats.collisions == 0 and not e.stats.timed_out)
+        every_car_finished = (
+            all(r == "finished" for r in e.stats.end_reasons.values()) and e.stats.agents == 6
+        )
+        assert e.stats.success == (e.stats.collisions == 0 and every_car_finished)
     batch = batch_from_episodes(episodes)
     assert batch.obs.shape[0] == sum(len(e) for e in episodes)
     assert learner.update(batch)["q_loss"] > 0.0

@@ -1,7 +1,8 @@
-"""One episode on a ``MergeSimulation``, recorded as agent-steps ready for ``Learner.update``.
+"""Episodes on the episode engine (env/engine.py), recorded as agent-steps ready for ``Learner.update``.
 
-Every step all active learning agents are observed together, one batched ``act`` call picks their
-actions, the simulation steps, and each agent-step becomes one row of the learner's ``Batch``.
+Every step all active learning agents of every episode the engine runs side by side are observed
+together, one forward picks their actions (each episode sampling with its own generator), the
+simulation steps, and each agent-step becomes one row of the learner's ``Batch``.
 The rows of an agent are linked to its next step (``next_state``, ``next_action``, ...) so the
 centralised critic can bootstrap SARSA-style; an agent that finishes or collides gets ``done`` = 1,
 one cut off by the timeout gets ``done`` = 0 and the observation it ended in as ``next_obs``.
@@ -23,37 +24,30 @@ import torch
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_onehot
 from idas_sumo.agents.learner import Batch
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.core import MergeSimulation
-from idas_sumo.env.engine import AgentBatch, EpisodeOutcome, MergeEngine, StepResult, run_episodes
+from idas_sumo.env.engine import (
+    AgentBatch,
+    EpisodeOutcome,
+    MergeEngine,
+    Policy,
+    StepResult,
+    run_episodes,
+)
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
 
 __all__ = [
-    "ActPolicy",
     "EpisodeData",
     "EpisodeStats",
     "RolloutTask",
     "batch_from_episodes",
-    "collect_episode",
     "collect_episodes",
+    "record_episodes",
 ]
 
 DONE_REASONS = frozenset({"finished", "collided", "removed"})
 """End reasons after which nothing is bootstrapped (a timeout is not one of them)."""
-
-
-class ActPolicy(Protocol):
-    """Anything with ``Learner.act``'s signature."""
-
-    def act(
-        self,
-        obs: npt.NDArray[np.float32],
-        mask: npt.NDArray[np.int8],
-        generator: torch.Generator,
-        deterministic: bool = False,
-    ) -> npt.NDArray[np.int64]: ...
 
 
 @dataclass
@@ -118,159 +112,6 @@ class EpisodeData:
         """(N, OBS_DIM): the next observation, zeros where there is none (``done`` = 1)."""
         bank = np.concatenate([self.obs_bank, np.zeros((1, OBS_DIM), dtype=np.float32)])
         return bank[np.where(self.next_obs_index >= 0, self.next_obs_index, len(self.obs_bank))]
-
-
-def collect_episode(
-    sim: MergeSimulation,
-    policy: ActPolicy,
-    scenario: Scenario,
-    generator: torch.Generator,
-    deterministic: bool = False,
-) -> EpisodeData:
-    """Run ``scenario`` to its end with every learning agent on ``policy``; record every agent-step."""
-    sim.reset(scenario)
-    obs_rows: list[npt.NDArray[np.float32]] = []
-    n_obs = 0
-    # per row
-    obs_index: list[int] = []
-    next_obs_index: list[int] = []
-    masks: list[npt.NDArray[np.int8]] = []
-    actions: list[int] = []
-    rewards: list[float] = []
-    dones: list[float] = []
-    states: list[npt.NDArray[np.float32]] = []
-    others: list[npt.NDArray[np.float32]] = []
-    slots: list[int] = []
-    joints: list[float] = []
-    next_row: list[int] = []  # row of the same agent's next step, -1 when none
-    pending: dict[str, int] = {}  # agent -> its row from the previous step, still waiting for a successor
-    returns: dict[str, float] = {}
-    parts = dict.fromkeys(REWARD_PART_NAMES, 0.0)
-    collisions = 0
-    steps = 0
-    end_reasons: dict[str, str] = {}
-
-    while not sim.episode_over:
-        ids = sim.active_agents
-        if not ids:  # cannot happen while the episode runs (step() idles until someone enters)
-            break
-        obs, mask = sim.observe(ids)
-        state = sim.state()
-        chosen = policy.act(obs, mask, generator, deterministic=deterministic)
-        outcome = sim.step({a: int(x) for a, x in zip(ids, chosen, strict=True)})
-        applied = np.array(
-            [outcome.replaced_actions.get(a, int(x)) for a, x in zip(ids, chosen, strict=True)]
-        )
-        agent_slots = np.array([sim.slot(a) for a in ids], dtype=np.int64)
-        slot_actions = np.zeros(STATE_SLOTS, dtype=np.int64)
-        acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
-        in_range = agent_slots >= 0
-        slot_actions[agent_slots[in_range]] = applied[in_range]
-        acting[agent_slots[in_range]] = True
-        onehot = others_actions_onehot(slot_actions, acting)
-
-        obs_rows.append(obs)
-        first_obs = n_obs
-        n_obs += len(ids)
-        for i, a in enumerate(ids):
-            row = len(actions)
-            if a in pending:
-                next_row[pending.pop(a)] = row
-            obs_index.append(first_obs + i)
-            next_obs_index.append(-1)
-            masks.append(mask[i])
-            actions.append(int(applied[i]))
-            r = outcome.rewards[a]
-            rewards.append(r)
-            returns[a] = returns.get(a, 0.0) + r
-            for name in ("finish", "collide", "impede"):
-                parts[name] += outcome.reward_parts[a][name]
-            reason = outcome.end_reason.get(a)
-            dones.append(1.0 if reason in DONE_REASONS else 0.0)
-            states.append(state)
-            slot = int(agent_slots[i])
-            others.append(onehot[slot] if slot >= 0 else np.zeros(OTHERS_ACTIONS_DIM, dtype=np.float32))
-            slots.append(slot)
-            joints.append(outcome.joint_reward)
-            next_row.append(-1)
-            if reason is not None:
-                end_reasons[a] = reason
-            if reason not in DONE_REASONS:  # still driving, or cut off: needs a next observation
-                pending[a] = row
-        parts["flow"] += next(iter(outcome.reward_parts.values()))["flow"] if outcome.reward_parts else 0.0
-        collisions += len(outcome.collisions)
-        steps += 1
-
-    # Agents still pending were cut off (timeout): their final observation bootstraps V.
-    cut = [a for a in pending if a in sim.snapshot.ids]
-    if cut:
-        final_obs, _ = sim.observe(cut)
-        obs_rows.append(final_obs)
-        for i, a in enumerate(cut):
-            next_obs_index[pending[a]] = n_obs + i
-        n_obs += len(cut)
-
-    n = len(actions)
-    nxt = np.asarray(next_row, dtype=np.int64)
-    has_next = nxt >= 0
-    obs_idx = np.asarray(obs_index, dtype=np.int64)
-    next_obs_idx = np.asarray(next_obs_index, dtype=np.int64)
-    next_obs_idx[has_next] = obs_idx[nxt[has_next]]
-
-    state_arr = np.asarray(states, dtype=np.float32).reshape(n, STATE_DIM)
-    others_arr = np.asarray(others, dtype=np.float32).reshape(n, OTHERS_ACTIONS_DIM)
-    slot_arr = np.asarray(slots, dtype=np.int64)
-    action_arr = np.asarray(actions, dtype=np.int64)
-    next_state = np.zeros_like(state_arr)
-    next_others = np.zeros_like(others_arr)
-    next_slot = np.zeros(n, dtype=np.int64)
-    next_action = np.zeros(n, dtype=np.int64)
-    next_state[has_next] = state_arr[nxt[has_next]]
-    next_others[has_next] = others_arr[nxt[has_next]]
-    next_slot[has_next] = slot_arr[nxt[has_next]]
-    next_action[has_next] = action_arr[nxt[has_next]]
-
-    timed_out = bool(any(r == "timeout" for r in end_reasons.values()) or cut)
-    success = collisions == 0 and not timed_out
-    agent_returns = list(returns.values())
-    stats = EpisodeStats(
-        agents=len(returns),
-        steps=steps,
-        agent_steps=n,
-        sim_time_s=float(sim.time_s),
-        return_mean=float(np.mean(agent_returns)) if agent_returns else 0.0,
-        reward_parts=parts,
-        collisions=collisions,
-        timed_out=timed_out,
-        success=success,
-        perfect=success and parts["impede"] == 0.0 and parts["flow"] == 0.0,
-        end_reasons=end_reasons,
-    )
-    bank = (
-        np.concatenate(obs_rows).astype(np.float32, copy=False)
-        if obs_rows
-        else np.zeros((0, OBS_DIM), np.float32)
-    )
-    return EpisodeData(
-        obs_bank=bank,
-        obs_index=obs_idx,
-        next_obs_index=next_obs_idx,
-        mask=np.asarray(masks, dtype=np.int8).reshape(n, N_ACTIONS),
-        action=action_arr,
-        reward=np.asarray(rewards, dtype=np.float32),
-        done=np.asarray(dones, dtype=np.float32),
-        state=state_arr,
-        others_actions=others_arr,
-        slot=slot_arr,
-        joint_reward=np.asarray(joints, dtype=np.float32),
-        next_state=next_state,
-        next_others_actions=next_others,
-        next_slot=next_slot,
-        next_action=next_action,
-        next_valid=has_next.astype(np.float32),
-        next_row=nxt,
-        stats=stats,
-    )
 
 
 def _global_next_rows(episodes: list[EpisodeData]) -> npt.NDArray[np.int64]:
@@ -569,7 +410,12 @@ def collect_episodes(
     """Run every task's scenario to its end on ``engine`` (``engine.copies`` side by side), every learning
     agent on ``actor``; the recorded episodes in task order. Each episode samples with its own generator
     (``action_seed``), so its draws do not depend on which episodes ran beside it."""
-    collector = _Collector(len(tasks))
-    policy = _LearningPolicy(actor, tasks)
-    run_episodes(engine, [t.scenario for t in tasks], lambda job, agent: 0, [policy], collector)
-    return [collector.episodes[j] for j in range(len(tasks))]
+    return record_episodes(engine, _LearningPolicy(actor, tasks), [t.scenario for t in tasks])
+
+
+def record_episodes(engine: MergeEngine, policy: Policy, scenarios: Sequence[Scenario]) -> list[EpisodeData]:
+    """Every scenario run to its end with every learning agent on ``policy`` (a learned actor, or a
+    rule-based teacher for imitation), recorded as agent-steps; in scenario order."""
+    collector = _Collector(len(scenarios))
+    run_episodes(engine, scenarios, lambda job, agent: 0, [policy], collector)
+    return [collector.episodes[j] for j in range(len(scenarios))]

@@ -15,51 +15,32 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 import torch
 
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.returns import gae_advantages
-from idas_sumo.agents.rollout import EpisodeData, collect_episode
-from idas_sumo.baselines.policies import baseline_policy
-from idas_sumo.env.core import MergeSimulation
+from idas_sumo.agents.rollout import EpisodeData, record_episodes
+from idas_sumo.baselines.policies import RuleBasedPolicy
+from idas_sumo.env.engine import MergeEngine
 from idas_sumo.env.scenario import TrafficConfig, generate_scenario
 
-__all__ = ["BaselineTeacher", "EpochStats", "collect_demonstrations", "imitate"]
-
-
-class BaselineTeacher:
-    """A rule-based baseline ('idm' or 'fsm_idm') behind ``Learner.act``'s signature."""
-
-    def __init__(self, sim: MergeSimulation, name: str) -> None:
-        self._sim = sim
-        self._policy = baseline_policy(name)
-
-    def act(
-        self,
-        obs: npt.NDArray[np.float32],
-        mask: npt.NDArray[np.int8],
-        generator: torch.Generator,
-        deterministic: bool = False,
-    ) -> npt.NDArray[np.int64]:
-        # collect_episode observes exactly the active agents, in this order.
-        return np.asarray(self._policy(self._sim, self._sim.active_agents, obs, mask), dtype=np.int64)
+__all__ = ["EpochStats", "collect_demonstrations", "imitate"]
 
 
 def collect_demonstrations(
-    sim: MergeSimulation,
+    engine: MergeEngine,
     teacher: str,
     traffic: list[TrafficConfig],
     episodes: int,
     rng: np.random.Generator,
 ) -> list[EpisodeData]:
-    """``episodes`` episodes driven by ``teacher``, cycling through the ``traffic`` configs."""
-    demo = BaselineTeacher(sim, teacher)
-    out = []
-    for k in range(episodes):
-        scenario = generate_scenario(rng, traffic[k % len(traffic)], sim.speed_limits_mps, name=f"demo-{k}")
-        out.append(collect_episode(sim, demo, scenario, torch.Generator()))
-    return out
+    """``episodes`` episodes driven by ``teacher`` ('idm' or 'fsm_idm'), cycling through the ``traffic``
+    configs, ``engine.copies`` side by side."""
+    scenarios = [
+        generate_scenario(rng, traffic[k % len(traffic)], engine.speed_limits_mps, name=f"demo-{k}")
+        for k in range(episodes)
+    ]
+    return record_episodes(engine, RuleBasedPolicy(teacher), scenarios)
 
 
 @dataclass(frozen=True)
