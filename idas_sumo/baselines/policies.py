@@ -20,7 +20,6 @@ from idas_sumo.baselines.fsm_idm import (
     real_leader_idm_acceleration,
 )
 from idas_sumo.env.actions import closest_allowed_action
-from idas_sumo.env.core import MergeSimulation, PolicyFn
 from idas_sumo.env.engine import AgentBatch
 from idas_sumo.env.snapshot import TrafficSnapshot
 from idas_sumo.physics.idm import IDMParams
@@ -87,25 +86,10 @@ class RuleBasedPolicy:
         )
 
 
-def baseline_policy(name: str) -> PolicyFn:
-    """The baseline ``name`` behind the interface every method shares; it reads the simulation's snapshot."""
-    act = BASELINES[name]
-
-    def policy(
-        sim: MergeSimulation, agents: list[str], obs: npt.NDArray[np.float32], masks: npt.NDArray[np.int8]
-    ) -> npt.NDArray[np.int64]:
-        egos = sim.snapshot.index(agents)
-        prev = np.array([sim.prev_accel(a) for a in agents])
-        return act(sim.snapshot, egos, prev, masks)
-
-    return policy
-
-
 __all__ = [
     "BASELINES",
     "BaselinePolicy",
     "RuleBasedPolicy",
-    "baseline_policy",
     "fsm_idm_actions",
     "idm_actions",
 ]

@@ -7,7 +7,7 @@ parts. Both environments (PettingZoo and Gymnasium) are thin wrappers around it.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -512,13 +512,6 @@ class MergeSimulation:
         self._closed = True
 
 
-PolicyFn = Callable[
-    [MergeSimulation, list[str], npt.NDArray[np.float32], npt.NDArray[np.int8]], npt.NDArray[np.int64]
-]
-"""How a method picks actions in a ``MergeSimulation`` (a rule-based baseline, a learned actor):
-(sim, agent ids, observations (n, OBS_DIM), masks (n, N_ACTIONS)) -> actions (n,)."""
-
-
 def _checked_action(agent: str, action: object, time_s: float) -> int:
     """An action index in [0, 7), or a ValueError naming the agent and the time."""
     value = action
@@ -554,7 +547,6 @@ __all__ = [
     "DEFAULT_MAX_EPISODE_S",
     "EnvConfig",
     "MergeSimulation",
-    "PolicyFn",
     "StepOutcome",
     "placeholder_mask",
 ]
