@@ -62,7 +62,48 @@ class RouteScenario(Protocol):
     def controlled_ids(self) -> tuple[str, ...]: ...
 
 
-_active: SumoBackend | None = None
+class _SlotHolder(typing.Protocol):
+    def close(self) -> None: ...
+
+
+_active: _SlotHolder | None = None
+"""The one libsumo simulation this process holds (a ``SumoBackend`` or a ``BatchBackend``)."""
+
+
+def claim_slot(owner: _SlotHolder, what: str) -> None:
+    """Refuse a second in-process simulation (libsumo would silently replace the first)."""
+    if _active is not None and _active is not owner:
+        raise SimulationError(
+            "another SUMO simulation is already open in this process (libsumo allows one); " + what
+        )
+
+
+def hold_slot(owner: _SlotHolder | None) -> None:
+    """Mark the slot held by ``owner`` (None: free)."""
+    global _active
+    _active = owner
+
+
+def release_slot(owner: _SlotHolder) -> None:
+    if _active is owner:
+        hold_slot(None)
+
+
+def start_or_load(args: Sequence[str], running: bool, net_path: object) -> None:
+    """``libsumo.start`` (or ``load`` when a run is open) with SUMO's own reason on failure (bad input)."""
+    import libsumo
+
+    failure: BaseException | None = None
+    with _captured_stderr() as stderr_lines:
+        try:
+            if running:
+                libsumo.load(list(args[1:]))
+            else:
+                libsumo.start(list(args))
+        except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
+            failure = err
+    if failure is not None:  # read SUMO's reason only now: the captured lines arrive on leaving the block
+        raise SumoRefusedInput(f"SUMO could not load {net_path}: {_sumo_message(failure, stderr_lines)}")
 
 
 def require_display(gui: bool) -> None:
@@ -195,14 +236,10 @@ class SumoBackend:
 
         ``extra_args`` are SUMO options for this run only (e.g. ``--tripinfo-output FILE``).
         """
-        global _active
-        if _active is not None and _active is not self:
-            raise SimulationError(
-                "another SUMO simulation is already open in this process (libsumo allows one); "
-                "close the other environment first, or create it with make_backend() to run it in a subprocess"
-            )
-        import libsumo
-
+        claim_slot(
+            self,
+            "close the other environment first, or create it with make_backend() to run it in a subprocess",
+        )
         require_display(self.gui)
         if self._workdir is None:
             self._workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_"))
@@ -214,36 +251,25 @@ class SumoBackend:
             from idas_sumo.sim.netgen import sumo_binary
 
             args[0] = str(sumo_binary(binary))
-        failure: BaseException | None = None
-        with _captured_stderr() as stderr_lines:
-            try:
-                if self._running:
-                    libsumo.load(args[1:])
-                else:
-                    libsumo.start(args)
-            except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
-                failure = err
-        if failure is not None:  # read SUMO's reason only now: the captured lines arrive on leaving the block
+        try:
+            start_or_load(args, self._running, self.net.path)
+        except SumoRefusedInput:
             self._running = False
-            _active = None
-            raise SumoRefusedInput(
-                f"SUMO could not load {self.net.path}: {_sumo_message(failure, stderr_lines)}"
-            )
+            hold_slot(None)
+            raise
         self._running = True
-        _active = self
+        hold_slot(self)
         self._controlled = set(scenario.controlled_ids)
         self._released = set()
 
     def close(self) -> None:
-        global _active
         if self._running:
             import libsumo
 
             with contextlib.suppress(Exception):
                 libsumo.close()
             self._running = False
-        if _active is self:
-            _active = None
+        release_slot(self)
         if self._workdir is not None:
             shutil.rmtree(self._workdir, ignore_errors=True)
             self._workdir = None

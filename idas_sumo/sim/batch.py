@@ -18,7 +18,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -183,39 +183,22 @@ class BatchBackend:
         """
         import tempfile
 
-        import libsumo
-
         if not 1 <= len(scenarios) <= self.copies:
             raise InputError(f"{len(scenarios)} scenarios for a {self.copies}-copy net (1 to {self.copies})")
-        if _backend._active is not None and _backend._active is not self:
-            raise SimulationError(
-                "another SUMO simulation is already open in this process (libsumo allows one); "
-                "close it before opening a BatchBackend"
-            )
+        _backend.claim_slot(self, "close it before opening a BatchBackend")
         if self._workdir is None:
             self._workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_batch_"))
         route_file = self._workdir / "batch.rou.xml"
         route_file.write_text(batch_route_xml(scenarios, self.net))
         args = [*self._options._args(route_file), *extra_args]
-        failure: BaseException | None = None
-        with _backend._captured_stderr() as stderr_lines:
-            try:
-                if self._running:
-                    libsumo.load(args[1:])
-                else:
-                    libsumo.start(args)
-            except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
-                failure = err
-        if failure is not None:  # SUMO's reason arrives in the captured lines on leaving the block
+        try:
+            _backend.start_or_load(args, self._running, self.net.path)
+        except SumoRefusedInput:
             self._running = False
-            _backend._active = None
-            raise SumoRefusedInput(
-                f"SUMO could not load {self.net.path}: {_backend._sumo_message(failure, stderr_lines)}"
-            )
+            _backend.hold_slot(None)
+            raise
         self._running = True
-        # The shared slot: SumoBackend and make_backend see this process's simulation as taken. The
-        # slot is typed SumoBackend; what it needs of its holder is close() (at exit), which we have.
-        _backend._active = cast(SumoBackend, self)
+        _backend.hold_slot(self)  # SumoBackend and make_backend now see this process's simulation as taken
         self._split = {
             self._prefixes[k] + v.id: (k, v.id) for k, s in enumerate(scenarios) for v in s.vehicles
         }
@@ -237,8 +220,7 @@ class BatchBackend:
             with contextlib.suppress(Exception):
                 libsumo.close()
             self._running = False
-        if _backend._active is self:
-            _backend._active = None
+        _backend.release_slot(self)
         if self._workdir is not None:
             shutil.rmtree(self._workdir, ignore_errors=True)
             self._workdir = None
