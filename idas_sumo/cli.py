@@ -153,6 +153,12 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"rollout processes, one SUMO each ({from_config('workers')})",
     )
     train.add_argument(
+        "--copies",
+        type=_positive_int,
+        help="episodes a rollout process runs side by side in one SUMO; results do not depend on it "
+        f"({from_config('copies')})",
+    )
+    train.add_argument(
         "--seed",
         type=int,
         help=f"the one seed everything random flows from ({from_config('seed')})",
@@ -163,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--resume",
         action="store_true",
         help="continue the run in --out from its last checkpoint, with the run's own config "
-        "(flags you give override it: --workers, --episodes; others are ignored with a warning)",
+        "(flags you give override it: --workers, --copies, --episodes; others are ignored with a warning)",
     )
     again.add_argument(
         "--force", action="store_true", help="start over in an --out that holds a run (replaces its files)"

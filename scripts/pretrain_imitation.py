@@ -24,7 +24,6 @@ from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
 from idas_sumo.training.checkpoint import TrainingCheckpoint, save_checkpoint
 from idas_sumo.training.config import load_train_config
 from idas_sumo.training.imitation import collect_demonstrations, imitate
-from idas_sumo.training.workers import TRAIN_COPIES
 
 
 def main() -> None:
@@ -43,7 +42,7 @@ def main() -> None:
 
     config = load_train_config(args.config)
     engine = MergeEngine(
-        args.net, copies=TRAIN_COPIES, seed=args.seed, config=EnvConfig(max_episode_s=config.max_episode_s)
+        args.net, copies=config.copies, seed=args.seed, config=EnvConfig(max_episode_s=config.max_episode_s)
     )
     rng = np.random.default_rng(args.seed)
     started = time.perf_counter()

@@ -684,9 +684,51 @@ def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
     limits = sim.speed_limits_mps
     sim.close()
     tasks = validation_tasks(plain.intelligent_traffic, limits, 2, validated.validation_seed)
-    workers = InProcessWorkers(net_path, EnvConfig(max_episode_s=plain.max_episode_s), seed=0)
+    workers = InProcessWorkers(
+        net_path, EnvConfig(max_episode_s=plain.max_episode_s), seed=0, copies=plain.copies
+    )
     try:
         again = score_episodes([e.stats for e in workers.run(load_actor(best_path), tasks)])
     finally:
         workers.close()
     assert again.joint_return == pytest.approx(best.validation.joint_return, abs=1e-4)
+
+
+def test_copies_is_a_validated_config_value_and_a_train_flag() -> None:
+    from idas_sumo.cli import build_parser
+    from idas_sumo.sim.multinet import MAX_COPIES
+    from idas_sumo.training.cli import config_from_args
+    from idas_sumo.training.config import RESUME_FIELDS
+
+    assert TrainConfig().copies == 16
+    assert load_train_config(DEFAULT_TRAIN_CONFIG).copies == 16
+    for bad in (0, MAX_COPIES + 1):
+        with pytest.raises(InputError, match="copies"):
+            TrainConfig(copies=bad)
+    assert TrainConfig(copies=MAX_COPIES).copies == MAX_COPIES
+    args = build_parser().parse_args(["train", "--net", "n.net.xml", "--copies", "3"])
+    assert config_from_args(args).copies == 3
+    assert config_from_args(args, base=TrainConfig(copies=5, seed=7)) == TrainConfig(copies=3, seed=7)
+    assert "copies" in RESUME_FIELDS  # changes no number, so a resumed run may change it freely
+
+
+@pytest.mark.sumo
+def test_copies_change_no_number(net_path: Path, tmp_path: Path) -> None:
+    """One episode per SUMO run or three side by side: the same metrics rows and weights."""
+    from idas_sumo.training.loop import run_training
+
+    config = tiny_config(stage="direct", direct_episodes=5, episodes_per_update=5)
+    one = run_training(net_path, config.with_overrides(copies=1), tmp_path / "c1", progress=False)
+    three = run_training(net_path, config.with_overrides(copies=3), tmp_path / "c3", progress=False)
+
+    def strip(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+        return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]
+
+    rows = strip(read_metrics(tmp_path / "c1"))
+    assert rows == strip(read_metrics(tmp_path / "c3")) and len(rows) == 5
+    a, b = load_checkpoint(one), load_checkpoint(three)
+    assert a.config.copies == 1 and b.config.copies == 3  # stored in the run's config
+    for part in ("actor", "value", "central"):
+        assert a.learner[part].keys() == b.learner[part].keys()
+        for k, v in a.learner[part].items():
+            assert torch.equal(v, b.learner[part][k]), (part, k)

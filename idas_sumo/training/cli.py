@@ -26,6 +26,7 @@ def config_from_args(args: argparse.Namespace, base: TrainConfig | None = None) 
         episodes=getattr(args, "episodes", None),
         workers=getattr(args, "workers", None),
         seed=getattr(args, "seed", None),
+        copies=getattr(args, "copies", None),
     )
 
 

@@ -63,7 +63,7 @@ def run_training(
 
     Returns the final checkpoint (``out_dir/<last stage>.pt``). ``resume`` continues the run in
     ``out_dir`` from its ``checkpoint.pt`` with the saved config, taking only ``RESUME_FIELDS``
-    (workers, the stage budgets) from ``config``: a larger budget extends a finished run. Without
+    (workers, copies, the stage budgets) from ``config``: a larger budget extends a finished run. Without
     ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which replaces the
     files a run writes. ``gui`` shows the rollouts in sumo-gui (one worker only). Ctrl-C saves a
     checkpoint of the completed rounds, then re-raises KeyboardInterrupt.
@@ -95,7 +95,7 @@ def run_training(
     final = run.latest
     learner: Learner | None = None
     with (
-        make_workers(net_path, env_config, config.seed, config.workers, gui=gui) as workers,
+        make_workers(net_path, env_config, config.seed, config.workers, config.copies, gui=gui) as workers,
         MetricsSink(out_dir, keep_below) as sink,
         (
             _validation_sink(out_dir, keep_below) if config.validate_every else contextlib.nullcontext()

@@ -2,7 +2,7 @@
 
 ``InProcessWorkers`` runs the episodes in the training process. ``ProcessWorkers`` starts W
 processes (spawn: libsumo allows one SUMO per process, and a forked SUMO is not safe), each with its
-own episode engine (env/engine.py: ``TRAIN_COPIES`` episodes side by side in one SUMO run, one actor
+own episode engine (env/engine.py: ``copies`` episodes side by side in one SUMO run, one actor
 forward per step for all of them); every round they get the current actor weights and a share of the
 episodes.
 Each episode carries its own action-sampling seed, so the data do not depend on the worker count or
@@ -43,11 +43,6 @@ ActorWeights = dict[str, np.ndarray]
 EpisodeTask = RolloutTask
 """One episode to collect: the scenario, the seed of its action sampling, greedy (validation) or not."""
 
-TRAIN_COPIES = 16
-"""Episodes a rollout worker runs side by side in one SUMO run. Measured (96 episodes of the default
-traffic, the shipped IDAS driving, rollout only, one process on the 2 shared cores): 1 copy 6.0 / 6.2
-episodes/s, 8 copies 13.5 / 14.6, 16 copies 15.3 / 15.2 / 14.5, 32 copies 15.5."""
-
 
 def actor_weights(learner: Learner) -> ActorWeights:
     """The actor's weights as numpy arrays (cheap to pickle to another process)."""
@@ -79,8 +74,10 @@ class RolloutWorkers(ABC):
 class InProcessWorkers(RolloutWorkers):
     """Collect in this process, with the learner's own actor."""
 
-    def __init__(self, net_path: Path, env_config: EnvConfig, seed: int, gui: bool = False) -> None:
-        copies = 1 if gui else TRAIN_COPIES
+    def __init__(
+        self, net_path: Path, env_config: EnvConfig, seed: int, copies: int, gui: bool = False
+    ) -> None:
+        copies = 1 if gui else copies
         self.engine = MergeEngine(net_path, copies=copies, seed=seed, config=env_config, gui=gui)
 
     def run(self, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]:
@@ -146,13 +143,13 @@ def _unpack(p: _PackedEpisode) -> EpisodeData:
     )
 
 
-def _worker_main(conn: Connection, net_path: str, env_config: EnvConfig, seed: int) -> None:
+def _worker_main(conn: Connection, net_path: str, env_config: EnvConfig, seed: int, copies: int) -> None:
     """A worker process: owns one SUMO; answers ('run', weights, tasks) until ('close',)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     torch.set_num_threads(1)
     engine: MergeEngine | None = None
     try:
-        engine = MergeEngine(net_path, copies=TRAIN_COPIES, seed=seed, config=env_config)
+        engine = MergeEngine(net_path, copies=copies, seed=seed, config=env_config)
         learner = Learner(LearnerConfig(), seed=0)
         while True:
             msg = conn.recv()
@@ -176,7 +173,7 @@ def _worker_main(conn: Connection, net_path: str, env_config: EnvConfig, seed: i
 class ProcessWorkers(RolloutWorkers):
     """W spawned processes, one SUMO each; a round splits the tasks into W contiguous shares."""
 
-    def __init__(self, net_path: Path, env_config: EnvConfig, seed: int, workers: int) -> None:
+    def __init__(self, net_path: Path, env_config: EnvConfig, seed: int, workers: int, copies: int) -> None:
         ctx = mp.get_context("spawn")
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
@@ -184,7 +181,7 @@ class ProcessWorkers(RolloutWorkers):
             parent, child = ctx.Pipe()
             proc = ctx.Process(
                 target=_worker_main,
-                args=(child, str(net_path), env_config, seed + 1 + w),
+                args=(child, str(net_path), env_config, seed + 1 + w, copies),
                 name=f"idas-rollout-{w}",
                 daemon=True,
             )
@@ -237,8 +234,9 @@ class ProcessWorkers(RolloutWorkers):
 
 
 def make_workers(
-    net_path: Path, env_config: EnvConfig, seed: int, workers: int, gui: bool = False
+    net_path: Path, env_config: EnvConfig, seed: int, workers: int, copies: int, gui: bool = False
 ) -> RolloutWorkers:
+    """``workers`` processes (1: this one), each running ``copies`` episodes side by side."""
     if workers <= 1:
-        return InProcessWorkers(net_path, env_config, seed, gui=gui)
-    return ProcessWorkers(net_path, env_config, seed, workers)
+        return InProcessWorkers(net_path, env_config, seed, copies, gui=gui)
+    return ProcessWorkers(net_path, env_config, seed, workers, copies)
