@@ -732,3 +732,29 @@ def test_copies_change_no_number(net_path: Path, tmp_path: Path) -> None:
         assert a.learner[part].keys() == b.learner[part].keys()
         for k, v in a.learner[part].items():
             assert torch.equal(v, b.learner[part][k]), (part, k)
+
+
+@pytest.mark.sumo
+def test_unguarded_script_trains_with_two_workers(net_path: Path, tmp_path: Path) -> None:
+    """Workers are fresh interpreters: a script without a __main__ guard is not run again by them."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "train_me.py"
+    script.write_text(
+        "from pathlib import Path\n"
+        "from idas_sumo.env.scenario import TrafficConfig\n"
+        "from idas_sumo.training.config import TrainConfig\n"
+        "from idas_sumo.training.loop import run_training\n"
+        "config = TrainConfig(stage='direct', direct_episodes=2, episodes_per_update=2, workers=2,\n"
+        "    intelligent_traffic=TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=2),\n"
+        "    max_episode_s=12.0)\n"
+        f"run_training(Path({str(net_path)!r}), config, Path({str(tmp_path / 'run')!r}), progress=False)\n"
+        "print('trained once')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("trained once") == 1
+    assert len(read_metrics(tmp_path / "run")) == 2

@@ -1,7 +1,7 @@
 """Rollout workers: where episodes are collected. The loop only sees ``RolloutWorkers.run``.
 
 ``InProcessWorkers`` runs the episodes in the training process. ``ProcessWorkers`` starts W
-processes (spawn: libsumo allows one SUMO per process, and a forked SUMO is not safe), each with its
+processes (fresh interpreters: libsumo allows one SUMO per process, and a forked SUMO is not safe), each with its
 own episode engine (env/engine.py: ``copies`` episodes side by side in one SUMO run, one actor
 forward per step for all of them); every round they get the current actor weights and a share of the
 episodes.
@@ -15,15 +15,18 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import multiprocessing as mp
+import os
 import signal
+import subprocess
+import sys
+import threading
+import time
 import traceback
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
+from multiprocessing.connection import Connection, Listener
 from pathlib import Path
 from types import TracebackType
-from typing import Any
 
 import numpy as np
 import torch
@@ -170,25 +173,83 @@ def _worker_main(conn: Connection, net_path: str, env_config: EnvConfig, seed: i
             engine.close()
 
 
+_CHILD_CODE = (
+    "import sys; sys.path.append(sys.argv[1]); "
+    "from idas_sumo.training.workers import _child_main; _child_main(sys.argv[2], int(sys.argv[3]))"
+)
+_CONNECT_TIMEOUT_S = 120.0
+"""How long a starting worker may take to import torch and call back before the run gives up."""
+
+
+def _child_main(host: str, port: int) -> None:
+    """A worker started by ``ProcessWorkers``: read the authkey on stdin, call back, serve."""
+    from multiprocessing.connection import Client
+
+    authkey = sys.stdin.buffer.read()
+    conn = Client((host, port), authkey=authkey)
+    net_path, env_config, seed, copies = conn.recv()
+    _worker_main(conn, net_path, env_config, seed, copies)
+
+
 class ProcessWorkers(RolloutWorkers):
-    """W spawned processes, one SUMO each; a round splits the tasks into W contiguous shares."""
+    """W worker processes, one SUMO each; a round splits the tasks into W contiguous shares.
+
+    Workers are fresh interpreters started with subprocess (as evaluation/workers.py and
+    sim/backend.py start theirs), not multiprocessing's spawn: that re-imports the user's
+    ``__main__``, so a script calling ``run_training`` without an ``if __name__ == "__main__":``
+    guard would run itself again. Each worker calls back on a loopback socket that only holders
+    of a fresh random key (sent on its stdin, not its command line) can use.
+    """
 
     def __init__(self, net_path: Path, env_config: EnvConfig, seed: int, workers: int, copies: int) -> None:
-        ctx = mp.get_context("spawn")
         self._conns: list[Connection] = []
-        self._procs: list[Any] = []
-        for w in range(workers):
-            parent, child = ctx.Pipe()
-            proc = ctx.Process(
-                target=_worker_main,
-                args=(child, str(net_path), env_config, seed + 1 + w, copies),
-                name=f"idas-rollout-{w}",
-                daemon=True,
-            )
-            proc.start()
-            child.close()
-            self._conns.append(parent)
-            self._procs.append(proc)
+        self._procs: list[subprocess.Popen[bytes]] = []
+        authkey = os.urandom(32)
+        package_root = str(Path(__file__).resolve().parents[2])
+        try:
+            with Listener(("127.0.0.1", 0), authkey=authkey) as listener:
+                host, port = listener.address
+                for _ in range(workers):
+                    proc = subprocess.Popen(
+                        [sys.executable, "-P", "-c", _CHILD_CODE, package_root, host, str(port)],
+                        stdin=subprocess.PIPE,
+                        stdout=subprocess.DEVNULL,  # libsumo prints on stdout
+                        start_new_session=True,  # Ctrl-C is the parent's to handle
+                    )
+                    assert proc.stdin is not None
+                    proc.stdin.write(authkey)
+                    proc.stdin.close()
+                    self._procs.append(proc)
+                for w in range(workers):
+                    conn = self._accept(listener)
+                    conn.send((str(net_path), env_config, seed + 1 + w, copies))
+                    self._conns.append(conn)
+        except BaseException:
+            self.close()
+            raise
+
+    def _accept(self, listener: Listener) -> Connection:
+        """The next worker's authenticated connection; an error if the workers die or never call."""
+        result: list[Connection | BaseException] = []
+
+        def accept() -> None:
+            try:
+                result.append(listener.accept())
+            except BaseException as err:  # handed to the waiting thread
+                result.append(err)
+
+        thread = threading.Thread(target=accept, daemon=True)
+        thread.start()
+        deadline = time.monotonic() + _CONNECT_TIMEOUT_S
+        while thread.is_alive():
+            thread.join(timeout=0.2)
+            if thread.is_alive() and (
+                time.monotonic() > deadline or all(p.poll() is not None for p in self._procs)
+            ):
+                raise SimulationError("a rollout worker failed to start (see its error above)")
+        if isinstance(result[0], BaseException):
+            raise SimulationError(f"a rollout worker failed to connect: {result[0]}")
+        return result[0]
 
     def run(self, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]:
         weights = actor_weights(learner)
@@ -222,11 +283,12 @@ class ProcessWorkers(RolloutWorkers):
             with contextlib.suppress(BrokenPipeError, OSError):
                 conn.send(("close",))
         for proc in self._procs:
-            proc.join(timeout=10)
-            if proc.is_alive():
-                log.warning("rollout worker %s did not stop; terminating it", proc.name)
-                proc.terminate()
-                proc.join(timeout=5)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                log.warning("rollout worker %s did not stop; killing it", proc.pid)
+                proc.kill()
+                proc.wait()
         for conn in self._conns:
             conn.close()
         self._conns = []
