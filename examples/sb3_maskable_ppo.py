@@ -21,7 +21,7 @@ from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.monitor import Monitor
 
 import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
-from idas_sumo.env.core import EnvConfig
+from idas_sumo.env.engine import EnvConfig
 
 
 def main() -> None:

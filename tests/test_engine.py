@@ -173,15 +173,15 @@ def test_relations_never_cross_copies() -> None:
 
 
 def single_path_records(net_path: Path) -> list[dict[str, object]]:
-    """The golden file's source: the single-episode path (``MergeSimulation``), one scenario at a time.
+    """The environments' single-episode path (``SingleEpisode``, a K = 1 engine), one scenario at a time.
 
-    Delete with ``MergeSimulation``; the golden file keeps its value.
+    The golden file came from the old ``MergeSimulation`` on this loop; it keeps that value.
     """
     from idas_sumo.baselines.policies import fsm_idm_actions, idm_actions
-    from idas_sumo.env.core import MergeSimulation
+    from idas_sumo.env.single import SingleEpisode
 
     cases = golden_cases(net_path)
-    sim = MergeSimulation(net_path, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+    sim = SingleEpisode(net_path, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
     records: list[dict[str, object]] = []
     try:
         for case in cases:
@@ -212,7 +212,7 @@ def single_path_records(net_path: Path) -> list[dict[str, object]]:
                 reasons = [out.end_reason.get(a, "") for a in agents]
                 lines.append(step_line(t, agents, masks, parts, reasons))
                 counts["collisions"] += len(out.collisions)
-                counts["hard_brakes"] += len(out.hard_brakes)
+                counts["hard_brakes"] += out.hard_brakes
                 counts["hard_brakes_merge_zone"] += out.hard_brakes_merge_zone
                 counts["impedes"] += sum(1 for p in out.reward_parts.values() if p["impede"] < 0)
                 for a, r in out.rewards.items():

@@ -13,7 +13,7 @@ import pytest
 import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
 from idas_sumo.env import MergeEnv, MergeParallelEnv
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.core import EnvConfig
+from idas_sumo.env.engine import AgentBatch, EnvConfig
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec
 from idas_sumo.env.state_layout import STATE_DIM
@@ -255,11 +255,13 @@ def test_reset_waits_for_the_first_agent() -> None:
 
 def test_gym_env_with_policy_driven_others(small_budget: Any) -> None:
     # The others follow a given policy (always the first allowed action); they act only within masks.
-    def first_allowed(obs: np.ndarray, masks: np.ndarray) -> np.ndarray:
-        assert obs.shape[1:] == (OBS_DIM,) and masks.shape[1:] == (N_ACTIONS,)
-        return np.argmax(masks, axis=1)
+    class FirstAllowed:
+        def act(self, batch: AgentBatch, rows: np.ndarray) -> np.ndarray:
+            assert batch.obs[rows].shape[1:] == (OBS_DIM,) and batch.masks[rows].shape[1:] == (N_ACTIONS,)
+            assert env.ego not in {batch.ids[i] for i in rows}
+            return np.argmax(batch.masks[rows], axis=1)
 
-    env = MergeEnv(others=first_allowed, **_small(small_budget))
+    env = MergeEnv(others=FirstAllowed(), **_small(small_budget))
     try:
         for seed in range(small_budget.episodes):
             _, info = env.reset(seed=seed)

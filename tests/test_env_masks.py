@@ -160,7 +160,7 @@ def test_kinematic_range_outside_hard_braking() -> None:
 @pytest.mark.sumo
 def test_masked_actions_are_never_sampled_or_applied(small_budget) -> None:  # type: ignore[no-untyped-def]
     from idas_sumo.env import MergeParallelEnv
-    from idas_sumo.env.core import EnvConfig
+    from idas_sumo.env.engine import EnvConfig
     from idas_sumo.env.scenario import TrafficConfig
 
     env = MergeParallelEnv(

@@ -669,17 +669,17 @@ def test_invalid_action_names_the_agent(parallel_env: Any, bad: Any) -> None:
 
 @pytest.mark.sumo
 def test_non_finite_observation_names_the_agent(parallel_env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    import idas_sumo.env.core as core
+    import idas_sumo.env.engine as engine
     from idas_sumo.errors import SimulationError
 
-    real = core.build_observations
+    real = engine.build_observations
 
     def poisoned(snapshot: Any, egos: Any, *args: Any) -> Any:
         obs = real(snapshot, egos, *args)
         obs[-1, 0] = np.nan  # the last agent asked for
         return obs
 
-    monkeypatch.setattr(core, "build_observations", poisoned)
+    monkeypatch.setattr(engine, "build_observations", poisoned)
     with pytest.raises(SimulationError, match=r"non-finite observation for agent 'g0' at t = "):
         parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
 

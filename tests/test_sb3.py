@@ -13,7 +13,7 @@ import torch
 import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
 from idas_sumo.env import MergeEnv
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.core import EnvConfig
+from idas_sumo.env.engine import EnvConfig
 from idas_sumo.sim.backend import slot_taken
 
 pytestmark = pytest.mark.sumo

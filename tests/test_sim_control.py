@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from idas_sumo.baselines.policies import BASELINES
-from idas_sumo.env.core import EnvConfig, MergeSimulation
+from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.scenario import Scenario, VehicleSpec
+from idas_sumo.env.single import SingleEpisode
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import STEP_LENGTH_S, SubprocessBackend, SumoBackend, make_backend, slot_taken
 from idas_sumo.sim.netgen import MergeNet
@@ -108,14 +109,14 @@ def test_invalid_speed_commands_are_refused(backend: SumoBackend) -> None:
             backend.set_speeds({"ego": bad})
 
 
-def _level_pair(net: MergeNet, start_pos_m: float, speed_mps: float) -> tuple[MergeSimulation, Scenario]:
+def _level_pair(net: MergeNet, start_pos_m: float, speed_mps: float) -> tuple[SingleEpisode, Scenario]:
     """A main-road car "m" and a merge-road car "g", level with each other, main road has priority."""
     cars = (
         VehicleSpec("m", "main", start_pos_m, speed_mps, b_type=0.0),
         VehicleSpec("g", "merge", start_pos_m, speed_mps, b_type=0.0),
     )
     scenario = Scenario("level", cars, main_prio=1, merge_prio=0)
-    return MergeSimulation(net, config=EnvConfig(max_episode_s=20.0)), scenario
+    return SingleEpisode(net, config=EnvConfig(max_episode_s=20.0)), scenario
 
 
 def test_merge_crash_is_collided_with_collide_reward(merge_net: MergeNet) -> None:
@@ -162,7 +163,7 @@ def test_collided_vehicles_are_not_arrived(backend: SumoBackend) -> None:
 
 def test_finish_50_m_past_the_merge_point(merge_net: MergeNet) -> None:
     scenario = Scenario("finish", (VehicleSpec("ego", "merge", 200.0, 15.0, b_type=1.0),))
-    sim = MergeSimulation(merge_net, config=EnvConfig(max_episode_s=30.0))
+    sim = SingleEpisode(merge_net, config=EnvConfig(max_episode_s=30.0))
     try:
         sim.reset(scenario)
         dist = [sim.agent_info("ego")["dist_to_merge_m"]]

@@ -215,7 +215,7 @@ class MaskInputs:
     speed_mps: FloatArray
     speed_limit_mps: FloatArray
     gap_m: FloatArray
-    """Bumper gap to the front car (inf: none); see ``MergeSimulation`` for which car that is."""
+    """Bumper gap to the front car (inf: none); see ``MergeEngine.front_cars`` for which car that is."""
     leader_speed_mps: FloatArray
     ease_in: BoolArray | None = None
     """Ours: the front car is on the other road and the ego is still outside the merging zone. Opening a

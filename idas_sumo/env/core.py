@@ -2,7 +2,8 @@
 
 ``MergeSimulation`` owns the backend, turns SUMO's raw vehicle states into a ``TrafficSnapshot``,
 applies the masked actions as speed commands, and scores each step with the paper's named reward
-parts. Both environments (PettingZoo and Gymnasium) are thin wrappers around it.
+parts. Superseded by ``env/engine.py`` (the environments run on ``env/single.py``); its last user is a
+test in tests/test_training.py, and it goes when that moves.
 """
 
 from __future__ import annotations

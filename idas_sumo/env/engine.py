@@ -47,6 +47,7 @@ from idas_sumo.env.layout import (
 from idas_sumo.env.observation import build_observations
 from idas_sumo.env.rewards import (
     FINISH_DISTANCE_PAST_MERGE_M,
+    FLOW_PENALTY_PER_HARD_BRAKE,
     IMPEDE_PENALTY,
     MERGE_ZONE_RADIUS_M,
     REWARD_PART_NAMES,
@@ -389,6 +390,14 @@ class MergeEngine:
         return self._backend
 
     @property
+    def single_backend(self) -> Backend:
+        """The one SUMO simulation of a K = 1 engine (in-process, a subprocess, or sumo-gui)."""
+        backend = self.backend
+        if not isinstance(backend, _SoloBackend):
+            raise SimulationError("a K-copy engine has no single backend (a bug)")
+        return backend._backend
+
+    @property
     def time_s(self) -> float:
         """Simulated seconds since the scenarios started (the insertion step ends at 0.2 s)."""
         return self._time_s
@@ -683,7 +692,7 @@ class MergeEngine:
         in_zone = np.abs(before.dist_to_merge_m[brakes]) <= MERGE_ZONE_RADIUS_M
         hard_brakes = np.bincount(brake_copy, minlength=k_count)
         zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
-        flow = -1.0 * zone_brakes  # FLOW_PENALTY_PER_HARD_BRAKE per merge-zone brake, shared per copy
+        flow = FLOW_PENALTY_PER_HARD_BRAKE * zone_brakes  # per merge-zone brake, shared per copy
         impeded_by = _impeding_vehicles(before, brakes)
 
         # End reasons: collided, removed, finished, else timeout (if time is up).

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -11,14 +10,12 @@ import numpy.typing as npt
 from gymnasium import Env, spaces
 
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.core import EnvConfig, MergeSimulation, placeholder_mask
+from idas_sumo.env.engine import EnvConfig, Policy, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.parallel import DEFAULT_NET
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, check_against_net, generate_scenario
+from idas_sumo.env.single import SingleEpisode
 from idas_sumo.sim.netgen import MergeNet
-
-OthersPolicy = Callable[[npt.NDArray[np.float32], npt.NDArray[np.int8]], npt.NDArray[np.int64]]
-"""Maps (observations (n, OBS_DIM), action masks (n, 7)) of the other agents to their actions."""
 
 
 def with_controlled(scenario: Scenario, controlled: set[str]) -> Scenario:
@@ -50,16 +47,18 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         net: MergeNet | str | Path = DEFAULT_NET,
         scenario: Scenario | None = None,
         ego: str | None = None,
-        others: OthersPolicy | None = None,
+        others: Policy | None = None,
         traffic: TrafficConfig | None = None,
         config: EnvConfig | None = None,
         render_mode: str | None = None,
         gui: bool = False,
     ) -> None:
         self.render_mode = render_mode
-        self.sim = MergeSimulation(net, config=config, gui=gui)
+        self.sim = SingleEpisode(net, config=config, gui=gui)
         if scenario is not None:
-            check_against_net(scenario, self.sim.speed_limits_mps, self.sim.road_lengths_m, scenario.name)
+            check_against_net(
+                scenario, self.sim.engine.speed_limits_mps, self.sim.engine.road_lengths_m, scenario.name
+            )
             if ego is not None and ego not in {v.id for v in scenario.vehicles}:
                 raise ValueError(f"ego {ego!r} is not a vehicle of scenario {scenario.name!r}")
         self.fixed_scenario = scenario
@@ -77,7 +76,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         super().reset(seed=seed)
         scenario = (options or {}).get("scenario") or self.fixed_scenario
         if scenario is None:
-            scenario = generate_scenario(self.np_random, self.traffic, self.sim.speed_limits_mps)
+            scenario = generate_scenario(self.np_random, self.traffic, self.sim.engine.speed_limits_mps)
         ego = self.fixed_ego or str(self.np_random.choice([v.id for v in scenario.vehicles]))
         controlled = {v.id for v in scenario.vehicles} if self.others is not None else {ego}
         self.ego = ego
@@ -92,13 +91,13 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
             self.sim.step(self._others_actions())
 
     def _others_actions(self) -> dict[str, int]:
-        others = [a for a in self.sim.active_agents if a != self.ego]
-        if not others:
+        batch = self.sim.batch
+        rows = np.array([i for i, a in enumerate(batch.ids) if a != self.ego], dtype=np.int64)
+        if not len(rows):
             return {}
         assert self.others is not None
-        obs, masks = self.sim.observe(others)
-        actions = self.others(obs, masks)
-        return {a: int(act) for a, act in zip(others, actions, strict=True)}
+        actions = self.others.act(batch, rows)
+        return {batch.ids[i]: int(act) for i, act in zip(rows.tolist(), actions.tolist(), strict=True)}
 
     def action_masks(self) -> npt.NDArray[np.bool_]:
         """The ego's current action mask (True = allowed): ``info["action_mask"]`` of the last reset/step.

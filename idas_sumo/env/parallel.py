@@ -10,9 +10,10 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.core import EnvConfig, MergeSimulation, StepOutcome, placeholder_mask
+from idas_sumo.env.engine import EnvConfig, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
+from idas_sumo.env.single import SingleEpisode, StepOutcome
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.netgen import MergeNet
@@ -59,11 +60,13 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         gui: bool = False,
     ) -> None:
         self.render_mode = render_mode
-        self.sim = MergeSimulation(net, seed=seed or 0, config=config, gui=gui)
+        self.sim = SingleEpisode(net, seed=seed or 0, config=config, gui=gui)
         self.fixed_scenario = scenario
         self.traffic = traffic or TrafficConfig()
         if scenario is not None:
-            check_against_net(scenario, self.sim.speed_limits_mps, self.sim.road_lengths_m, scenario.name)
+            check_against_net(
+                scenario, self.sim.engine.speed_limits_mps, self.sim.engine.road_lengths_m, scenario.name
+            )
             self.possible_agents = list(scenario.controlled_ids)
         else:
             self.possible_agents = [
@@ -89,7 +92,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
             self._rng = np.random.default_rng(seed)
         scenario = (options or {}).get("scenario") or self.fixed_scenario
         if scenario is None:
-            scenario = generate_scenario(self._rng, self.traffic, self.sim.speed_limits_mps)
+            scenario = generate_scenario(self._rng, self.traffic, self.sim.engine.speed_limits_mps)
         self.sim.reset(scenario)
         self.agents = self.sim.active_agents
         observations = self._observations()

@@ -1,4 +1,4 @@
-"""The global state ``MergeSimulation.state()`` returns for the centralised critic Q.
+"""The global state ``MergeEngine.state(k)`` returns for the centralised critic Q.
 
 The state is a fixed number of vehicle slots (STATE_SLOTS), each a row of STATE_FEATURES floats::
 
