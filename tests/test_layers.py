@@ -127,19 +127,19 @@ def test_every_part_of_the_package_has_a_layer() -> None:
     ("importer", "imported", "expected"),
     [
         ("idas_sumo.sim.backend", "idas_sumo.env.scenario", "points up"),
-        ("idas_sumo.env.core", "idas_sumo.baselines.idm", "points up"),
-        ("idas_sumo.env.core", "idas_sumo.agents.critic_input", "points up"),
+        ("idas_sumo.env.engine", "idas_sumo.baselines.idm", "points up"),
+        ("idas_sumo.env.engine", "idas_sumo.agents.critic_input", "points up"),
         ("idas_sumo.training.imitation", "idas_sumo.evaluation.policies", "points sideways"),
         ("idas_sumo.evaluation.policies", "idas_sumo.training.checkpoint", "points sideways"),
         ("idas_sumo.agents.rollout", "idas_sumo.baselines.policies", "points sideways"),
-        ("idas_sumo.errors", "idas_sumo.env.core", "the shared leaf idas_sumo.errors may import only"),
-        ("idas_sumo.env.core", "libsumo", "only idas_sumo.sim may import libsumo"),
-        ("idas_sumo.env.core", "idas_sumo.sim.backend", None),
+        ("idas_sumo.errors", "idas_sumo.env.engine", "the shared leaf idas_sumo.errors may import only"),
+        ("idas_sumo.env.engine", "libsumo", "only idas_sumo.sim may import libsumo"),
+        ("idas_sumo.env.engine", "idas_sumo.sim.backend", None),
         ("idas_sumo.env.actions", "idas_sumo.physics.idm", None),
         ("idas_sumo.cli", "idas_sumo.training.cli", None),
         ("idas_sumo.training.checkpoint", "idas_sumo", None),
         ("idas_sumo.sim.backend", "libsumo", None),
-        ("idas_sumo.env.core", "numpy", None),
+        ("idas_sumo.env.engine", "numpy", None),
     ],
 )
 def test_the_rule_itself(importer: str, imported: str, expected: str | None) -> None:
@@ -155,5 +155,5 @@ def test_lazy_and_relative_imports_are_seen() -> None:
         "    from idas_sumo.training.checkpoint import load_actor\n"
         "    import libsumo\n"
     )
-    found = {m for _, m in imported_modules(source, "idas_sumo.env.core", is_package=False)}
+    found = {m for _, m in imported_modules(source, "idas_sumo.env.engine", is_package=False)}
     assert found == {"idas_sumo.env", "idas_sumo.baselines", "idas_sumo.training.checkpoint", "libsumo"}

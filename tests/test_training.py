@@ -653,7 +653,7 @@ def test_validation_settings_are_checked() -> None:
 def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
     net_path: Path, tmp_path: Path
 ) -> None:
-    from idas_sumo.env.core import EnvConfig, MergeSimulation
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
     from idas_sumo.training.loop import run_training
     from idas_sumo.training.validation import score_episodes, validation_tasks
     from idas_sumo.training.workers import InProcessWorkers
@@ -680,7 +680,7 @@ def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
     assert best.episode == int(rows[scores.index(max(scores))]["episode"])
 
     # The saved weights score the same when validated again from the file.
-    sim = MergeSimulation(net_path, seed=0, config=EnvConfig(max_episode_s=plain.max_episode_s))
+    sim = MergeEngine(net_path, seed=0, config=EnvConfig(max_episode_s=plain.max_episode_s))
     limits = sim.speed_limits_mps
     sim.close()
     tasks = validation_tasks(plain.intelligent_traffic, limits, 2, validated.validation_seed)

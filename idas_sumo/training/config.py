@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.core import DEFAULT_MAX_EPISODE_S
+from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS

@@ -27,7 +27,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
-from idas_sumo.env.core import EnvConfig
+from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.scenario import Road, generate_scenario
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import ensure_writable_dir
