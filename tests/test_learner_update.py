@@ -10,6 +10,7 @@ swapped for plain SGD so one step is Δθ = -lr·∇L, and the gradient clip is 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import TypeVar
@@ -340,3 +341,20 @@ def test_update_follows_the_hand_worked_losses_at_initial_weights() -> None:
 
 def nets(learner: Learner) -> dict[str, nn.Module]:
     return {"value": learner.value, "central": learner.central, "actor": learner.actor}
+
+
+@pytest.mark.parametrize("central", [False, True])
+def test_next_row_reuse_gives_the_update_of_the_plain_next_observations(central: bool) -> None:
+    """With ``next_row`` V(o') is read from V(o) of the next row instead of a second forward pass; the
+    update (targets, advantages, new weights) must be the one computed from ``next_obs`` directly."""
+    with_rows = make_batch()
+    without_rows = dataclasses.replace(with_rows, next_row=None)
+    learners = [sgd_learner(central) for _ in range(2)]
+    for learner, batch in zip(learners, (with_rows, without_rows), strict=True):
+        learner.update(batch)
+    a, b = (learner.last_update for learner in learners)
+    assert a is not None and b is not None
+    torch.testing.assert_close(a.value.target, b.value.target)
+    torch.testing.assert_close(a.value.advantage, b.value.advantage)
+    for pa, pb in zip(learners[0].actor.parameters(), learners[1].actor.parameters(), strict=True):
+        torch.testing.assert_close(pa, pb)

@@ -318,8 +318,9 @@ class Learner:
         reward, done = b.reward.float(), b.done.float()
         values = self.value(b.obs)
         with torch.no_grad():
-            target = td_targets(reward, self.value_target(b.next_obs), done, cfg.gamma)
-            advantage = td_advantages(reward, values.detach(), self.value(b.next_obs), done, cfg.gamma)
+            next_values, next_target_values = self._next_values(b, values.detach())
+            target = td_targets(reward, next_target_values, done, cfg.gamma)
+            advantage = td_advantages(reward, values.detach(), next_values, done, cfg.gamma)
             if cfg.gae_lambda > 0.0:
                 advantage = gae_advantages(
                     advantage, _require(b.next_row, "next_row"), cfg.gamma, cfg.gae_lambda
@@ -332,6 +333,34 @@ class Learner:
         self.opt_value.step()
         return CriticStep(
             prediction=values.detach(), target=target, advantage=advantage, loss=float(loss.item())
+        )
+
+    def _next_values(self, b: Batch, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """V(o') and V̂(o') (B,), no gradient.
+
+        With ``next_row`` the next observation of most rows is another row's observation, so V(o') is
+        read from ``values`` (V on the batch, already computed) and only the rows cut off by a timeout,
+        whose o' is in no row, go through V again: one forward pass of V fewer per update. Rows that
+        ended (``done``) get 0, which the TD target multiplies by 1 - done = 0 anyway.
+        """
+        if b.next_row is None:
+            return self.value(b.next_obs), self.value_target(b.next_obs)
+        next_row = b.next_row.long()
+        has_next = next_row >= 0
+        cut_off = torch.nonzero(~has_next & (b.done == 0)).squeeze(1)
+        n = values.shape[0]
+        # Row i's o' is row next_row[i]'s o, or row n + j for the j-th cut-off row.
+        where = next_row.clone()
+        where[cut_off] = n + torch.arange(cut_off.numel(), device=next_row.device)
+        extra_obs = b.next_obs[cut_off]
+        bank = torch.cat([values, self.value(extra_obs)])
+        target_bank = self.value_target(torch.cat([b.obs, extra_obs]))
+        ended = where < 0
+        where = where.clamp(min=0)
+        zero = torch.zeros((), dtype=values.dtype, device=values.device)
+        return (
+            torch.where(ended, zero, bank[where]),
+            torch.where(ended, zero, target_bank[where]),
         )
 
     def _update_central_critic(self, b: Batch, probs: torch.Tensor) -> CriticStep:
