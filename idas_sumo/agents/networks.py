@@ -152,6 +152,7 @@ class GridEncoder(nn.Module):
         """ReLU(conv) (B, CONV_FEATURES) in block order (block, filter, row, cell)."""
         b = obs.shape[0]
         toeplitz = _toeplitz(self.conv.weight)
+        assert self.conv.bias is not None  # the Conv2d is built with a bias
         bias = self.conv.bias.repeat_interleave(CONV_OUT_LANES * BLOCK_CELLS)  # (filter, row, cell)
         # layout.py orders the grid lane-major, [cl occ, cl rel, ol occ, ol rel]: (lane, channel) rows.
         rows = obs[:, N_SCALARS:].reshape(b, _ROWS_IN, GRID_CELLS)
