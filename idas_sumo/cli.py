@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
+from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS
 from idas_sumo.errors import IdasError, InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.resources import (
@@ -163,6 +164,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         help=f"the one seed everything random flows from ({from_config('seed')})",
     )
+    train.add_argument(
+        "--safety-mask",
+        choices=SAFETY_MASKS,
+        help="which car the safety mask follows: own_lane (the paper) or merge_aware (a shield) "
+        f"({from_config('safety_mask')})",
+    )
     train.add_argument("--out", type=Path, help="run directory (default: runs/<stage>)")
     again = train.add_mutually_exclusive_group()
     again.add_argument(
@@ -203,6 +210,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=resolve_user_path,
         help="TOML: [traffic] and max_episode_s for the paper suite "
         "(default: the built-in values, as in scenarios/eval_paper.toml)",
+    )
+    ev.add_argument(
+        "--safety-mask",
+        choices=SAFETY_MASKS,
+        help="which car every method's safety mask follows: own_lane (the paper) or merge_aware "
+        f"(a shield) (default: the --config file's safety_mask, else {DEFAULT_SAFETY_MASK})",
     )
     ev.add_argument(
         "--scenario",
@@ -298,6 +311,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             progress=not args.no_progress and sys.stderr.isatty(),
             gui=args.gui,
             config=args.config,
+            safety_mask=args.safety_mask,
             scenario_files=tuple(args.scenario),
             copies=args.copies,
             workers=args.workers,

@@ -21,6 +21,8 @@ class SmallBudget:
     """Sizes that keep SUMO-backed tests fast (change them here, not in the tests)."""
 
     episodes: int = 3
+    n_vehicles: int = 4
+    """Cars per generated scenario (staggered entries, the generator's default otherwise)."""
     max_vehicles_per_road: int = 3
     max_episode_s: float = 20.0
     api_cycles: int = 30

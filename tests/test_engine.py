@@ -31,12 +31,16 @@ GOLDEN = Path(__file__).parent / "data" / "engine_golden.json"
 GOLDEN_SEED = 7
 GOLDEN_SCENARIOS = 8
 GOLDEN_MAX_EPISODE_S = 40.0
+# The goldens pin the engine's mechanics as they were: the merge-aware mask and the first generator's
+# traffic (2 to 8 cars per road, all at t = 0), not today's defaults (own-lane mask, staggered entries).
+GOLDEN_TRAFFIC = TrafficConfig(n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=8)
+GOLDEN_ENV = EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S, safety_mask="merge_aware")
 
 
 def golden_cases(net_path: Path) -> list:
     net = read_merge_net(net_path)
     limits = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
-    return suite_cases("paper", GOLDEN_SCENARIOS, GOLDEN_SEED, limits, TrafficConfig())
+    return suite_cases("paper", GOLDEN_SCENARIOS, GOLDEN_SEED, limits, GOLDEN_TRAFFIC)
 
 
 def jitter_actions(ids: list[str], t: float, masks: np.ndarray, idm: np.ndarray) -> np.ndarray:
@@ -102,7 +106,7 @@ class _Recorder:
 
 def engine_records(net_path: Path, copies: int) -> list[dict[str, object]]:
     cases = golden_cases(net_path)
-    engine = MergeEngine(net_path, copies=copies, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+    engine = MergeEngine(net_path, copies=copies, config=GOLDEN_ENV)
     assert engine.copies == copies, "another simulation held libsumo: the copies did not run side by side"
     policies: list[Policy] = [RuleBasedPolicy("fsm_idm"), RuleBasedPolicy("idm"), JitterPolicy()]
     recorder = _Recorder()
@@ -181,7 +185,7 @@ def single_path_records(net_path: Path) -> list[dict[str, object]]:
     from idas_sumo.env.single import SingleEpisode
 
     cases = golden_cases(net_path)
-    sim = SingleEpisode(net_path, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+    sim = SingleEpisode(net_path, config=GOLDEN_ENV)
     records: list[dict[str, object]] = []
     try:
         for case in cases:
@@ -308,7 +312,7 @@ def test_rollouts_on_the_engine_match_the_single_episode_path(net_path: Path) ->
     learner = Learner(LearnerConfig(), seed=3)
     tasks = rollout_tasks(net_path)
     for copies in (1, 3):
-        engine = MergeEngine(net_path, copies=copies, config=EnvConfig(max_episode_s=GOLDEN_MAX_EPISODE_S))
+        engine = MergeEngine(net_path, copies=copies, config=GOLDEN_ENV)
         assert engine.copies == copies
         try:
             new = collect_episodes(engine, learner, tasks)

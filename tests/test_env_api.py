@@ -27,7 +27,9 @@ INFO_KEYS = {"speed_mps", "accel_mps2", "dist_to_merge_m", "road"}
 
 def _small(budget: Any) -> dict[str, Any]:
     return {
-        "traffic": TrafficConfig(max_vehicles_per_road=budget.max_vehicles_per_road),
+        "traffic": TrafficConfig(
+            n_vehicles=budget.n_vehicles, max_vehicles_per_road=budget.max_vehicles_per_road
+        ),
         "config": EnvConfig(max_episode_s=budget.max_episode_s),
     }
 

@@ -165,7 +165,9 @@ def test_masked_actions_are_never_sampled_or_applied(small_budget) -> None:  # t
 
     env = MergeParallelEnv(
         seed=3,
-        traffic=TrafficConfig(max_vehicles_per_road=small_budget.max_vehicles_per_road),
+        traffic=TrafficConfig(
+            n_vehicles=small_budget.n_vehicles, max_vehicles_per_road=small_budget.max_vehicles_per_road
+        ),
         config=EnvConfig(max_episode_s=small_budget.max_episode_s),
     )
     rng = np.random.default_rng(3)

@@ -13,6 +13,9 @@ from idas_sumo.env.scenario import TrafficConfig, _speeds_without_braking, gener
 from idas_sumo.errors import InputError
 
 LIMITS = {"main": 20.0, "merge": 15.0}
+# The first generator (2 to 8 cars per road, all at t = 0), which these tests pin; the paper's traffic
+# (the default) is tested in test_paper_traffic.py.
+DENSE = {"n_vehicles": 0, "min_vehicles_per_road": 2, "max_vehicles_per_road": 8}
 
 
 def test_generate_is_deterministic_per_seed() -> None:
@@ -24,7 +27,7 @@ def test_generate_is_deterministic_per_seed() -> None:
 
 
 def test_generated_ranges() -> None:
-    traffic = TrafficConfig(start_without_braking=False)  # speeds exactly as drawn
+    traffic = TrafficConfig(start_without_braking=False, **DENSE)  # speeds exactly as drawn
     rng = np.random.default_rng(0)
     counts: set[int] = set()
     prios: set[tuple[int, int]] = set()
@@ -60,11 +63,11 @@ def test_start_speed_cap_hand_worked() -> None:
 
 def test_no_car_starts_inside_its_safety_braking_region() -> None:
     rng = np.random.default_rng(3)
-    drawn_off = TrafficConfig(start_without_braking=False)
+    drawn_off = TrafficConfig(start_without_braking=False, **DENSE)
     capped_any = False
     for _ in range(200):
         state = rng.bit_generator.state
-        s = generate_scenario(rng, TrafficConfig(), LIMITS)
+        s = generate_scenario(rng, TrafficConfig(**DENSE), LIMITS)
         rng_off = np.random.default_rng()
         rng_off.bit_generator.state = state
         as_drawn = generate_scenario(rng_off, drawn_off, LIMITS)

@@ -11,6 +11,7 @@ acceleration (a masked request, a rule-based baseline's target) into the allowed
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 import numpy.typing as npt
@@ -29,6 +30,12 @@ N_DELTA_ACTIONS = len(DELTA_ACCEL_MPS2)
 HARD_BRAKE = N_DELTA_ACTIONS  # action index 5
 RELEASE_BRAKE = N_DELTA_ACTIONS + 1  # action index 6
 N_ACTIONS = N_DELTA_ACTIONS + 2
+
+SafetyMask = Literal["own_lane", "merge_aware"]
+"""Which car the safety mask keeps a safe distance to (``MergeEngine.front_cars``): the own-lane front
+car (the paper, L219) or also the other road's car nearer the merge point (ours, a shield)."""
+SAFETY_MASKS: tuple[str, ...] = get_args(SafetyMask)
+DEFAULT_SAFETY_MASK: SafetyMask = "own_lane"
 
 MIN_ACCEL_MPS2 = -2.0  # kinematic range outside hard braking
 MAX_ACCEL_MPS2 = 2.0

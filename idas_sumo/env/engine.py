@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -26,9 +26,12 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.env.actions import (
+    DEFAULT_SAFETY_MASK,
     HARD_BRAKE,
     N_ACTIONS,
+    SAFETY_MASKS,
     MaskInputs,
+    SafetyMask,
     action_masks,
     candidate_accelerations,
     closest_allowed_action,
@@ -95,10 +98,26 @@ class EnvConfig:
     max_episode_s: float = DEFAULT_MAX_EPISODE_S
     """Simulated seconds before the episode is cut off (a timeout is not a success)."""
     reward: RewardConfig = field(default_factory=RewardConfig)
+    safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
+    """Which car the safety mask keeps a safe distance to: 'own_lane' (the paper, L219 and L233-237: the
+    front car in the agent's own lane; the car on the other road is the conflict the policy must
+    learn) or 'merge_aware' (ours, an optional shield: the other road's car closer to the merge point
+    counts too, main road first; see ``MergeEngine.front_cars``)."""
 
     def __post_init__(self) -> None:
         if not (self.max_episode_s > 0):
             raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+        if self.safety_mask not in SAFETY_MASKS:
+            raise ValueError(
+                f"safety_mask must be one of {', '.join(SAFETY_MASKS)}, got {self.safety_mask!r}"
+            )
+
+
+def with_safety_mask(config: EnvConfig | None, safety_mask: SafetyMask | None) -> EnvConfig:
+    """``config`` (default: ``EnvConfig()``) with ``safety_mask`` when one is given (the environments'
+    ``safety_mask=`` argument)."""
+    config = config or EnvConfig()
+    return config if safety_mask is None else replace(config, safety_mask=safety_mask)
 
 
 # -- what an episode amounted to -------------------------------------------------------------------
@@ -125,7 +144,9 @@ class EpisodeOutcome:
     end_reasons: dict[str, str] = field(default_factory=dict)
     """Per controlled car that entered: 'finished', 'collided', 'removed' or 'timeout'."""
     collisions: int = 0
-    """Collision pairs SUMO reported (any cars)."""
+    """Collision pairs (any cars): SUMO's reports and the engine's geometric cross-check."""
+    geometric_collisions: int = 0
+    """Of those, the pairs only the geometric cross-check found (``geometric_collisions``)."""
     hard_brakes: int = 0
     """Hard brakes: agents choosing the hard-brake action, SUMO-driven cars decelerating harder than
     ``HARD_BRAKE_DETECT_MPS2``."""
@@ -273,6 +294,9 @@ class _SoloBackend:
     def release(self, vehicle_id: str, copy: int) -> None:
         self._backend.release(vehicle_id)
 
+    def remove(self, vehicle_id: str, copy: int) -> None:
+        self._backend.remove(vehicle_id)
+
     def clear_copy(self, copy: int) -> None:
         """Nothing to do: the next reset reloads the simulation."""
 
@@ -379,8 +403,11 @@ class MergeEngine:
         events = self._backend.step()  # insertion step: vehicles appear where the scenarios put them
         self._time_s = events.time_s
         self._read_snapshot()
+        self._cross_check(events)
         for k, slot in enumerate(self.slots):
-            self._admit(slot, events.copies[k].departed)
+            ev = events.copies[k]
+            slot.outcome.collisions += len(ev.collision_pairs)
+            self._admit(k, ev)
             self._settle(k)
 
     @property
@@ -456,16 +483,54 @@ class MergeEngine:
             slot.outcome.start_time_s = self._time_s
             slot.started = True
 
-    def _admit(self, slot: _Slot, departed: list[str]) -> None:
+    def _admit(self, k: int, events: StepEvents) -> None:
+        """Slot k's controlled cars that entered in this step start acting; one that collided as it
+        entered (a later departure onto a car, which SUMO then removed) or is gone already ends there."""
+        slot = self.slots[k]
+        rows = self._rows[k]
         added = False
-        for vid in departed:
+        for vid in events.departed:
             spec = slot.spec.get(vid)
             if spec is not None and spec.controlled and vid not in slot.done and vid not in slot.active:
+                if vid in events.collided or vid not in rows:
+                    reason = "collided" if vid in events.collided else "removed"
+                    slot.done[vid] = reason
+                    slot.outcome.end_reasons[vid] = reason
+                    if reason == "collided":
+                        prio = float(slot.scenario.prio(spec.road))
+                        reward = float(collide_reward(prio, self.config.reward.collision_sign))
+                        slot.outcome.returns[vid] = slot.outcome.returns.get(vid, 0.0) + reward
+                    continue
                 slot.active.append(vid)
                 slot.accel[vid] = 0.0
                 added = True
         if added:
             slot.active.sort(key=slot.order.__getitem__)
+
+    def _cross_check(self, events: BatchStepEvents) -> None:
+        """Add the collisions SUMO did not report: cars of one running episode whose bodies overlap
+        along a shared lane (``geometric_collisions``). Both count as collided, as in a SUMO-reported
+        collision (their episodes end with r_collide), and leave the road as SUMO's ``--collision.action
+        remove`` would take them; the snapshot is then read again without them."""
+        pairs = geometric_collisions(self.snapshot)
+        if not pairs:
+            return
+        snap = self.snapshot
+        removed = False
+        for i, j in pairs:
+            k = int(self._copy_of(snap, i))
+            if self.slots[k].over:
+                continue
+            ev = events.copies[k]
+            a, b = snap.ids[i], snap.ids[j]
+            ev.collision_pairs.append((a, b))
+            ev.collided.update((a, b))
+            self.slots[k].outcome.geometric_collisions += 1
+            for vid in (a, b):
+                self.backend.remove(vid, k)
+            removed = True
+        if removed:
+            self._read_snapshot()
 
     def _read_snapshot(self) -> None:
         states = self.backend.vehicle_states()
@@ -584,15 +649,23 @@ class MergeEngine:
     def front_cars(self, egos: IntArray) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
         """The car the safety mask keeps its distance to: (gap m, its speed m/s, ease_in; see MaskInputs).
 
-        Ours: in a merge the car in front is not only the one ahead in the ego's lane. A car on the other
-        incoming road that is closer to the merge point (projected, within sight of both) will be in front
-        of the ego after the merge, so whichever of the two asks for the lower IDM acceleration counts.
-        Level cars: the main-road car counts as ahead. With only the ego's own lane (the literal reading)
-        the cars of the two roads met side by side at the merge point: 28 of the first 40 paper-suite
-        scenarios had a collision with IDM driving every car, 26 with IDAS (docs/design-notes.md).
+        ``EnvConfig.safety_mask`` = 'own_lane' (the paper's mask, the default): the nearest car ahead in
+        the ego's own lane (its road, then the outgoing road); ``ease_in`` is all False. Before the merge
+        point a car on the other road is no front car: the order at the merge point is the policy's to
+        settle (FSM+IDM adds that car itself, as a virtual leader; baselines/fsm_idm.py).
+
+        'merge_aware' (ours, a shield): in a merge the car in front is not only the one ahead in the
+        ego's lane. A car on the other incoming road that is closer to the merge point (projected, within
+        sight of both) will be in front of the ego after the merge, so whichever of the two asks for the
+        lower IDM acceleration counts. Level cars: the main-road car counts as ahead. With only the ego's
+        own lane the cars of the two roads met side by side at the merge point in the old dense traffic:
+        28 of the first 40 paper-suite scenarios had a collision with IDM driving every car, 26 with
+        IDAS (docs/design-notes.md).
         """
         snap = self.snapshot
         leader, gap = leaders(snap, egos)
+        if self.config.safety_mask == "own_lane":
+            return gap, leader_speeds(snap, egos, leader), np.zeros(len(egos), dtype=np.bool_)
         # SUMO's own cars on the merge road give way to every main-road car at the junction (stage 1's
         # "merge always yields"); counting them as front cars of main-road cars deadlocked both.
         sumo_yielding = (snap.road == MERGE) & ~self._controlled
@@ -674,6 +747,7 @@ class MergeEngine:
         self._time_s = events.time_s
         rows_before = self._rows
         self._read_snapshot()
+        self._cross_check(events)
         after = self.snapshot
         k_count = len(self.slots)
         acting_copies = set(batch.copy.tolist())
@@ -748,14 +822,15 @@ class MergeEngine:
             collisions.append(ev.collision_pairs)
             if slot.over:
                 continue
+            # Collisions count in every running episode, also while it waits for its next car to enter.
+            slot.outcome.collisions += len(ev.collision_pairs)
             if k in acting_copies:
                 out = slot.outcome
-                out.collisions += len(ev.collision_pairs)
                 out.hard_brakes += int(hard_brakes[k])
                 out.hard_brakes_merge_zone += int(zone_brakes[k])
                 out.decision_steps += 1
                 out.agent_steps += int(np.count_nonzero(batch.copy == k))
-            self._admit(slot, ev.departed)
+            self._admit(k, ev)
             self._settle(k)
         return StepResult(
             rewards=rewards,
@@ -829,6 +904,24 @@ def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArra
     nearest = np.argmin(distance, axis=1)
     found = np.isfinite(distance[np.arange(len(brake_rows)), nearest])
     return np.asarray(nearest[found], dtype=np.int64)
+
+
+def geometric_collisions(snap: TrafficSnapshot) -> list[tuple[int, int]]:
+    """Rows (i, j), i < j, of cars of one copy whose bodies overlap along a lane they share: the same
+    incoming road, or the outgoing road (with the junction, past the merge point) and either incoming
+    road behind it (``lane_relations``). A body spans [front, front + length] in distance to the merge
+    point; overlapping means a bumper gap below zero, SUMO's own criterion with
+    ``--collision.mingap-factor 0``. Cars of different incoming roads before the merge point are
+    side by side on two roads, not overlapping. One numpy pass over the snapshot."""
+    n = len(snap)
+    if n < 2:
+        return []
+    same, _ = lane_relations(snap.road, np.arange(n), snap.copy)
+    d = snap.dist_to_merge_m
+    length = snap.length_m
+    overlap = same & (d[:, None] < d[None, :] + length[None, :]) & (d[None, :] < d[:, None] + length[:, None])
+    i, j = np.nonzero(np.triu(overlap, k=1))
+    return list(zip(i.tolist(), j.tolist(), strict=True))
 
 
 def _empty_snapshot() -> TrafficSnapshot:
@@ -936,17 +1029,22 @@ def run_episodes(
 
 __all__ = [
     "DEFAULT_MAX_EPISODE_S",
+    "DEFAULT_SAFETY_MASK",
     "END_REASONS",
+    "SAFETY_MASKS",
     "AgentBatch",
     "EnvConfig",
     "EpisodeObserver",
     "EpisodeOutcome",
     "MergeEngine",
     "Policy",
+    "SafetyMask",
     "StepResult",
+    "geometric_collisions",
     "is_perfect",
     "is_success",
     "iter_episodes",
     "placeholder_mask",
     "run_episodes",
+    "with_safety_mask",
 ]

@@ -9,12 +9,13 @@ import numpy as np
 import numpy.typing as npt
 from gymnasium import Env, spaces
 
-from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.engine import EnvConfig, Policy, placeholder_mask
+from idas_sumo.env.actions import N_ACTIONS, SafetyMask
+from idas_sumo.env.engine import EnvConfig, Policy, placeholder_mask, with_safety_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.parallel import DEFAULT_NET
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, check_against_net, generate_scenario
 from idas_sumo.env.single import SingleEpisode
+from idas_sumo.errors import SimulationError
 from idas_sumo.sim.netgen import MergeNet
 
 
@@ -25,6 +26,10 @@ def with_controlled(scenario: Scenario, controlled: set[str]) -> Scenario:
         for v in scenario.vehicles
     )
     return Scenario(scenario.name, vehicles, scenario.main_prio, scenario.merge_prio)
+
+
+_EGO_ATTEMPTS = 100
+"""Drawn scenarios tried until the ego gets to act (a late entry may come after the timeout)."""
 
 
 class MergeEnv(Env[npt.NDArray[np.float32], int]):
@@ -52,9 +57,10 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         config: EnvConfig | None = None,
         render_mode: str | None = None,
         gui: bool = False,
+        safety_mask: SafetyMask | None = None,
     ) -> None:
         self.render_mode = render_mode
-        self.sim = SingleEpisode(net, config=config, gui=gui)
+        self.sim = SingleEpisode(net, config=with_safety_mask(config, safety_mask), gui=gui)
         if scenario is not None:
             check_against_net(
                 scenario, self.sim.engine.speed_limits_mps, self.sim.engine.road_lengths_m, scenario.name
@@ -74,14 +80,26 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[npt.NDArray[np.float32], dict[str, Any]]:
         super().reset(seed=seed)
-        scenario = (options or {}).get("scenario") or self.fixed_scenario
-        if scenario is None:
-            scenario = generate_scenario(self.np_random, self.traffic, self.sim.engine.speed_limits_mps)
-        ego = self.fixed_ego or str(self.np_random.choice([v.id for v in scenario.vehicles]))
-        controlled = {v.id for v in scenario.vehicles} if self.others is not None else {ego}
-        self.ego = ego
-        self.sim.reset(with_controlled(scenario, controlled))
-        self._advance_until_ego()
+        given = (options or {}).get("scenario") or self.fixed_scenario
+        for _ in range(_EGO_ATTEMPTS):
+            scenario = given
+            if scenario is None:
+                scenario = generate_scenario(self.np_random, self.traffic, self.sim.engine.speed_limits_mps)
+            ego = self.fixed_ego or str(self.np_random.choice([v.id for v in scenario.vehicles]))
+            controlled = {v.id for v in scenario.vehicles} if self.others is not None else {ego}
+            self.ego = ego
+            self.sim.reset(with_controlled(scenario, controlled))
+            self._advance_until_ego()
+            if self.ego in self.sim.active_agents:
+                break
+            # The ego never got to act: its entry came after the timeout, or it collided as it entered.
+            if given is not None:
+                raise ValueError(
+                    f"ego {ego!r} of scenario {scenario.name!r} never drives: it enters after the "
+                    f"{self.sim.engine.config.max_episode_s:g} s timeout or collides as it enters"
+                )
+        else:
+            raise SimulationError(f"no drawn scenario let the ego drive in {_EGO_ATTEMPTS} attempts (a bug)")
         obs, masks = self.sim.observe([self.ego])
         self._mask = masks[0]
         return obs[0], self._info(self._mask)

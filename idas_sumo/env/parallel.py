@@ -9,8 +9,8 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.engine import EnvConfig, placeholder_mask
+from idas_sumo.env.actions import N_ACTIONS, SafetyMask
+from idas_sumo.env.engine import EnvConfig, placeholder_mask, with_safety_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
 from idas_sumo.env.single import SingleEpisode, StepOutcome
@@ -58,8 +58,10 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         seed: int | None = None,
         render_mode: str | None = None,
         gui: bool = False,
+        safety_mask: SafetyMask | None = None,
     ) -> None:
         self.render_mode = render_mode
+        config = with_safety_mask(config, safety_mask)
         self.sim = SingleEpisode(net, seed=seed or 0, config=config, gui=gui)
         self.fixed_scenario = scenario
         self.traffic = traffic or TrafficConfig()
@@ -69,9 +71,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
             )
             self.possible_agents = list(scenario.controlled_ids)
         else:
-            self.possible_agents = [
-                f"{r}{i}" for r in ROADS for i in range(self.traffic.max_vehicles_per_road)
-            ]
+            self.possible_agents = [f"{r}{i}" for r in ROADS for i in range(self.traffic.max_on_one_road)]
         self.agents: list[str] = []
         self._rng = np.random.default_rng(seed)
         self._obs_space = observation_space()

@@ -18,11 +18,12 @@ import numpy as np
 from idas_sumo.config import from_dict, load_toml
 from idas_sumo.errors import InputError
 from idas_sumo.physics.idm import DEFAULT_IDM
-from idas_sumo.sim.backend import VEHICLE_LENGTH_M
+from idas_sumo.sim.backend import STEP_LENGTH_S, VEHICLE_LENGTH_M
 
 Road = Literal["main", "merge"]
 ROADS: tuple[Road, ...] = ("main", "merge")
 B_TYPE_RANGE = (-2.0, 2.0)
+_BAD_ID_CHARS = "<>&\"'"  # XML's special characters: SUMO's route file quotes ids in attributes
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,11 @@ class VehicleSpec:
     """When the vehicle enters, in simulated seconds."""
 
     def __post_init__(self) -> None:
+        if not self.id or any(c in _BAD_ID_CHARS or c.isspace() for c in self.id):
+            raise ValueError(
+                f"vehicle id {self.id!r} must be non-empty, without spaces or any of {_BAD_ID_CHARS} "
+                "(it goes into SUMO's route file)"
+            )
         lo, hi = B_TYPE_RANGE
         if not (lo <= self.b_type <= hi):
             raise ValueError(f"vehicle {self.id!r}: b_type {self.b_type} outside [{lo}, {hi}]")
@@ -94,14 +100,37 @@ class Scenario:
         return tuple(v.id for v in self.vehicles if v.controlled)
 
 
+MIN_ENTRY_SPEED_FOR_SPACING_MPS = 1.0
+"""Ours: the least speed the generator assumes of a car ahead when it spaces a later entry behind it
+(a car drawn at a standstill still moves off; without a floor it would never make room)."""
+
+
 @dataclass(frozen=True)
 class TrafficConfig:
-    """How random scenarios are drawn (docs/design-notes.md, "Definitions"; ours where the paper is silent)."""
+    """How random scenarios are drawn (docs/design-notes.md, "Definitions"; ours where the paper is silent).
 
-    min_vehicles_per_road: int = 2
+    The defaults are the paper's traffic (L211, L225): ``n_vehicles`` = 8 cars split at random over the
+    two roads, each either on the road at t = 0 or entering later at its road's start. ``n_vehicles``
+    = 0 is the first generator: per road a count in [min_vehicles_per_road, max_vehicles_per_road],
+    every car on the road at t = 0 (``scenarios/eval_dense.toml``; the entry keys are unused there).
+    """
+
+    n_vehicles: int = 8
+    """Cars in a scenario, over both roads (paper: eight agents in the intelligent world, L211); the
+    number on the main road is uniform over the splits that respect the per-road bounds. 0: per-road
+    counts, all at t = 0 (the first generator)."""
+    min_vehicles_per_road: int = 1
     max_vehicles_per_road: int = 8
+    """Bounds on each road's count (with ``n_vehicles`` > 0 they bound the split)."""
+    p_depart_later: float = 0.5
+    """Ours: the probability that a car enters later, at its road's start, instead of being on the road
+    (at a random position) at t = 0 (paper L225: the time each agent enters is random)."""
+    max_depart_s: float = 10.0
+    """Ours: later entries are drawn uniform in (0, max_depart_s] simulated seconds, then delayed where
+    needed so that a car enters ``min_start_gap_m`` behind the car ahead of it on its road (that car
+    assumed at constant speed since its own start), at a speed that forces no brake at insertion."""
     start_range_m: float = 200.0
-    """Start positions lie in [vehicle length, start_range_m] from each road's start."""
+    """Start positions at t = 0 lie in [vehicle length, start_range_m] from each road's start."""
     min_start_gap_m: float = 15.0
     """Bumper-to-bumper spacing is at least this much at insertion."""
     min_speed_frac: float = 0.6
@@ -113,13 +142,29 @@ class TrafficConfig:
     gap, 25 of the first 40 paper-suite scenarios forced a hard brake in their first step, whatever the
     method (docs/design-notes.md). False: speeds as drawn."""
     p_main_priority: float = 0.8
-    """Probability of priorities (main 1, merge 0); otherwise both roads share one priority."""
+    """Probability of priorities (main 1, merge 0); otherwise both roads share one priority, 1 or 0 with
+    equal probability (paper L64, L275: equal priority is possible)."""
     max_controlled: int = 0
     """0: every vehicle is controlled; n > 0: at most n random vehicles are, the rest are robot cars."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_vehicles_per_road <= self.max_vehicles_per_road:
             raise ValueError("need 1 <= min_vehicles_per_road <= max_vehicles_per_road")
+        if self.n_vehicles < 0:
+            raise ValueError(f"n_vehicles must be >= 0, got {self.n_vehicles}")
+        if self.n_vehicles and not (
+            2 * self.min_vehicles_per_road <= self.n_vehicles <= 2 * self.max_vehicles_per_road
+        ):
+            raise ValueError(
+                f"n_vehicles {self.n_vehicles} cannot be split over two roads with "
+                f"{self.min_vehicles_per_road} to {self.max_vehicles_per_road} per road"
+            )
+        if not 0.0 <= self.p_depart_later <= 1.0:
+            raise ValueError("p_depart_later must lie in [0, 1]")
+        if not self.max_depart_s >= 0.0:
+            raise ValueError(f"max_depart_s must be >= 0, got {self.max_depart_s}")
+        if self.p_depart_later > 0.0 and self.max_depart_s == 0.0:
+            raise ValueError("p_depart_later > 0 needs max_depart_s > 0")
         if not 0.0 <= self.min_speed_frac <= self.max_speed_frac <= 1.0:
             raise ValueError("need 0 <= min_speed_frac <= max_speed_frac <= 1")
         if not 0.0 <= self.p_main_priority <= 1.0:
@@ -127,8 +172,20 @@ class TrafficConfig:
         if self.max_controlled < 0:
             raise ValueError("max_controlled must be >= 0")
         room = self.start_range_m - VEHICLE_LENGTH_M
-        if room < (self.max_vehicles_per_road - 1) * (self.min_start_gap_m + VEHICLE_LENGTH_M):
+        if room < (self.max_on_one_road - 1) * (self.min_start_gap_m + VEHICLE_LENGTH_M):
             raise ValueError("start_range_m is too short for max_vehicles_per_road at min_start_gap_m")
+
+    @property
+    def max_on_one_road(self) -> int:
+        """The most cars one road can get."""
+        if self.n_vehicles:
+            return min(self.max_vehicles_per_road, self.n_vehicles - self.min_vehicles_per_road)
+        return self.max_vehicles_per_road
+
+    @property
+    def max_total(self) -> int:
+        """The most cars a scenario can have."""
+        return self.n_vehicles or 2 * self.max_vehicles_per_road
 
 
 def generate_scenario(
@@ -142,15 +199,37 @@ def generate_scenario(
         main_prio, merge_prio = 1, 0
     else:
         main_prio = merge_prio = int(rng.integers(0, 2))
+    if traffic.n_vehicles:
+        vehicles = _staggered_vehicles(rng, traffic, speed_limits_mps)
+    else:
+        vehicles = _vehicles_at_start(rng, traffic, speed_limits_mps)
+    if traffic.max_controlled > 0 and len(vehicles) > traffic.max_controlled:
+        chosen = set(rng.choice(len(vehicles), size=traffic.max_controlled, replace=False).tolist())
+        vehicles = [
+            VehicleSpec(v.id, v.road, v.start_pos_m, v.speed_mps, v.b_type, i in chosen, v.depart_s)
+            for i, v in enumerate(vehicles)
+        ]
+    return Scenario(name=name, vehicles=tuple(vehicles), main_prio=main_prio, merge_prio=merge_prio)
+
+
+def _start_positions(rng: np.random.Generator, traffic: TrafficConfig, n: int) -> np.ndarray:
+    """n front-bumper positions in [vehicle length, start_range_m], ascending, at least the minimum gap
+    apart: placed with the gaps removed, then the gaps added back (uniform over all valid arrangements,
+    no rejection loop)."""
+    pitch = VEHICLE_LENGTH_M + traffic.min_start_gap_m
+    slack = traffic.start_range_m - VEHICLE_LENGTH_M - (n - 1) * pitch
+    offsets = np.sort(rng.uniform(0.0, slack, size=n))
+    return np.asarray(VEHICLE_LENGTH_M + offsets + np.arange(n) * pitch)
+
+
+def _vehicles_at_start(
+    rng: np.random.Generator, traffic: TrafficConfig, speed_limits_mps: dict[Road, float]
+) -> list[VehicleSpec]:
+    """The first generator: per road a random count, every car on the road at t = 0."""
     vehicles: list[VehicleSpec] = []
     for road in ROADS:
         n = int(rng.integers(traffic.min_vehicles_per_road, traffic.max_vehicles_per_road + 1))
-        # Spread n cars over the range with at least the minimum gap: place them with the gaps removed,
-        # then add the gaps back (uniform over all valid arrangements, no rejection loop).
-        pitch = VEHICLE_LENGTH_M + traffic.min_start_gap_m
-        slack = traffic.start_range_m - VEHICLE_LENGTH_M - (n - 1) * pitch
-        offsets = np.sort(rng.uniform(0.0, slack, size=n))
-        positions = VEHICLE_LENGTH_M + offsets + np.arange(n) * pitch
+        positions = _start_positions(rng, traffic, n)
         limit = speed_limits_mps[road]
         speeds = rng.uniform(traffic.min_speed_frac, traffic.max_speed_frac, size=n) * limit
         if traffic.start_without_braking:
@@ -166,30 +245,90 @@ def generate_scenario(
                     b_type=round(float(types[i]), 3),
                 )
             )
-    if traffic.max_controlled > 0 and len(vehicles) > traffic.max_controlled:
-        chosen = set(rng.choice(len(vehicles), size=traffic.max_controlled, replace=False).tolist())
-        vehicles = [
-            VehicleSpec(v.id, v.road, v.start_pos_m, v.speed_mps, v.b_type, i in chosen, v.depart_s)
-            for i, v in enumerate(vehicles)
-        ]
-    return Scenario(name=name, vehicles=tuple(vehicles), main_prio=main_prio, merge_prio=merge_prio)
+    return vehicles
 
 
-def _speeds_without_braking(positions_m: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
-    """Cap speeds, front car first, so each follower's IDM desired gap s* fits its bumper gap.
+def _staggered_vehicles(
+    rng: np.random.Generator, traffic: TrafficConfig, speed_limits_mps: dict[Road, float]
+) -> list[VehicleSpec]:
+    """The paper's traffic: ``n_vehicles`` split over the roads; each car on the road at t = 0 or, with
+    probability ``p_depart_later``, entering at its road's start at a random time (see TrafficConfig).
+
+    Ids: per road, the cars at t = 0 from the back (``main0`` …), then the later ones in entry order.
+    """
+    total = traffic.n_vehicles
+    lo = max(traffic.min_vehicles_per_road, total - traffic.max_vehicles_per_road)
+    hi = min(traffic.max_vehicles_per_road, total - traffic.min_vehicles_per_road)
+    n_main = int(rng.integers(lo, hi + 1))
+    vehicles: list[VehicleSpec] = []
+    counts: dict[Road, int] = {"main": n_main, "merge": total - n_main}
+    for road, n in counts.items():
+        limit = speed_limits_mps[road]
+        n_later = int(np.count_nonzero(rng.random(n) < traffic.p_depart_later))
+        n_now = n - n_later
+        positions = _start_positions(rng, traffic, n_now)
+        speeds = rng.uniform(traffic.min_speed_frac, traffic.max_speed_frac, size=n) * limit
+        if traffic.start_without_braking:
+            speeds[:n_now] = _speeds_without_braking(positions, speeds[:n_now])
+        types = rng.uniform(*B_TYPE_RANGE, size=n)
+        # (0, max]: a draw of exactly 0 would put a later car on the road at t = 0 at the road's start.
+        wanted = np.sort(traffic.max_depart_s * (1.0 - rng.random(n_later)))
+        departs = np.zeros(n)
+        starts = np.concatenate([positions, np.full(n_later, VEHICLE_LENGTH_M)])
+        # The car ahead of the next entry: the rearmost car on the road at t = 0, then each entry in turn.
+        ahead: tuple[float, float, float] | None = None  # (position at its start m, speed m/s, start s)
+        if n_now:
+            ahead = (float(positions[0]), float(speeds[0]), 0.0)
+        for m in range(n_later):
+            i = n_now + m
+            t = float(wanted[m])
+            if ahead is not None:
+                pos, speed, t0 = ahead
+                speed = max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS)
+                room_needed = VEHICLE_LENGTH_M + VEHICLE_LENGTH_M + traffic.min_start_gap_m - pos
+                t = max(t, t0 + room_needed / speed)
+            # SUMO inserts at step boundaries: depart on one, so the spacing holds when the car appears.
+            t = math.ceil(round(t / STEP_LENGTH_S, 9)) * STEP_LENGTH_S
+            if ahead is not None and traffic.start_without_braking:
+                pos, speed, t0 = ahead
+                gap = pos + max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS) * (t - t0) - 2 * VEHICLE_LENGTH_M
+                speeds[i] = min(speeds[i], _fastest_start(gap, speed))
+            departs[i] = t
+            ahead = (VEHICLE_LENGTH_M, float(speeds[i]), t)
+        for i in range(n):
+            vehicles.append(
+                VehicleSpec(
+                    id=f"{road}{i}",
+                    road=road,
+                    start_pos_m=round(float(starts[i]), 3),
+                    speed_mps=round(float(speeds[i]), 3),
+                    b_type=round(float(types[i]), 3),
+                    depart_s=round(float(departs[i]), 3),
+                )
+            )
+    return vehicles
+
+
+def _fastest_start(gap_m: float, leader_speed_mps: float) -> float:
+    """The fastest speed whose IDM desired gap s* fits ``gap_m`` behind a leader at ``leader_speed_mps``.
 
     s* = s0 + v·T + v·(v - v_lead)/(2·sqrt(a·b)) <= gap is a quadratic in v: A·v² + B·v + (s0 - gap) <= 0
     with A = 1/(2·sqrt(a·b)) and B = T - A·v_lead; its larger root is the fastest allowed start speed.
     """
     p = DEFAULT_IDM
     a_coef = 1.0 / (2.0 * math.sqrt(p.max_accel_mps2 * p.comfortable_decel_mps2))
+    b_coef = p.time_headway_s - a_coef * leader_speed_mps
+    c_coef = p.min_gap_m - gap_m
+    return (-b_coef + math.sqrt(b_coef * b_coef - 4.0 * a_coef * c_coef)) / (2.0 * a_coef)
+
+
+def _speeds_without_braking(positions_m: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
+    """Cap speeds, front car first, so each follower's IDM desired gap s* fits its bumper gap
+    (``_fastest_start``)."""
     capped = speeds_mps.copy()
     for i in range(len(capped) - 2, -1, -1):  # positions ascend: car i + 1 is car i's leader
         gap = positions_m[i + 1] - positions_m[i] - VEHICLE_LENGTH_M
-        b_coef = p.time_headway_s - a_coef * capped[i + 1]
-        c_coef = p.min_gap_m - gap
-        fastest = (-b_coef + math.sqrt(b_coef * b_coef - 4.0 * a_coef * c_coef)) / (2.0 * a_coef)
-        capped[i] = min(capped[i], fastest)
+        capped[i] = min(capped[i], _fastest_start(gap, capped[i + 1]))
     return capped
 
 

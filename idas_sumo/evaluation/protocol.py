@@ -18,10 +18,12 @@ import pandas as pd
 from idas_sumo.config import from_dict, load_toml
 from idas_sumo.env.engine import (
     DEFAULT_MAX_EPISODE_S,
+    DEFAULT_SAFETY_MASK,
     AgentBatch,
     EpisodeOutcome,
     MergeEngine,
     Policy,
+    SafetyMask,
     iter_episodes,
 )
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
@@ -60,6 +62,9 @@ class EvalConfig:
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
     max_episode_s: float = DEFAULT_MAX_EPISODE_S
     """Simulated seconds before an episode is cut off (a timeout is not a success)."""
+    safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
+    """Which car every method's safety mask follows (``EnvConfig.safety_mask``); ``--safety-mask``
+    overrides it."""
 
     def __post_init__(self) -> None:
         if not self.max_episode_s > 0:

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import pandas as pd
 
-from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy
+from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy, SafetyMask
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.evaluation.metrics import (
@@ -31,11 +32,13 @@ from idas_sumo.evaluation.protocol import (
     run_jobs,
     suite_cases,
 )
-from idas_sumo.io_utils import output_directory, write_csv_atomic
+from idas_sumo.io_utils import atomic_open, output_directory, write_csv_atomic
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import MergeNet, read_merge_net
 
 log = logging.getLogger(__name__)
+SETTINGS_NAME = "settings.json"
+"""Beside the CSVs: the settings that made them (methods, suite, seed, others, traffic, safety mask)."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,9 @@ class EvalRequest:
     copies: int = DEFAULT_EVAL_COPIES
     """Episodes run side by side in one SUMO run (1 with ``gui`` or ``sumo_output``: SUMO's own output
     and window are per episode). The CSVs do not depend on it."""
+    safety_mask: SafetyMask | None = None
+    """Which car the safety mask follows (``EnvConfig.safety_mask``); None: the ``config`` file's
+    ``safety_mask``, else the default (own_lane, the paper's)."""
 
 
 def default_others() -> str:
@@ -88,6 +94,8 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
     """
     net = read_merge_net(req.net)
     eval_config = load_eval_config(req.config) if req.config is not None else EvalConfig()
+    if req.safety_mask is not None:
+        eval_config = replace(eval_config, safety_mask=req.safety_mask)
     others_name = req.others or default_others()
     policies: dict[str, Policy] = {
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
@@ -127,10 +135,28 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         write_csv_atomic(episode_frame, out / "episodes.csv")
         write_csv_atomic(summary, out / "summary.csv")
         write_csv_atomic(pd.DataFrame(flows, columns=list(FLOW_COLUMNS)), out / "flow.csv")
+        with atomic_open(out / SETTINGS_NAME) as f:
+            json.dump(_settings(req, others_name, eval_config), f, indent=2, default=str)
+            f.write("\n")
         if req.trajectories:
             columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
             write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
     return EvalOutput(out, summary)
+
+
+def _settings(req: EvalRequest, others: str, eval_config: EvalConfig) -> dict[str, object]:
+    """What made the CSVs (``settings.json``): the suite, the seed, the traffic, the safety mask."""
+    return {
+        "methods": list(req.methods),
+        "suite": "scenario files" if req.scenario_files else req.suite,
+        "scenarios": req.scenarios,
+        "scenario_files": [str(p) for p in req.scenario_files],
+        "seed": req.seed,
+        "others": others,
+        "policy": str(req.policy) if req.policy is not None else None,
+        "config": str(req.config) if req.config is not None else None,
+        **asdict(eval_config),
+    }
 
 
 def _copies(req: EvalRequest) -> int:
@@ -153,7 +179,7 @@ def _here(
         net,
         copies=_copies(req),
         seed=req.seed,
-        config=EnvConfig(max_episode_s=eval_config.max_episode_s),
+        config=EnvConfig(max_episode_s=eval_config.max_episode_s, safety_mask=eval_config.safety_mask),
         gui=req.gui,
     )
     results = []
@@ -187,6 +213,7 @@ def _in_workers(
             others=others_name,
             seed=req.seed,
             max_episode_s=eval_config.max_episode_s,
+            safety_mask=eval_config.safety_mask,
             copies=_copies(req),
             tripinfo_dir=tripinfo_dir,
             trajectories=req.trajectories,

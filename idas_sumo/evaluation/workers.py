@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from idas_sumo.env.engine import SafetyMask
 from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob
 
@@ -36,6 +37,7 @@ class WorkerTask:
     others: str
     seed: int
     max_episode_s: float
+    safety_mask: SafetyMask
     copies: int
     tripinfo_dir: Path | None
     trajectories: bool
@@ -59,7 +61,10 @@ def run_task(task: WorkerTask) -> Iterator[tuple[int, EpisodeResult]]:
     }
     others = resolve_policy(task.others, None, task.seed)
     engine = MergeEngine(
-        task.net, copies=task.copies, seed=task.seed, config=EnvConfig(max_episode_s=task.max_episode_s)
+        task.net,
+        copies=task.copies,
+        seed=task.seed,
+        config=EnvConfig(max_episode_s=task.max_episode_s, safety_mask=task.safety_mask),
     )
     try:
         for i, (_, result) in enumerate(run_jobs(engine, task.jobs, methods, others, task.tripinfo_dir)):

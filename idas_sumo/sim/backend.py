@@ -309,6 +309,14 @@ class SumoBackend:
             libsumo.vehicle.setSpeed(vehicle_id, -1)
             self._released.add(vehicle_id)
 
+    def remove(self, vehicle_id: str) -> None:
+        """Take a vehicle off the road, as SUMO's ``--collision.action remove`` does (the engine's
+        geometric collision check, env/engine.py); one already gone is no error."""
+        import libsumo
+
+        with contextlib.suppress(libsumo.TraCIException):
+            libsumo.vehicle.remove(vehicle_id)
+
     def step(self) -> StepEvents:
         import libsumo
 
@@ -570,6 +578,9 @@ class SubprocessBackend:
 
     def release(self, vehicle_id: str) -> None:
         self._call("release", vehicle_id)
+
+    def remove(self, vehicle_id: str) -> None:
+        self._call("remove", vehicle_id)
 
     def vehicle_states(self) -> VehicleStates:
         return typing.cast(VehicleStates, self._call("vehicle_states"))

@@ -410,6 +410,16 @@ class BatchBackend:
             libsumo.vehicle.setSpeed(vid, -1)
             self._released.add(vid)
 
+    def remove(self, vehicle_id: str, copy: int) -> None:
+        """Take copy ``copy``'s vehicle (copy-local id) off the road, as SUMO's ``--collision.action
+        remove`` does (the engine's geometric collision check); one already gone is no error."""
+        import contextlib
+
+        import libsumo
+
+        with contextlib.suppress(libsumo.TraCIException):
+            libsumo.vehicle.remove(self._prefixes[copy] + vehicle_id)
+
     def clear_copy(self, copy: int) -> None:
         """Remove every vehicle of copy ``copy``, on the road or still to depart (its episode is over).
 

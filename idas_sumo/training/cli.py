@@ -27,6 +27,7 @@ def config_from_args(args: argparse.Namespace, base: TrainConfig | None = None) 
         workers=getattr(args, "workers", None),
         seed=getattr(args, "seed", None),
         copies=getattr(args, "copies", None),
+        safety_mask=getattr(args, "safety_mask", None),
     )
 
 

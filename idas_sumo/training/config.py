@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
+from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, SafetyMask
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -48,7 +48,7 @@ def _robot_traffic() -> TrafficConfig:
 
 
 def _intelligent_traffic() -> TrafficConfig:
-    return TrafficConfig(min_vehicles_per_road=4, max_vehicles_per_road=4, max_controlled=0)
+    return TrafficConfig(max_controlled=0)
 
 
 @dataclass(frozen=True)
@@ -67,10 +67,10 @@ class TrainConfig:
     """Episodes of IDAS-direct (paper: 70000)."""
     robot_traffic: TrafficConfig = field(default_factory=_robot_traffic)
     """Scenario generator of the Robot World: one learning agent among SUMO's robot cars
-    (``max_controlled`` = 1)."""
+    (``max_controlled`` = 1), the paper's traffic (8 cars, staggered entries)."""
     intelligent_traffic: TrafficConfig = field(default_factory=_intelligent_traffic)
-    """Scenario generator of the Intelligent World: 8 learning agents, 4 per road, no robot cars (ours:
-    the paper says 8 agents, not how they are split)."""
+    """Scenario generator of the Intelligent World: 8 learning agents (paper L211), split at random over
+    the roads, entering at random times (L225), no robot cars."""
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     """Learner hyper-parameters; ``use_central_critic`` is set per stage (off in 'robot', on otherwise)."""
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -99,6 +99,9 @@ class TrainConfig:
     """Held-out scenarios per validation, drawn from the stage's traffic generator."""
     validation_seed: int = 123
     """Seed of the held-out scenarios: apart from ``seed`` and from evaluation's 2019."""
+    safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
+    """Which car the safety mask follows in training and validation (``EnvConfig.safety_mask``):
+    'own_lane' (the paper) or 'merge_aware' (ours, a shield; the shipped policies were trained with it)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -125,9 +128,10 @@ class TrainConfig:
             raise ConfigValueError("robot_traffic.max_controlled must be at least 1 (the learning agents)")
         for name in ("robot_traffic", "intelligent_traffic"):
             traffic: TrafficConfig = getattr(self, name)
-            if 2 * traffic.max_vehicles_per_road > STATE_SLOTS:
+            if traffic.max_total > STATE_SLOTS:
+                what = "n_vehicles" if traffic.n_vehicles else "2 * max_vehicles_per_road"
                 raise ConfigValueError(
-                    f"{name}.max_vehicles_per_road must be at most {STATE_SLOTS // 2} "
+                    f"{name}: {what} must be at most {STATE_SLOTS} "
                     f"(the critic's state has {STATE_SLOTS} vehicle slots)"
                 )
 
@@ -138,6 +142,7 @@ class TrainConfig:
         workers: int | None = None,
         seed: int | None = None,
         copies: int | None = None,
+        safety_mask: str | None = None,
     ) -> TrainConfig:
         """The command line's flags on top of the file: ``episodes`` sets every stage's count."""
         changes: dict[str, Any] = {}
@@ -151,6 +156,8 @@ class TrainConfig:
             changes["seed"] = seed
         if copies is not None:
             changes["copies"] = copies
+        if safety_mask is not None:
+            changes["safety_mask"] = safety_mask
         return dataclasses.replace(self, **changes)
 
     def as_dict(self) -> dict[str, Any]:

@@ -89,7 +89,9 @@ def run_training(
             _remove_run_outputs(out_dir)
 
     run = _Run(config, out_dir, {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps})
-    env_config = EnvConfig(max_episode_s=config.max_episode_s, reward=config.reward)
+    env_config = EnvConfig(
+        max_episode_s=config.max_episode_s, reward=config.reward, safety_mask=config.safety_mask
+    )
     # On resume, the metrics rows past the checkpoint go (they are written again).
     keep_below = state.global_episode if resumed is not None else None
     final = run.latest
