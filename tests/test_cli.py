@@ -208,7 +208,7 @@ def test_train_with_validation_names_the_best_checkpoint(tmp_path: Path) -> None
     config.write_text(
         'stage = "intelligent"\nintelligent_episodes = 4\nepisodes_per_update = 2\nmax_episode_s = 12.0\n'
         "validate_every = 2\nvalidation_scenarios = 1\n"
-        "[intelligent_traffic]\nmin_vehicles_per_road = 2\nmax_vehicles_per_road = 2\n"
+        "[intelligent_traffic]\nn_vehicles = 4\nmin_vehicles_per_road = 2\nmax_vehicles_per_road = 2\n"
     )
     out = tmp_path / "run"
     net = DEFAULT_NET

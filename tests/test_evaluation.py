@@ -122,7 +122,9 @@ def test_one_row_per_scenario_and_method(request: pytest.FixtureRequest, fixture
 
 @pytest.mark.sumo
 def test_no_temporary_files_are_left_behind(run_dir: Path) -> None:
-    assert sorted(p.name for p in run_dir.iterdir()) == sorted([*CSV_NAMES, "trajectories.csv"])
+    assert sorted(p.name for p in run_dir.iterdir()) == sorted(
+        [*CSV_NAMES, "trajectories.csv", "settings.json"]
+    )
 
 
 # --- determinism ------------------------------------------------------------------------------------
@@ -409,7 +411,7 @@ def test_scenario_files_are_evaluated_with_their_first_vehicle_as_ego(tmp_path: 
 def test_config_changes_the_paper_suite_traffic(tmp_path: Path, net_path: Path) -> None:
     config = tmp_path / "eval.toml"
     config.write_text(
-        "max_episode_s = 30.0\n[traffic]\nmin_vehicles_per_road = 2\nmax_vehicles_per_road = 2\n"
+        "max_episode_s = 30.0\n[traffic]\nn_vehicles = 0\nmin_vehicles_per_road = 2\nmax_vehicles_per_road = 2\n"
     )
     evaluate(tmp_path / "c", net_path, "--baseline", "idm", "--scenarios", "3", "--config", str(config))
     flow = pd.read_csv(tmp_path / "c" / "flow.csv")

@@ -34,10 +34,12 @@ episodes_per_update = 1
 checkpoint_every = 1000
 max_episode_s = 12.0
 [robot_traffic]
+n_vehicles = 4
 min_vehicles_per_road = 2
 max_vehicles_per_road = 2
 max_controlled = 1
 [intelligent_traffic]
+n_vehicles = 4
 min_vehicles_per_road = 2
 max_vehicles_per_road = 2
 """
@@ -705,7 +707,7 @@ def test_two_parallel_envs_in_one_process_run_independently() -> None:
     from idas_sumo.env.scenario import TrafficConfig
     from idas_sumo.sim.backend import SubprocessBackend, SumoBackend
 
-    traffic = TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=2)
+    traffic = TrafficConfig(n_vehicles=4, min_vehicles_per_road=2, max_vehicles_per_road=2)
     first = MergeParallelEnv(traffic=traffic, seed=5)
     second = MergeParallelEnv(traffic=traffic, seed=5)
     try:

@@ -86,7 +86,7 @@ def test_idm_demonstrations_teach_the_actor_idm_actions(net_path: Path, small_bu
     engine = MergeEngine(net_path, copies=2, config=EnvConfig(max_episode_s=small_budget.max_episode_s))
     try:
         traffic = TrafficConfig(
-            min_vehicles_per_road=2, max_vehicles_per_road=small_budget.max_vehicles_per_road
+            n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=small_budget.max_vehicles_per_road
         )
         demos = collect_demonstrations(
             engine, "idm", [traffic], small_budget.episodes, np.random.default_rng(0)

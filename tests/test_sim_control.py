@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from idas_sumo.baselines.policies import BASELINES
+from idas_sumo.env.actions import SafetyMask
 from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.env.single import SingleEpisode
@@ -109,14 +110,16 @@ def test_invalid_speed_commands_are_refused(backend: SumoBackend) -> None:
             backend.set_speeds({"ego": bad})
 
 
-def _level_pair(net: MergeNet, start_pos_m: float, speed_mps: float) -> tuple[SingleEpisode, Scenario]:
+def _level_pair(
+    net: MergeNet, start_pos_m: float, speed_mps: float, safety_mask: SafetyMask = "own_lane"
+) -> tuple[SingleEpisode, Scenario]:
     """A main-road car "m" and a merge-road car "g", level with each other, main road has priority."""
     cars = (
         VehicleSpec("m", "main", start_pos_m, speed_mps, b_type=0.0),
         VehicleSpec("g", "merge", start_pos_m, speed_mps, b_type=0.0),
     )
     scenario = Scenario("level", cars, main_prio=1, merge_prio=0)
-    return SingleEpisode(net, config=EnvConfig(max_episode_s=20.0)), scenario
+    return SingleEpisode(net, config=EnvConfig(max_episode_s=20.0, safety_mask=safety_mask)), scenario
 
 
 def test_merge_crash_is_collided_with_collide_reward(merge_net: MergeNet) -> None:
@@ -228,8 +231,9 @@ def test_second_backend_goes_to_a_subprocess(merge_net: MergeNet) -> None:
 def test_safety_mask_makes_the_later_car_yield_at_the_merge(merge_net: MergeNet) -> None:
     # Level 20 m before the merge point, both driven by plain IDM (which ignores the other road): under
     # the literal own-lane mask they met side by side on the junction; the other-road front car makes the
-    # merge car (level cars: main goes first) brake, and both finish.
-    sim, scenario = _level_pair(merge_net, start_pos_m=230.0, speed_mps=10.0)
+    # merge car (level cars: main goes first) brake, and both finish. That is the merge-aware shield, not
+    # the paper's own-lane mask (the default; tests/test_safety_mask.py has the own-lane collision).
+    sim, scenario = _level_pair(merge_net, start_pos_m=230.0, speed_mps=10.0, safety_mask="merge_aware")
     try:
         sim.reset(scenario)
         ended: dict[str, str] = {}

@@ -19,7 +19,7 @@ from idas_sumo.env import MergeParallelEnv
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.sim.backend import SubprocessBackend
 
-traffic = TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=2)
+traffic = TrafficConfig(n_vehicles=4, min_vehicles_per_road=2, max_vehicles_per_road=2)
 first = MergeParallelEnv(traffic=traffic, seed=1)
 second = MergeParallelEnv(traffic=traffic, seed=1)
 obs_a, _ = first.reset(seed=1)

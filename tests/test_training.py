@@ -30,8 +30,10 @@ def tiny_config(**changes: Any) -> TrainConfig:
         robot_episodes=2,
         intelligent_episodes=2,
         direct_episodes=2,
-        robot_traffic=TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=3, max_controlled=1),
-        intelligent_traffic=TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=2),
+        robot_traffic=TrafficConfig(
+            n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=3, max_controlled=1
+        ),
+        intelligent_traffic=TrafficConfig(n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=2),
         episodes_per_update=1,
         checkpoint_every=1,
         max_episode_s=12.0,
@@ -262,7 +264,7 @@ def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
     engine = MergeEngine(net_path, copies=2, config=EnvConfig(max_episode_s=15.0))
     learner = Learner(LearnerConfig(use_central_critic=True), seed=0)
     rng = np.random.default_rng(4)
-    traffic = TrafficConfig(min_vehicles_per_road=3, max_vehicles_per_road=3)
+    traffic = TrafficConfig(n_vehicles=0, min_vehicles_per_road=3, max_vehicles_per_road=3)
     try:
         tasks = [RolloutTask(generate_scenario(rng, traffic, engine.speed_limits_mps), i) for i in range(2)]
         episodes = collect_episodes(engine, learner, tasks)
@@ -500,10 +502,12 @@ TINY_TRAIN_TOML = """\
 episodes_per_update = 1
 max_episode_s = 12.0
 [robot_traffic]
+n_vehicles = 0
 min_vehicles_per_road = 2
 max_vehicles_per_road = 3
 max_controlled = 1
 [intelligent_traffic]
+n_vehicles = 0
 min_vehicles_per_road = 2
 max_vehicles_per_road = 2
 """
@@ -747,7 +751,7 @@ def test_unguarded_script_trains_with_two_workers(net_path: Path, tmp_path: Path
         "from idas_sumo.training.config import TrainConfig\n"
         "from idas_sumo.training.loop import run_training\n"
         "config = TrainConfig(stage='direct', direct_episodes=2, episodes_per_update=2, workers=2,\n"
-        "    intelligent_traffic=TrafficConfig(min_vehicles_per_road=2, max_vehicles_per_road=2),\n"
+        "    intelligent_traffic=TrafficConfig(n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=2),\n"
         "    max_episode_s=12.0)\n"
         f"run_training(Path({str(net_path)!r}), config, Path({str(tmp_path / 'run')!r}), progress=False)\n"
         "print('trained once')\n"

@@ -157,7 +157,8 @@ class TrafficConfig:
         ):
             raise ValueError(
                 f"n_vehicles {self.n_vehicles} cannot be split over two roads with "
-                f"{self.min_vehicles_per_road} to {self.max_vehicles_per_road} per road"
+                f"{self.min_vehicles_per_road} to {self.max_vehicles_per_road} per road "
+                "(set n_vehicles, or n_vehicles = 0 for per-road counts, all on the road at t = 0)"
             )
         if not 0.0 <= self.p_depart_later <= 1.0:
             raise ValueError("p_depart_later must lie in [0, 1]")
