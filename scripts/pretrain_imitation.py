@@ -41,13 +41,20 @@ def main() -> None:
     args = parser.parse_args()
 
     config = load_train_config(args.config)
-    engine = MergeEngine(
-        args.net, copies=config.copies, seed=args.seed, config=EnvConfig(max_episode_s=config.max_episode_s)
-    )
+    env_config = EnvConfig(max_episode_s=config.max_episode_s, safety_mask=config.safety_mask)
+    engine = MergeEngine(args.net, copies=config.copies, seed=args.seed, config=env_config)
     rng = np.random.default_rng(args.seed)
     started = time.perf_counter()
+    # The intelligent world's traffic and the paper suite's; a config in the first generator's traffic
+    # (n_vehicles = 0, as train_shipped.toml) takes that generator's suite traffic, as the shipped imitation did.
+    first = config.intelligent_traffic.n_vehicles == 0
+    suite = (
+        TrafficConfig(n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=8)
+        if first
+        else TrafficConfig()
+    )
     demos = collect_demonstrations(
-        engine, args.teacher, [config.intelligent_traffic, TrafficConfig()], args.episodes, rng
+        engine, args.teacher, [config.intelligent_traffic, suite], args.episodes, rng
     )
     engine.close()
     print(
