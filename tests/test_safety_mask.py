@@ -87,6 +87,39 @@ def test_geometric_collisions_hand_worked() -> None:
     assert geometric_collisions(_snapshot([MAIN, MAIN, MAIN], [50.0, 52.0, 54.0])) == [(0, 1), (0, 2), (1, 2)]
 
 
+def test_geometric_collisions_agree_with_the_pairwise_definition() -> None:
+    """The sorted sweep finds exactly the pairs of the n x n definition (either car on the outgoing road, or
+    both on one incoming road; bodies overlapping; one copy), whatever the order of the rows."""
+    for trial in range(300):
+        rng = np.random.default_rng(trial)
+        n = int(rng.integers(0, 40))
+        copies = int(rng.integers(1, 4))
+        road = rng.integers(0, 3, n)
+        dist = np.round(rng.uniform(-30.0, 60.0, n), 1)
+        length = rng.choice([4.0, 5.0, 7.5], n)
+        copy = rng.integers(0, copies, n)
+        snap = TrafficSnapshot(
+            tuple(f"v{i}" for i in range(n)),
+            road,
+            dist,
+            np.zeros(n),
+            np.zeros(n),
+            length,
+            np.full(n, 20.0),
+            copy if copies > 1 else None,
+        )
+        expected = [
+            (i, j)
+            for i in range(n)
+            for j in range(i + 1, n)
+            if (road[i] == road[j] or OUT in (road[i], road[j]))
+            and (copies == 1 or copy[i] == copy[j])
+            and dist[i] < dist[j] + length[j]
+            and dist[j] < dist[i] + length[i]
+        ]
+        assert geometric_collisions(snap) == expected, trial
+
+
 @pytest.mark.sumo
 def test_own_lane_mask_ignores_the_other_road_merge_aware_does_not(net_path: Path) -> None:
     masks = {}
