@@ -258,3 +258,15 @@ def test_train_config_carries_the_safety_mask(tmp_path: Path) -> None:
 
     assert load_train_config(SCENARIO_DIR / "train_default.toml").safety_mask == "own_lane"
     assert load_train_config(SCENARIO_DIR / "train_shipped.toml").safety_mask == "merge_aware"
+
+
+def test_train_flag_overrides_the_config(tmp_path: Path) -> None:
+    import argparse
+
+    from idas_sumo.training.cli import config_from_args
+
+    path = tmp_path / "t.toml"
+    path.write_text('safety_mask = "own_lane"\n')
+    args = argparse.Namespace(config=path, safety_mask="merge_aware")
+    assert config_from_args(args).safety_mask == "merge_aware"
+    assert config_from_args(argparse.Namespace(config=path, safety_mask=None)).safety_mask == "own_lane"

@@ -137,7 +137,8 @@ def is_perfect(success: bool, impedes: int, hard_brakes_merge_zone: int) -> bool
 class EpisodeOutcome:
     """One episode's facts, and the one definition of success (docs/design-notes.md, "Definitions").
 
-    Counts cover the steps in which some agent acted (a copy waiting for its first car scores nothing).
+    Counts cover the steps in which some agent acted (a copy waiting for its next car scores nothing),
+    except collisions, which count whenever the episode runs (a car may collide as it enters).
     """
 
     scenario: Scenario
