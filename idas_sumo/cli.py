@@ -4,10 +4,13 @@
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import logging
 import math
+import os
 import signal
+import stat
 import sys
 import threading
 import tomllib
@@ -24,7 +27,9 @@ from idas_sumo.resources import (
     DEFAULT_TRAIN_CONFIG_NAME,
     resolve_user_path,
 )
+from idas_sumo.sim.multinet import MAX_COPIES
 from idas_sumo.sim.netgen import NetParams
+from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -68,6 +73,52 @@ def _positive_int(text: str) -> int:
     if value <= 0:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
     return value
+
+
+def _seed(text: str) -> int:
+    """A seed SUMO can take (its ``--seed`` is a C int): an integer in [0, 2^31)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, {SEED_LIMIT}), got {text!r}") from None
+    if not 0 <= value < SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, {SEED_LIMIT}), got {value}")
+    return value
+
+
+def _workers(text: str) -> int:
+    """A worker count this machine can run: one process (and one SUMO) per CPU at most; more only
+    slows the run down and can exhaust memory (1000 workers once forked 200+ processes and 8 GB)."""
+    value = _positive_int(text)
+    limit = max_workers()
+    if value > limit:
+        raise argparse.ArgumentTypeError(
+            f"{value} is more than this machine's {limit} CPUs (at most {limit})"
+        )
+    return value
+
+
+def _copies(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_COPIES:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_COPIES}, got {value}")
+    return value
+
+
+def _input_file(text: str) -> Path:
+    """An input file flag's path (``resolve_user_path``); a FIFO, device or socket is refused here, since
+    reading one can block forever or never end. A missing file or a directory is left to the reader,
+    whose message names what it expected."""
+    path = resolve_user_path(text)
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return path
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise argparse.ArgumentTypeError(
+            f"{path}: not a regular file (a FIFO, device or socket); give a file"
+        )
+    return path
 
 
 def _version() -> str:
@@ -123,11 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train IDAS (robot world, intelligent world, or both)")
     train.add_argument(
-        "--net", type=resolve_user_path, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
+        "--net", type=_input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
     )
     train.add_argument(
         "--config",
-        type=resolve_user_path,
+        type=_input_file,
         help=f"training config TOML (default: {DEFAULT_TRAIN_CONFIG_NAME})",
     )
     shipped = _train_defaults()
@@ -150,18 +201,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument(
         "--workers",
-        type=_positive_int,
+        type=_workers,
         help=f"rollout processes, one SUMO each ({from_config('workers')})",
     )
     train.add_argument(
         "--copies",
-        type=_positive_int,
+        type=_copies,
         help="episodes a rollout process runs side by side in one SUMO; results do not depend on it "
         f"({from_config('copies')})",
     )
     train.add_argument(
         "--seed",
-        type=int,
+        type=_seed,
         help=f"the one seed everything random flows from ({from_config('seed')})",
     )
     train.add_argument(
@@ -191,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--baseline", required=True, help="method: idas | idas_v | idas_direct | idm | fsm_idm | all"
     )
     ev.add_argument(
-        "--net", type=resolve_user_path, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
+        "--net", type=_input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
     )
     ev.add_argument(
         "--suite",
@@ -207,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument(
         "--config",
-        type=resolve_user_path,
+        type=_input_file,
         help="TOML: [traffic] and max_episode_s for the paper suite "
         "(default: the built-in values, as in scenarios/eval_paper.toml)",
     )
@@ -219,20 +270,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument(
         "--scenario",
-        type=resolve_user_path,
+        type=_input_file,
         action="append",
         default=[],
         help="evaluate this scenario TOML instead of a suite (repeatable; ego = its first vehicle)",
     )
     ev.add_argument(
-        "--seed", type=int, default=2019, help="scenario seed (default: %(default)s, not used in training)"
+        "--seed", type=_seed, default=2019, help="scenario seed (default: %(default)s, not used in training)"
     )
     ev.add_argument(
         "--others", help="method for every non-ego vehicle (default: shipped IDAS if present, else idm)"
     )
     ev.add_argument(
         "--policy",
-        type=resolve_user_path,
+        type=_input_file,
         help="checkpoint for the learned method instead of the shipped one",
     )
     ev.add_argument(
@@ -254,14 +305,14 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--gui", action="store_true", help="show the episodes in sumo-gui (needs a display)")
     ev.add_argument(
         "--workers",
-        type=_positive_int,
+        type=_workers,
         default=1,
         help="processes sharing the episodes, one SUMO each (2 keeps both cores busy); "
         "results do not depend on it (default: %(default)s)",
     )
     ev.add_argument(
         "--copies",
-        type=_positive_int,
+        type=_copies,
         default=DEFAULT_EVAL_COPIES,
         help="episodes run side by side in one SUMO run; results do not depend on it (default: %(default)s)",
     )
@@ -272,11 +323,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _netgen(args: argparse.Namespace) -> int:
+    from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
+    from idas_sumo.env.net_needs import check_road_lengths, road_needs
+    from idas_sumo.env.scenario import TrafficConfig
     from idas_sumo.sim.netgen import describe, generate_net, read_merge_net
 
     params = NetParams(**{field: getattr(args, field) for field in NETGEN_FLAGS})
     path = generate_net(args.out, params)
-    print(describe(read_merge_net(path)))
+    net = read_merge_net(path)
+    print(describe(net))
+    try:  # a net for other scenarios is fine to write, but say now what train/evaluate will say
+        check_road_lengths(net, road_needs(TrafficConfig().start_range_m, DEFAULT_MAX_EPISODE_S))
+    except InputError as err:
+        print(
+            f"idas-sumo: warning: with the default scenarios, train and evaluate refuse it: {err}",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -286,13 +348,26 @@ def _default_out(args: argparse.Namespace) -> Path:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from idas_sumo.evaluation.policies import METHOD_LABELS, METHODS, check_method
+    from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, METHODS, check_method
     from idas_sumo.evaluation.runner import EvalRequest, default_others, run_evaluation
 
     check_method(args.baseline, "--baseline", also=("all",))
     methods = METHODS if args.baseline == "all" else (args.baseline,)
     if args.others is not None:
         check_method(args.others, "--others")
+    if args.policy is not None and not any(m in LEARNED_METHODS for m in methods):
+        # Silently ignored, a typo'd or missing file would pass unnoticed as "the policy evaluated".
+        raise InputError(
+            f"--policy only applies to the learned methods ({', '.join(LEARNED_METHODS)}); "
+            f"--baseline {args.baseline} does not read it"
+        )
+    _check_eval_net(args)
+    out = args.out if args.out is not None else _default_out(args)
+    if args.force and out.is_dir():
+        from idas_sumo.io_utils import remove_stale_temps
+
+        # Writes killed before their rename (SIGKILL, power loss) leave their temp files behind.
+        remove_stale_temps(out)
     others = args.others or default_others()
     result = run_evaluation(
         EvalRequest(
@@ -303,7 +378,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             seed=args.seed,
             others=others,
             policy=args.policy,
-            out=args.out if args.out is not None else _default_out(args),
+            out=out,
             force=args.force,
             fresh_out=args.out is None and not args.force,
             trajectories=args.trajectories,
@@ -332,6 +407,21 @@ def _evaluate(args: argparse.Namespace) -> int:
         for png in plot_directory(result.out):
             print(f"wrote {png}")
     return 0
+
+
+def _check_eval_net(args: argparse.Namespace) -> None:
+    """Refuse a net whose roads are too short or too long for the scenarios evaluated (env/net_needs.py)."""
+    from idas_sumo.env.net_needs import check_road_lengths, road_needs
+    from idas_sumo.evaluation.protocol import EvalConfig, load_eval_config
+    from idas_sumo.sim.netgen import read_merge_net
+
+    net = read_merge_net(args.net)
+    config = load_eval_config(args.config) if args.config is not None else EvalConfig()
+    # The paper suite draws starts over the traffic's start range; scenario files and the
+    # representative suites place their cars themselves (checked against the roads when loaded).
+    random_starts = args.suite == "paper" and not args.scenario
+    start_range = config.traffic.start_range_m if random_starts else None
+    check_road_lengths(net, road_needs(start_range, config.max_episode_s))
 
 
 def summary_table(summary: pd.DataFrame, title: str, labels: dict[str, str]) -> Any:
@@ -385,20 +475,79 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+INTERRUPTED = "idas-sumo: interrupted; completed outputs were kept"
+TERMINATED = "idas-sumo: terminated (SIGTERM); completed outputs were kept"
+
+
+class _LateSignals:
+    """Ctrl-C or SIGTERM after the command is done: recorded, not raised.
+
+    Raised there, it would interrupt an exit handler (closing SUMO, removing temp folders) with an
+    "Exception ignored in atexit callback" traceback, and the process would still exit 0. Instead the
+    cleanup runs to its end and the process exits 130 / 143 with the usual line: the last exit handler
+    (registered before any other, so it runs after them all) ends the process with that code.
+    """
+
+    def __init__(self) -> None:
+        self.caught: int | None = None
+        self.reported = False
+        atexit.register(self._exit_if_caught)
+
+    def install(self) -> None:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, self._record)
+
+    def _record(self, signum: int, frame: object) -> None:
+        self.caught = self.caught or signum
+
+    def exit_code(self, code: int) -> int:
+        """``code``, unless a signal came while it was being reported: then the signal's code."""
+        if self.caught is None or self.reported:
+            return code
+        self.reported = True
+        print(TERMINATED if self.caught == signal.SIGTERM else INTERRUPTED, file=sys.stderr)
+        return SIGTERM_EXIT if self.caught == signal.SIGTERM else 130
+
+    def _exit_if_caught(self) -> None:
+        if self.caught is None or self.reported:
+            return
+        code = self.exit_code(0)
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
-    )
+    """The command line. ``argv`` None (the ``idas-sumo`` script, ``python -m idas_sumo.cli``): the
+    process is ours, so signals that come after the command are handled too (``_LateSignals``);
+    with ``argv`` (a caller in Python) the caller's signal handlers are left alone."""
+    late = _LateSignals() if argv is None and _in_main_thread() else None
+    return late.exit_code(_run(argv, late)) if late is not None else _run(argv, None)
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _run(argv: Sequence[str] | None, late: _LateSignals | None) -> int:
     handlers = {"netgen": _netgen, "train": _train, "evaluate": _evaluate, "plot": _plot}
     try:
-        with _sigterm_as_interrupt():
-            return handlers[args.command](args)
+        try:
+            args = build_parser().parse_args(argv)
+            logging.basicConfig(
+                level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
+            )
+            with _sigterm_as_interrupt():
+                return handlers[args.command](args)
+        finally:
+            if late is not None:
+                late.install()
     except Terminated:
-        print("idas-sumo: terminated (SIGTERM); completed outputs were kept", file=sys.stderr)
+        print(TERMINATED, file=sys.stderr)
         return SIGTERM_EXIT
     except KeyboardInterrupt:
-        print("idas-sumo: interrupted; completed outputs were kept", file=sys.stderr)
+        print(INTERRUPTED, file=sys.stderr)
         return 130
     except InputError as err:
         print(f"idas-sumo: error: {err}", file=sys.stderr)

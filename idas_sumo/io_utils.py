@@ -62,6 +62,22 @@ def atomic_path(path: Path) -> Iterator[Path]:
         raise
 
 
+def remove_stale_temps(directory: Path) -> list[Path]:
+    """Remove the temp files ``atomic_open``/``atomic_path`` left in ``directory`` when a write was
+    killed before its rename (SIGKILL, power loss: no cleanup ran); the files removed.
+
+    Call it when a run starts in ``directory``: a temp file there is then never a live write (two
+    runs never write into one directory at once).
+    """
+    removed = []
+    for path in directory.glob(f".*{TEMP_SUFFIX}"):
+        if path.is_file() and not path.is_symlink():
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+                removed.append(path)
+    return removed
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

@@ -180,8 +180,9 @@ def test_a_checkpoint_on_disk_is_the_flat_dict_it_always_was(tmp_path: Path) -> 
     save_checkpoint(tmp_path / "best.pt", _payload(learner, validation=score))
     plain = torch.load(tmp_path / "c.pt", weights_only=True)
     best = torch.load(tmp_path / "best.pt", weights_only=True)
-    assert set(plain) == EARLIER_CHECKPOINT_KEYS
-    assert set(best) == EARLIER_CHECKPOINT_KEYS | {"validation"}
+    # One key more than before: the checksum (older files without it still load).
+    assert set(plain) == EARLIER_CHECKPOINT_KEYS | {"content_sha256"}
+    assert set(best) == EARLIER_CHECKPOINT_KEYS | {"validation", "content_sha256"}
     assert best["validation"] == dataclasses.asdict(score)
     assert plain["config"] == TrainConfig().as_dict() and plain["episode"] == 7
     assert load_checkpoint(tmp_path / "best.pt").validation == score
@@ -203,7 +204,7 @@ def test_shipped_policies_still_load(tmp_path: Path) -> None:
         load_actor(path)
         save_checkpoint(tmp_path / path.name, checkpoint)
         again = torch.load(tmp_path / path.name, weights_only=True)
-        assert set(again) == set(raw)
+        assert set(again) == set(raw) | {"content_sha256"}  # saved again, it carries a checksum
         for net in ("actor", "value", "central"):
             for name, tensor in raw["learner"][net].items():
                 assert torch.equal(again["learner"][net][name], tensor)

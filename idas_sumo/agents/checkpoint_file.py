@@ -10,13 +10,23 @@ elsewhere. Shipped policies are such files, and evaluation needs only their acto
 here, below training and evaluation alike.
 
 Files are read with ``torch.load(weights_only=True)``, so pickled code never runs. Every problem
-(missing, empty, truncated, not ours, other layout, missing or ill-typed values, non-finite weights)
-is one ``InputError`` line naming the file.
+(missing, empty, truncated, not ours, other layout, missing or ill-typed values, non-finite weights,
+a checksum that does not match) is one ``InputError`` line naming the file.
+
+Checksums: torch's zip container does not check its data, so a flipped byte in a tensor loaded as
+different weights without a word. A checkpoint therefore carries ``content_sha256``, the SHA-256 of
+everything else it holds (every tensor's dtype, shape and bytes, every plain value), checked on load.
+Files written before that have none: they are checked against ``file_sha256`` (of the whole file, as
+``sha256sum`` prints it) in the ``<name>.json`` metadata beside them when there is one (the shipped
+policies), and otherwise load with a warning.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import logging
 import pickle
 import types
 import typing
@@ -32,11 +42,25 @@ from idas_sumo.config import from_dict
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.errors import InputError
 
-__all__ = ["CHECKPOINT_KIND", "TRAIN_CHECKPOINT_FORMAT", "PolicyCheckpoint", "load_actor"]
+__all__ = [
+    "CHECKPOINT_KIND",
+    "CHECKSUM_KEY",
+    "TRAIN_CHECKPOINT_FORMAT",
+    "PolicyCheckpoint",
+    "content_digest",
+    "file_digest",
+    "load_actor",
+]
+
+log = logging.getLogger(__name__)
 
 CHECKPOINT_KIND = "idas-sumo-train"
 TRAIN_CHECKPOINT_FORMAT = 1
 NETWORK_KEYS = ("actor", "value", "central", "value_target", "central_target")
+CHECKSUM_KEY = "content_sha256"
+"""The key of a checkpoint's own checksum (``content_digest`` of the rest of its dict)."""
+SIDECAR_CHECKSUM_KEY = "file_sha256"
+"""The key of a whole-file checksum in the ``<name>.json`` beside an older checkpoint."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True, eq=False)  # eq=False: tensors have no plain ==
@@ -64,6 +88,7 @@ class PolicyCheckpoint:
             if dataclasses.is_dataclass(value) and not isinstance(value, type):
                 value = dataclasses.asdict(value)
             data[field.name] = value
+        data[CHECKSUM_KEY] = content_digest(data)
         return data
 
     @classmethod
@@ -89,9 +114,13 @@ class PolicyCheckpoint:
 
     @classmethod
     def read(cls, path: Path | str) -> Self:
-        """Read and check the checkpoint file at ``path``."""
+        """Read and check the checkpoint file at ``path`` (its values, then its checksum: an
+        ill-typed value is named as such even in a file that was edited)."""
         p = Path(path)
-        return cls.from_dict(_load_file(p), p)
+        data = _load_file(p)
+        checkpoint = cls.from_dict(data, p)
+        _verify_checksum(data, p)
+        return checkpoint
 
     def _check(self, path: Path) -> None:
         """What the types alone do not say: the layout matches this build, the weights are sound."""
@@ -137,12 +166,79 @@ def _checked(value: Any, annotation: Any, where: str) -> Any:
     return value
 
 
+def content_digest(data: dict[str, Any]) -> str:
+    """The SHA-256 (hex) of a checkpoint dict without its ``CHECKSUM_KEY``: tensors by dtype, shape
+    and bytes, containers by their items (dict keys in a fixed order), plain values by type and repr,
+    so that the dict ``torch.save`` wrote and the one ``torch.load`` returns give the same digest."""
+    h = hashlib.sha256()
+
+    def feed(value: Any) -> None:
+        if isinstance(value, torch.Tensor):
+            t = value.detach().cpu().contiguous().reshape(-1)
+            h.update(f"T{t.dtype}{tuple(value.shape)}:".encode())
+            h.update(t.view(torch.uint8).numpy().tobytes())
+        elif isinstance(value, dict):
+            h.update(f"D{len(value)}:".encode())
+            for key in sorted(value, key=repr):
+                feed(key)
+                feed(value[key])
+        elif isinstance(value, list | tuple):
+            h.update(f"{type(value).__name__}{len(value)}:".encode())
+            for item in value:
+                feed(item)
+        else:
+            h.update(f"{type(value).__name__}:{value!r};".encode())
+
+    feed({k: v for k, v in data.items() if k != CHECKSUM_KEY})
+    return h.hexdigest()
+
+
+def file_digest(path: Path) -> str:
+    """The SHA-256 (hex) of a file's bytes, as ``sha256sum`` prints it."""
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+_DAMAGED = "checksum mismatch: the file was changed or damaged after it was written"
+
+
+def _verify_checksum(data: dict[str, Any], p: Path) -> None:
+    """Compare the checkpoint's own checksum, else its metadata's; an older file without either loads
+    with a warning (it predates checksums: nothing to compare with)."""
+    stored = data.get(CHECKSUM_KEY)
+    if stored is not None:
+        if not isinstance(stored, str) or stored != content_digest(data):
+            raise InputError(f"{p}: {_DAMAGED} (its {CHECKSUM_KEY} does not match its contents)")
+        return
+    sidecar = p.with_name(p.name.removesuffix(".pt") + ".json")
+    expected = _sidecar_checksum(sidecar)
+    if expected is None:
+        log.warning("%s: no checksum (written before checkpoints carried one); loaded unverified", p)
+    elif file_digest(p) != expected:
+        raise InputError(f"{p}: {_DAMAGED} (its SHA-256 differs from {SIDECAR_CHECKSUM_KEY} in {sidecar})")
+
+
+def _sidecar_checksum(sidecar: Path) -> str | None:
+    """``file_sha256`` from a checkpoint's metadata JSON, or None when there is none to read."""
+    try:
+        meta = json.loads(sidecar.read_text())
+    except (OSError, ValueError):
+        return None
+    value = meta.get(SIDECAR_CHECKSUM_KEY) if isinstance(meta, dict) else None
+    return value if isinstance(value, str) else None
+
+
 def _load_file(p: Path) -> Any:
     """What ``torch.load`` (``weights_only``) finds in ``p``, or an InputError saying why there is nothing."""
     if not p.exists():
         raise InputError(f"{p}: checkpoint not found")
     if p.is_dir():
         raise InputError(f"{p}: is a directory, expected a checkpoint file")
+    if not p.is_file():  # reading a FIFO blocks until someone writes to it
+        raise InputError(f"{p}: not a regular file (a FIFO, device or socket), expected a checkpoint file")
     if p.stat().st_size == 0:
         raise InputError(f"{p}: empty file, not a checkpoint")
     try:

@@ -2,28 +2,22 @@
 
 Each worker gets a contiguous share of the (method, case) jobs in their fixed order, and the results are
 put back in that order, so the CSVs do not depend on N (each job's numbers are those of its scenario
-alone). Workers are fresh interpreters started with subprocess, as sim/backend.py starts its SUMO
-child, not multiprocessing's spawn: that would re-import the user's ``__main__``, so a script calling
-``run_evaluation`` without an ``if __name__ == "__main__":`` guard would run itself again. The task
-and the results travel as pickle files in a private temporary directory (libsumo prints on stdout).
+alone). Workers are started and stopped by ``sim.processes.WorkerProcesses``, as ``train --workers`` starts
+its own (fresh interpreters calling back on an authenticated loopback socket: see there why); the task
+and its results travel over that connection.
 """
 
 from __future__ import annotations
 
-import pickle
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 from idas_sumo.env.engine import SafetyMask
 from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob
-
-_CHILD_CODE = (
-    "import sys; sys.path.append(sys.argv[1]); "
-    "from idas_sumo.evaluation.workers import _child_main; _child_main(sys.argv[2], sys.argv[3])"
-)
-_POLL_S = 0.2
+from idas_sumo.sim.processes import WorkerProcesses, wait_any
 
 
 @dataclass(frozen=True)
@@ -73,13 +67,11 @@ def run_task(task: WorkerTask) -> Iterator[tuple[int, EpisodeResult]]:
         engine.close()
 
 
-def _child_main(task_path: str, result_path: str) -> None:
-    """A worker: run the task, write its results (or its error) as a pickle, exit."""
-    import signal
+def _serve(conn: Connection) -> None:
+    """A worker (``WorkerProcesses`` entry): get the task, run it, send its results (or its error)."""
     import traceback
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns Ctrl-C and stops us
-    task: WorkerTask = pickle.loads(Path(task_path).read_bytes())
+    task: WorkerTask = conn.recv()
     outcome: tuple[str, object]
     try:
         results = [r for _, r in run_task(task)]
@@ -91,7 +83,7 @@ def _child_main(task_path: str, result_path: str) -> None:
         outcome = ("error", err)
     except Exception:
         outcome = ("error", SimulationError(f"evaluation worker failed:\n{traceback.format_exc()}"))
-    Path(result_path).write_bytes(pickle.dumps(outcome))
+    conn.send(outcome)
 
 
 def run_in_workers(
@@ -99,66 +91,42 @@ def run_in_workers(
 ) -> list[list[EpisodeResult]]:
     """Run each task in its own process, all at once; their results, task by task.
 
-    ``on_done(i)``: task i's process has ended (for a progress bar).
+    ``on_done(i)``: task i's results are in (for a progress bar).
     """
-    import subprocess
-    import sys
-    import tempfile
-    import time
-
-    package_root = str(Path(__file__).resolve().parents[2])
-    procs: list[subprocess.Popen[bytes]] = []
-    with tempfile.TemporaryDirectory(prefix="idas_sumo_eval_") as tmp:
-        workdir = Path(tmp)
-        try:
-            for i, task in enumerate(tasks):
-                task_path = workdir / f"task{i}.pickle"
-                task_path.write_bytes(pickle.dumps(task))
-                procs.append(
-                    subprocess.Popen(
-                        [
-                            sys.executable,
-                            "-P",
-                            "-c",
-                            _CHILD_CODE,
-                            package_root,
-                            str(task_path),
-                            str(workdir / f"result{i}.pickle"),
-                        ],
-                        stdin=subprocess.DEVNULL,
-                        stdout=subprocess.DEVNULL,
-                        stderr=(workdir / f"stderr{i}.txt").open("wb"),
-                        start_new_session=True,
-                    )
-                )
-            pending = set(range(len(procs)))
-            while pending:
-                for i in sorted(pending):
-                    if procs[i].poll() is not None:
-                        pending.discard(i)
-                        if on_done is not None:
-                            on_done(i)
-                time.sleep(_POLL_S)
-        finally:  # an error or a Ctrl-C here: leave no worker behind
-            for p in procs:
-                if p.poll() is None:
-                    p.kill()
-                    p.wait()
-        results: list[list[EpisodeResult]] = []
-        for i, p in enumerate(procs):
-            path = workdir / f"result{i}.pickle"
-            if not path.exists():
-                tail = (workdir / f"stderr{i}.txt").read_text(errors="replace").strip().splitlines()[-5:]
-                raise SimulationError(
-                    f"evaluation worker {i} exited with code {p.returncode} without results"
-                    + (": " + " | ".join(tail) if tail else "")
-                )
-            status, value = pickle.loads(path.read_bytes())
-            if status == "error":
-                assert isinstance(value, Exception)
-                raise value
-            assert isinstance(value, list)
-            results.append(value)
+    pool = WorkerProcesses(
+        "idas_sumo.evaluation.workers:_serve", len(tasks), "evaluation worker", capture_stderr=True
+    )
+    try:
+        for conn, task in zip(pool.conns, tasks, strict=True):
+            conn.send(task)
+        outcomes: dict[int, tuple[str, object]] = {}
+        index = {id(conn): i for i, conn in enumerate(pool.conns)}
+        while len(outcomes) < len(tasks):
+            for conn in wait_any([c for i, c in enumerate(pool.conns) if i not in outcomes]):
+                i = index[id(conn)]
+                try:
+                    outcomes[i] = conn.recv()
+                except (EOFError, OSError):
+                    code = pool.procs[i].wait()
+                    tail = pool.stderr_tail(i)
+                    raise SimulationError(
+                        f"evaluation worker {i} exited with code {code} without results"
+                        + (f": {tail}" if tail else "")
+                    ) from None
+                if on_done is not None:
+                    on_done(i)
+    except BaseException:  # an error or a Ctrl-C here: leave no worker behind
+        pool.kill()
+        raise
+    pool.close()
+    results: list[list[EpisodeResult]] = []
+    for i in range(len(tasks)):
+        status, value = outcomes[i]
+        if status == "error":
+            assert isinstance(value, Exception)
+            raise value
+        assert isinstance(value, list)
+        results.append(value)
     return results
 
 

@@ -178,6 +178,8 @@ def read_merge_net(path: str | Path) -> MergeNet:
         raise InputError(f"{p}: net file not found")
     if p.is_dir():
         raise InputError(f"{p}: is a directory, expected a .net.xml file")
+    if not p.is_file():  # reading a FIFO blocks until someone writes to it
+        raise InputError(f"{p}: not a regular file (a FIFO, device or socket), expected a .net.xml file")
     if not os.access(p, os.R_OK):
         raise InputError(f"{p}: net file not readable (permission denied)")
     import xml.etree.ElementTree as ET

@@ -12,6 +12,7 @@ values, non-finite weights) is one ``InputError`` line naming the file.
 from __future__ import annotations
 
 import dataclasses
+import io
 import os
 from pathlib import Path
 from typing import Any
@@ -49,11 +50,23 @@ class TrainingCheckpoint(PolicyCheckpoint):
 
 
 def save_checkpoint(path: Path, checkpoint: PolicyCheckpoint) -> None:
-    """Write ``checkpoint`` to ``path`` atomically: temp file in the same directory, fsync, rename."""
+    """Write ``checkpoint`` to ``path`` atomically: temp file in the same directory, fsync, rename.
+
+    torch serialises into memory first (a few MB) and the bytes are written with an ordinary write:
+    torch writing to a file itself turns a full disk into a ``RuntimeError`` ("unexpected pos …",
+    from its zip writer's position check) that names neither the disk nor the file. This way a full
+    disk is the ``OSError`` it is, naming ``path``; the temp file is removed and the previous
+    checkpoint is untouched.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_open(path, "wb") as f:
-        torch.save(checkpoint.to_dict(), f)
+    buffer = io.BytesIO()
+    torch.save(checkpoint.to_dict(), buffer)
+    try:
+        with atomic_open(path, "wb") as f:
+            f.write(buffer.getbuffer())
+    except OSError as err:
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from None
     try:  # make the rename itself durable
         dir_fd = os.open(path.parent, os.O_RDONLY)
     except OSError:

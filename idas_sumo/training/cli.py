@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from idas_sumo.env.net_needs import check_road_lengths, road_needs
+from idas_sumo.errors import InputError
+from idas_sumo.io_utils import remove_stale_temps
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG
+from idas_sumo.sim.netgen import read_merge_net
+from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
 from idas_sumo.training.loop import CHECKPOINT_NAME, run_training, stored_config
@@ -31,13 +36,37 @@ def config_from_args(args: argparse.Namespace, base: TrainConfig | None = None) 
     )
 
 
+def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> None:
+    """What the config's own checks cannot know: this machine's CPUs, SUMO's seed range, and whether
+    the net's roads fit the run's traffic (env/net_needs.py). ``source`` names where the values came
+    from (a flag's value was checked by argparse already)."""
+    if not 0 <= config.seed < SEED_LIMIT:
+        raise InputError(
+            f"{source}: seed must be in [0, {SEED_LIMIT}) (SUMO's seed range), got {config.seed}"
+        )
+    limit = max_workers()
+    if config.workers > limit:
+        raise InputError(
+            f"{source}: workers = {config.workers} is more than this machine's {limit} CPUs "
+            f"(pass --workers {limit} or fewer)"
+        )
+    start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
+    check_road_lengths(read_merge_net(Path(args.net)), road_needs(start_range, config.max_episode_s))
+
+
 def train_from_args(args: argparse.Namespace) -> int:
     config = config_from_args(args)
+    source = str(getattr(args, "config", None) or DEFAULT_TRAIN_CONFIG)
     out = Path(getattr(args, "out", None) or Path("runs") / config.stage)
     resume = bool(getattr(args, "resume", False))
     if resume and (out / CHECKPOINT_NAME).is_file():
         # The run's own config is the base, so that only what the user typed can differ from it.
         config = config_from_args(args, base=stored_config(out))
+        source = str(out / CHECKPOINT_NAME)
+    _check_run(args, config, source)
+    if out.is_dir():
+        # Writes killed before their rename (SIGKILL, power loss) leave their temp files behind.
+        remove_stale_temps(out)
     final = run_training(
         Path(args.net),
         config,

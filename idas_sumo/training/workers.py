@@ -12,19 +12,12 @@ on which worker ran which episode. A Ray or other cluster backend would be one m
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
-import os
-import signal
-import subprocess
-import sys
-import threading
-import time
 import traceback
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from multiprocessing.connection import Connection, Listener
+from multiprocessing.connection import Connection
 from pathlib import Path
 from types import TracebackType
 
@@ -35,6 +28,7 @@ from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.agents.rollout import EpisodeData, RolloutTask, collect_episodes
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.errors import IdasError, SimulationError
+from idas_sumo.sim.processes import WorkerProcesses, derived_seed
 
 __all__ = ["EpisodeTask", "InProcessWorkers", "ProcessWorkers", "RolloutWorkers", "make_workers"]
 
@@ -146,9 +140,10 @@ def _unpack(p: _PackedEpisode) -> EpisodeData:
     )
 
 
-def _worker_main(conn: Connection, net_path: str, env_config: EnvConfig, seed: int, copies: int) -> None:
-    """A worker process: owns one SUMO; answers ('run', weights, tasks) until ('close',)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+def _serve(conn: Connection) -> None:
+    """A worker process (``WorkerProcesses`` entry): owns one SUMO; gets its start-up values, then
+    answers ('run', weights, tasks) until ('close',)."""
+    net_path, env_config, seed, copies = conn.recv()
     torch.set_num_threads(1)
     engine: MergeEngine | None = None
     try:
@@ -173,89 +168,28 @@ def _worker_main(conn: Connection, net_path: str, env_config: EnvConfig, seed: i
             engine.close()
 
 
-_CHILD_CODE = (
-    "import sys; sys.path.append(sys.argv[1]); "
-    "from idas_sumo.training.workers import _child_main; _child_main(sys.argv[2], int(sys.argv[3]))"
-)
-_CONNECT_TIMEOUT_S = 120.0
-"""How long a starting worker may take to import torch and call back before the run gives up."""
-
-
-def _child_main(host: str, port: int) -> None:
-    """A worker started by ``ProcessWorkers``: read the authkey on stdin, call back, serve."""
-    from multiprocessing.connection import Client
-
-    authkey = sys.stdin.buffer.read()
-    conn = Client((host, port), authkey=authkey)
-    net_path, env_config, seed, copies = conn.recv()
-    _worker_main(conn, net_path, env_config, seed, copies)
-
-
 class ProcessWorkers(RolloutWorkers):
     """W worker processes, one SUMO each; a round splits the tasks into W contiguous shares.
 
-    Workers are fresh interpreters started with subprocess (as evaluation/workers.py and
-    sim/backend.py start theirs), not multiprocessing's spawn: that re-imports the user's
-    ``__main__``, so a script calling ``run_training`` without an ``if __name__ == "__main__":``
-    guard would run itself again. Each worker calls back on a loopback socket that only holders
-    of a fresh random key (sent on its stdin, not its command line) can use.
+    Workers are started and stopped by ``sim.processes.WorkerProcesses`` (fresh interpreters calling
+    back on an authenticated loopback socket, see there why), as ``evaluate --workers`` starts its own.
     """
 
     def __init__(self, net_path: Path, env_config: EnvConfig, seed: int, workers: int, copies: int) -> None:
-        self._conns: list[Connection] = []
-        self._procs: list[subprocess.Popen[bytes]] = []
-        authkey = os.urandom(32)
-        package_root = str(Path(__file__).resolve().parents[2])
+        self._pool = WorkerProcesses("idas_sumo.training.workers:_serve", workers, "rollout worker")
         try:
-            with Listener(("127.0.0.1", 0), authkey=authkey) as listener:
-                host, port = listener.address
-                for _ in range(workers):
-                    proc = subprocess.Popen(
-                        [sys.executable, "-P", "-c", _CHILD_CODE, package_root, host, str(port)],
-                        stdin=subprocess.PIPE,
-                        stdout=subprocess.DEVNULL,  # libsumo prints on stdout
-                        start_new_session=True,  # Ctrl-C is the parent's to handle
-                    )
-                    assert proc.stdin is not None
-                    proc.stdin.write(authkey)
-                    proc.stdin.close()
-                    self._procs.append(proc)
-                for w in range(workers):
-                    conn = self._accept(listener)
-                    conn.send((str(net_path), env_config, seed + 1 + w, copies))
-                    self._conns.append(conn)
+            for w, conn in enumerate(self._pool.conns):
+                conn.send((str(net_path), env_config, derived_seed(seed, 1 + w), copies))
         except BaseException:
-            self.close()
+            self._pool.kill()
             raise
-
-    def _accept(self, listener: Listener) -> Connection:
-        """The next worker's authenticated connection; an error if the workers die or never call."""
-        result: list[Connection | BaseException] = []
-
-        def accept() -> None:
-            try:
-                result.append(listener.accept())
-            except BaseException as err:  # handed to the waiting thread
-                result.append(err)
-
-        thread = threading.Thread(target=accept, daemon=True)
-        thread.start()
-        deadline = time.monotonic() + _CONNECT_TIMEOUT_S
-        while thread.is_alive():
-            thread.join(timeout=0.2)
-            if thread.is_alive() and (
-                time.monotonic() > deadline or all(p.poll() is not None for p in self._procs)
-            ):
-                raise SimulationError("a rollout worker failed to start (see its error above)")
-        if isinstance(result[0], BaseException):
-            raise SimulationError(f"a rollout worker failed to connect: {result[0]}")
-        return result[0]
 
     def run(self, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]:
         weights = actor_weights(learner)
-        shares = [list(s) for s in np.array_split(np.arange(len(tasks)), len(self._conns))]
+        conns = self._pool.conns
+        shares = [list(s) for s in np.array_split(np.arange(len(tasks)), len(conns))]
         busy = []
-        for conn, idx in zip(self._conns, shares, strict=True):
+        for conn, idx in zip(conns, shares, strict=True):
             if idx:
                 try:
                     conn.send(("run", weights, [tasks[i] for i in idx]))
@@ -267,7 +201,7 @@ class ProcessWorkers(RolloutWorkers):
         for conn in busy:  # in order, so results follow the task order
             try:
                 reply = conn.recv()
-            except EOFError:
+            except (EOFError, OSError):
                 errors.append("a rollout worker died")
                 continue
             if reply[0] == "ok":
@@ -279,20 +213,16 @@ class ProcessWorkers(RolloutWorkers):
         return results
 
     def close(self) -> None:
-        for conn in self._conns:
-            with contextlib.suppress(BrokenPipeError, OSError):
-                conn.send(("close",))
-        for proc in self._procs:
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                log.warning("rollout worker %s did not stop; killing it", proc.pid)
-                proc.kill()
-                proc.wait()
-        for conn in self._conns:
-            conn.close()
-        self._conns = []
-        self._procs = []
+        self._pool.close(("close",))
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        # After an error or an interruption the workers may be mid-round: stop them now, not after it.
+        if exc_type is None:
+            self.close()
+        else:
+            self._pool.kill()
 
 
 def make_workers(

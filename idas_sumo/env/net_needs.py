@@ -1,0 +1,88 @@
+"""What the scenarios need of a merge net's road lengths, and the check that refuses a net without it.
+
+``read_merge_net`` checks the net's shape (two one-lane roads into one junction, one out). A net of the
+right shape can still be useless: with 1 m roads every car starts past the merge and every scenario
+collides; with 100 km roads no car reaches the merge before the timeout. Either run would end with exit
+0 and a table of 0 % that means nothing, so ``train`` and ``evaluate`` refuse such a net up front.
+
+The bounds come from what an episode uses:
+
+- an incoming road holds the random start positions (``[car length, start_range_m]`` from its start)
+  with a whole car to spare before the merge point, and at least the sensor range behind the merge
+  point (``VISIBILITY_M``), which is what a merging car looks back along;
+- the outgoing road holds the finish line (``FINISH_DISTANCE_PAST_MERGE_M`` past the merge point, the
+  merging zone's far edge) plus a car length, and the sensor range ahead of the merge point: a car
+  must not leave the net before it counts as finished;
+- a car at the very start of an incoming road, driving at the speed limits, reaches the finish line
+  within the episode (the evaluation's ``DEFAULT_MAX_EPISODE_S`` or the run's own, if longer): a
+  shorter run (a smoke test) may time out by choice, a road too long to drive may not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
+from idas_sumo.env.layout import VISIBILITY_M
+from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
+from idas_sumo.errors import InputError
+from idas_sumo.sim.backend import VEHICLE_LENGTH_M
+from idas_sumo.sim.netgen import MergeNet, RoadInfo
+
+__all__ = ["RoadNeeds", "check_road_lengths", "road_needs"]
+
+
+@dataclass(frozen=True)
+class RoadNeeds:
+    """Bounds on a merge net's road lengths (``road_needs`` makes them)."""
+
+    start_range_m: float | None
+    """Random starts lie up to this far from an incoming road's start (None: the scenarios place
+    their cars themselves, and ``check_against_net`` checks those positions against the roads)."""
+    episode_s: float
+    """A car at an incoming road's start must reach the finish line within this, at the speed limits."""
+
+    @property
+    def min_incoming_m(self) -> float:
+        starts = 0.0 if self.start_range_m is None else self.start_range_m + VEHICLE_LENGTH_M
+        return max(starts, VISIBILITY_M)
+
+    @property
+    def min_out_m(self) -> float:
+        return max(FINISH_DISTANCE_PAST_MERGE_M + VEHICLE_LENGTH_M, VISIBILITY_M)
+
+    def max_incoming_m(self, road: RoadInfo, out: RoadInfo) -> float:
+        """The longest ``road`` on which a car starting a car length in reaches the finish in time."""
+        to_finish_s = FINISH_DISTANCE_PAST_MERGE_M / out.speed_limit_mps
+        return VEHICLE_LENGTH_M + road.speed_limit_mps * max(self.episode_s - to_finish_s, 0.0)
+
+
+def road_needs(start_range_m: float | None, max_episode_s: float) -> RoadNeeds:
+    """The bounds for scenarios whose random starts reach ``start_range_m`` from a road's start (None
+    for scenarios that place their cars themselves) and whose episodes last ``max_episode_s``."""
+    return RoadNeeds(start_range_m, max(max_episode_s, DEFAULT_MAX_EPISODE_S))
+
+
+def check_road_lengths(net: MergeNet, needs: RoadNeeds) -> None:
+    """An InputError naming the net, the road, its length and the bounds with their reasons, for the
+    first road that misses them; nothing for a usable net."""
+    starts = (
+        ""
+        if needs.start_range_m is None
+        else f"starts up to {needs.start_range_m:g} m in plus a {VEHICLE_LENGTH_M:g} m car, "
+    )
+    for what, road in (("main", net.main), ("merge", net.merge)):
+        lo, hi = needs.min_incoming_m, needs.max_incoming_m(road, net.out)
+        if not lo <= road.length_m <= hi:
+            raise InputError(
+                f"{net.path}: the {what} road {road.edge_id!r} is {road.length_m:g} m long; the scenarios "
+                f"need {lo:g} to {max(hi, lo):.0f} m ({starts}the {VISIBILITY_M:g} m sensor range; "
+                f"from its start a car must reach the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m past the "
+                f"merge within {needs.episode_s:g} s at the speed limits)"
+            )
+    if net.out.length_m < needs.min_out_m:
+        raise InputError(
+            f"{net.path}: the outgoing road {net.out.edge_id!r} is {net.out.length_m:g} m long; the "
+            f"scenarios need at least {needs.min_out_m:g} m (the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m "
+            f"past the merge plus a {VEHICLE_LENGTH_M:g} m car, and the {VISIBILITY_M:g} m sensor range ahead)"
+        )

@@ -1,0 +1,223 @@
+"""Worker processes that call back: what ``train --workers`` and ``evaluate --workers`` share.
+
+A worker is a fresh interpreter started with subprocess (as sim/backend.py starts its SUMO child), not
+multiprocessing's spawn: spawn re-imports the user's ``__main__``, so a script calling ``run_training``
+or ``run_evaluation`` without an ``if __name__ == "__main__":`` guard would run itself again. It runs
+in its own session, so a Ctrl-C in the terminal reaches only the parent, which owns the workers and
+stops them. Each worker calls back on a loopback socket that only holders of a fresh random key can
+use (the key goes on its stdin, not its command line, where other users could read it), then runs the
+entry function named by the parent with the connection: messages are pickled over it, not over the
+worker's stdout, where libsumo prints.
+
+Start-up stays interruptible: the parent waits for call-backs in short slices, so Ctrl-C or SIGTERM
+is seen within a fraction of a second; on any failure or interruption every started worker is killed
+at once (not waited for, which with many workers once took minutes), and a worker whose parent is gone
+before it connected exits without a traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Sequence
+from multiprocessing import AuthenticationError
+from multiprocessing.connection import Client, Connection, answer_challenge, deliver_challenge
+from pathlib import Path
+from typing import IO, Any
+
+from idas_sumo.errors import InputError, SimulationError
+
+__all__ = ["SEED_LIMIT", "WorkerProcesses", "derived_seed", "max_workers", "wait_any"]
+
+SEED_LIMIT = 2**31
+"""Seeds lie in [0, SEED_LIMIT): SUMO's ``--seed`` is a C int. ``--seed`` is checked against it once,
+in the CLI; seeds derived from it (one per worker) wrap around with ``derived_seed``."""
+CONNECT_TIMEOUT_S = 120.0
+"""How long a starting worker may take to import torch and call back before the run gives up."""
+CLOSE_TIMEOUT_S = 10.0
+"""How long a worker asked to stop may take to close its SUMO before it is killed."""
+KILL_GRACE_S = 3.0
+"""How long a worker told to stop at once (SIGTERM) may take to clean up before it is killed."""
+_POLL_S = 0.2
+_CHILD_CODE = (
+    "import sys; sys.path.append(sys.argv[1]); "
+    "from idas_sumo.sim.processes import _child_main; _child_main(sys.argv[2], sys.argv[3], int(sys.argv[4]))"
+)
+
+
+def max_workers() -> int:
+    """The most worker processes a run may start: the CPUs this process may use. Each runs its own SUMO
+    at full speed, so more would only share the same cores (and memory) and slow every one down."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def derived_seed(seed: int, offset: int) -> int:
+    """``seed + offset`` inside SUMO's seed range (a worker's seed next to the run's own)."""
+    return (seed + offset) % SEED_LIMIT
+
+
+class WorkerProcesses:
+    """``count`` workers, each running ``entry(conn)`` (``"package.module:function"``) on its own
+    connection; ``conns[i]`` talks to worker i. ``what`` names them in messages ("rollout worker").
+
+    ``capture_stderr``: each worker's stderr goes to an anonymous temporary file (gone with the
+    process, even after SIGKILL) whose last lines ``stderr_tail`` returns; otherwise the workers
+    share the parent's stderr.
+    """
+
+    def __init__(self, entry: str, count: int, what: str, capture_stderr: bool = False) -> None:
+        limit = max_workers()
+        if not 1 <= count <= limit:
+            raise InputError(f"workers: {count} is not in [1, {limit}] (this machine's CPUs)")
+        self.what = what
+        self.conns: list[Connection] = []
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self._stderr: list[IO[bytes]] = []
+        authkey = os.urandom(32)
+        package_root = str(Path(__file__).resolve().parents[2])
+        try:
+            with socket.create_server(("127.0.0.1", 0)) as server:
+                server.settimeout(_POLL_S)
+                host, port = server.getsockname()[:2]
+                for _ in range(count):
+                    # Anonymous (no name to leak), closed in kill() with its worker.
+                    err: IO[bytes] | None = tempfile.TemporaryFile() if capture_stderr else None  # noqa: SIM115
+                    if err is not None:
+                        self._stderr.append(err)
+                    proc = subprocess.Popen(
+                        [sys.executable, "-P", "-c", _CHILD_CODE, package_root, entry, host, str(port)],
+                        stdin=subprocess.PIPE,
+                        stdout=subprocess.DEVNULL,  # libsumo prints on stdout
+                        stderr=err,
+                        start_new_session=True,  # Ctrl-C is the parent's to handle
+                    )
+                    self.procs.append(proc)
+                    assert proc.stdin is not None
+                    with contextlib.suppress(BrokenPipeError):
+                        proc.stdin.write(authkey)
+                    proc.stdin.close()
+                deadline = time.monotonic() + CONNECT_TIMEOUT_S
+                while len(self.conns) < count:
+                    self.conns.append(self._accept(server, authkey, deadline))
+        except BaseException:
+            self.kill()
+            raise
+
+    def _accept(self, server: socket.socket, authkey: bytes, deadline: float) -> Connection:
+        """The next worker's authenticated connection, waited for in short slices (so a signal is
+        handled at once); an error if every worker died or none called back in time."""
+        while True:
+            try:
+                sock, _ = server.accept()
+                break
+            except TimeoutError:
+                if all(p.poll() is not None for p in self.procs):
+                    raise SimulationError(self._failed_to_start()) from None
+                if time.monotonic() > deadline:
+                    raise SimulationError(
+                        f"a {self.what} did not start within {CONNECT_TIMEOUT_S:g} s"
+                    ) from None
+        sock.setblocking(True)
+        conn = Connection(sock.detach())
+        try:
+            deliver_challenge(conn, authkey)
+            answer_challenge(conn, authkey)
+        except BaseException:
+            conn.close()
+            raise
+        return conn
+
+    def _failed_to_start(self) -> str:
+        tail = self.stderr_tail(0) if self._stderr else ""
+        where = f": {tail}" if tail else " (see its error above)"
+        return f"a {self.what} failed to start{where}"
+
+    def stderr_tail(self, i: int, lines: int = 5) -> str:
+        """The last ``lines`` lines of worker i's captured stderr, joined with " | " ("" if none)."""
+        if i >= len(self._stderr):
+            return ""
+        f = self._stderr[i]
+        f.flush()
+        f.seek(0)
+        text = f.read().decode(errors="replace").strip()
+        return " | ".join(text.splitlines()[-lines:])
+
+    def close(self, message: Any = None) -> None:
+        """Stop the workers: send ``message`` (the entry's "stop" request) if given, give each
+        ``CLOSE_TIMEOUT_S`` to exit (closing its SUMO), then kill what is left."""
+        if message is not None:
+            for conn in self.conns:
+                with contextlib.suppress(OSError):
+                    conn.send(message)
+        deadline = time.monotonic() + CLOSE_TIMEOUT_S
+        for proc in self.procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
+        self.kill()
+
+    def kill(self) -> None:
+        """Stop every worker now (an error or an interruption: nothing to wait for). SIGTERM first,
+        which a worker turns into an exit through its cleanup (its SUMO's temporary folder goes
+        too), then SIGKILL for any still there after ``KILL_GRACE_S``."""
+        for proc in self.procs:
+            if proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.terminate()
+        deadline = time.monotonic() + KILL_GRACE_S
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                proc.wait()
+        for conn in self.conns:
+            conn.close()
+        for f in self._stderr:
+            f.close()
+        self.conns, self.procs, self._stderr = [], [], []
+
+
+def wait_any(conns: Sequence[Connection], timeout_s: float = _POLL_S) -> list[Connection]:
+    """The connections among ``conns`` with a message (or an EOF) waiting, after at most
+    ``timeout_s``: a short slice, so that the caller's loop sees a signal at once."""
+    from multiprocessing.connection import wait
+
+    return [c for c in wait(list(conns), timeout=timeout_s) if isinstance(c, Connection)]
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    """SIGTERM from the parent (``kill``): exit through the finally blocks, so SUMO is closed and its
+    temporary folder removed, quietly (SystemExit prints no traceback)."""
+    sys.exit(128 + signum)
+
+
+def _child_main(entry: str, host: str, port: int) -> None:
+    """A worker: read the key on stdin, call back, run ``entry(conn)``. A parent that is gone (it
+    failed, was interrupted, or killed us while we started) is not an error worth a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns Ctrl-C and stops us
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    try:
+        authkey = sys.stdin.buffer.read()
+        conn = Client((host, port), authkey=authkey)
+    except (OSError, EOFError, AuthenticationError):
+        sys.exit(1)
+    module, _, function = entry.partition(":")
+    try:
+        getattr(importlib.import_module(module), function)(conn)
+    except (EOFError, BrokenPipeError, ConnectionResetError):
+        sys.exit(1)  # the parent went away mid-task
+    except Exception:
+        traceback.print_exc()
+        sys.exit(1)

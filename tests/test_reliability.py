@@ -1,0 +1,518 @@
+"""Issue #16: nothing a user types, and nothing the machine does, ends in a traceback or a lie.
+
+Each test here failed before its fix. CLI cases run the real command line (``python -m idas_sumo.cli``)
+in a subprocess; the helpers come from test_hardening (issue #7), whose contract this extends: exit 2
+and one ``idas-sumo: error: ...`` line for bad input, 130 / 143 and one line for Ctrl-C / SIGTERM.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+from conftest import checkpoint_payload, interrupt_when, run_cli
+from test_hardening import (
+    REPO_ROOT,
+    assert_one_line,
+    assert_usage_error,
+    eval_args,
+    run_many,
+    train_args,
+)
+
+# --- helpers ------------------------------------------------------------------------------------------
+
+
+def _learner() -> Any:
+    from idas_sumo.agents.learner import Learner, LearnerConfig
+
+    return Learner(LearnerConfig(), seed=1)
+
+
+def build_net(path: Path, length_m: float) -> Path:
+    """A merge net of the right shape with every road ``length_m`` long, built with the project's own
+    plain XML and netconvert (``generate_net``'s NetParams refuses such lengths, as it should)."""
+    from idas_sumo.sim.netgen import NetParams, _plain_xml, sumo_binary
+
+    fields = dataclasses.asdict(NetParams())
+    fields.update(main_length_m=length_m, merge_length_m=length_m, out_length_m=length_m)
+    node_xml, edge_xml = _plain_xml(SimpleNamespace(**fields))  # type: ignore[arg-type]
+    nod, edg = path.with_suffix(".nod.xml"), path.with_suffix(".edg.xml")
+    nod.write_text(node_xml)
+    edg.write_text(edge_xml)
+    cmd = [str(sumo_binary("netconvert")), "--node-files", str(nod), "--edge-files", str(edg)]
+    subprocess.run(
+        [*cmd, "--output-file", str(path), "--no-warnings", "true"], check=True, capture_output=True
+    )
+    return path
+
+
+def popen_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "idas_sumo.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO_ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+    )
+
+
+def children_of(pid: int) -> list[int]:
+    """The pids of ``pid``'s child processes (Linux /proc)."""
+    found = []
+    for status in Path("/proc").glob("[0-9]*/status"):
+        with contextlib.suppress(OSError):
+            fields = dict(line.split(":\t", 1) for line in status.read_text().splitlines() if ":\t" in line)
+            if fields.get("PPid", "").strip() == str(pid):
+                found.append(int(status.parent.name))
+    return found
+
+
+TINY_TOML = """\
+episodes_per_update = 1
+checkpoint_every = 1000
+max_episode_s = 12.0
+[robot_traffic]
+min_vehicles_per_road = 2
+max_vehicles_per_road = 4
+max_controlled = 1
+[intelligent_traffic]
+min_vehicles_per_road = 2
+max_vehicles_per_road = 4
+"""
+"""A run of a few seconds (test_hardening's TINY_TRAIN_TOML, with room for the paper's 8 cars)."""
+
+
+def tiny_config(tmp_path: Path) -> Path:
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_TOML)
+    return config
+
+
+# --- net geometry -------------------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_net_with_roads_too_short_or_too_long_is_refused(tmp_path: Path) -> None:
+    """1 m roads made every scenario collide and 100 km roads every episode time out, both with exit 0."""
+    short = build_net(tmp_path / "short.net.xml", 1.0)
+    long = build_net(tmp_path / "long.net.xml", 100_000.0)
+    results = run_many(
+        eval_args(tmp_path / "e1", "--scenarios", "2", net=short),
+        eval_args(tmp_path / "e2", "--scenarios", "2", net=long),
+        eval_args(tmp_path / "e3", "--suite", "representative", net=short),
+        ["train", "--net", str(short), "--out", str(tmp_path / "t1"), "--episodes", "1", "--no-progress"],
+        ["train", "--net", str(long), "--out", str(tmp_path / "t2"), "--episodes", "1", "--no-progress"],
+    )
+    for result, net in zip(results, [short, long, short, short, long], strict=True):
+        line = assert_usage_error(result, str(net), "main road", "m long", "need")
+        assert "sensor range" in line and "finish" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_dir()) == []  # nothing was started
+
+
+def test_road_bounds_follow_from_the_scenarios() -> None:
+    """The bounds: starts + a car and the sensor range below; a car from the start must finish in time."""
+    from idas_sumo.env.net_needs import check_road_lengths, road_needs
+    from idas_sumo.errors import InputError
+    from idas_sumo.sim.netgen import MergeNet, RoadInfo
+
+    def net(main_m: float, out_m: float = 150.0) -> MergeNet:
+        road = RoadInfo("main", main_m, 20.0, 2)
+        return MergeNet(
+            Path("n.net.xml"), road, RoadInfo("merge", 250.0, 15.0, 1), RoadInfo("out", out_m, 20.0, 2), "j"
+        )
+
+    needs = road_needs(200.0, 60.0)
+    assert needs.min_incoming_m == 205.0  # start range 200 m + a 5 m car
+    check_road_lengths(net(250.0), needs)  # the paper's net
+    check_road_lengths(net(1155.0), needs)  # 5 m + 20 m/s * (60 s - 50 m / 20 m/s)
+    for bad in (net(204.0), net(1156.0), net(250.0, out_m=99.0)):
+        with pytest.raises(InputError, match=r"n\.net\.xml"):
+            check_road_lengths(bad, needs)
+    # A shorter episode (a smoke run) does not shrink the bound below the evaluation's 60 s.
+    assert road_needs(200.0, 15.0) == needs
+    assert road_needs(None, 60.0).min_incoming_m == 100.0  # scenario files: the sensor range only
+
+
+@pytest.mark.sumo
+def test_netgen_warns_about_a_net_the_scenarios_cannot_use(tmp_path: Path) -> None:
+    result = run_cli("netgen", "--out", str(tmp_path / "n.net.xml"), "--main-length", "20")
+    assert result.returncode == 0, result.stderr
+    assert "warning" in result.stderr and "main road" in result.stderr, result.stderr
+
+
+# --- --policy, checksums ------------------------------------------------------------------------------
+
+
+def test_policy_for_a_rule_based_baseline_is_refused(tmp_path: Path) -> None:
+    exists = tmp_path / "p.pt"
+    exists.write_bytes(b"x")
+    missing = tmp_path / "missing.pt"
+    results = run_many(
+        eval_args(tmp_path / "o1", "--policy", str(exists), baseline="idm"),
+        eval_args(tmp_path / "o2", "--policy", str(missing), baseline="fsm_idm"),
+        eval_args(tmp_path / "o3", "--policy", str(missing), baseline="idas"),
+        eval_args(tmp_path / "o4", "--policy", str(missing), baseline="all"),
+    )
+    assert_usage_error(results[0], "--policy only applies to the learned methods", "--baseline idm")
+    assert_usage_error(results[1], "--policy only applies to the learned methods", "--baseline fsm_idm")
+    assert_usage_error(results[2], str(missing), "not found")
+    assert_usage_error(results[3], str(missing), "not found")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.pt"]
+
+
+def _flip_a_weight_byte(path: Path) -> None:
+    """Flip one bit inside the actor's first weight tensor's bytes (torch's zip does not notice)."""
+    import torch
+
+    raw = torch.load(path, weights_only=True)
+    tensor = next(iter(raw["learner"]["actor"].values()))
+    needle = tensor.contiguous().numpy().tobytes()[:64]
+    data = bytearray(path.read_bytes())
+    at = data.find(needle)
+    assert at > 0 and data.find(needle, at + 1) < 0, "the weight bytes must be found exactly once"
+    data[at + 10] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
+def test_flipped_bytes_in_a_checkpoint_are_refused(tmp_path: Path) -> None:
+    import torch
+
+    from idas_sumo.agents.checkpoint_file import load_actor
+    from idas_sumo.errors import InputError
+    from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
+
+    path = tmp_path / "c.pt"
+    save_checkpoint(path, checkpoint_payload(_learner()))
+    _flip_a_weight_byte(path)
+    torch.load(path, weights_only=True)  # torch itself loads it: the damage is silent without a checksum
+    for load in (load_checkpoint, load_actor):
+        with pytest.raises(InputError) as err:
+            load(path)
+        assert str(err.value).startswith(f"{path}: checksum mismatch"), err.value
+    result = run_cli(*eval_args(tmp_path / "out", "--scenarios", "1", "--policy", str(path), baseline="idas"))
+    assert_usage_error(result, str(path), "checksum mismatch")
+
+
+def test_checkpoints_without_a_checksum(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Older files (no checksum) load with a warning; the shipped ones are checked against their
+    metadata's file_sha256, and a damaged copy of one beside its metadata is refused."""
+    import torch
+
+    from idas_sumo.agents.checkpoint_file import CHECKSUM_KEY, load_actor
+    from idas_sumo.errors import InputError
+    from idas_sumo.resources import POLICY_DIR
+    from idas_sumo.training.checkpoint import load_checkpoint
+
+    old = tmp_path / "old.pt"
+    data = checkpoint_payload(_learner()).to_dict()
+    del data[CHECKSUM_KEY]
+    torch.save(data, old)
+    with caplog.at_level("WARNING"):
+        assert load_checkpoint(old).episode == 7
+    assert any("no checksum" in r.getMessage() and str(old) in r.getMessage() for r in caplog.records)
+
+    caplog.clear()
+    for shipped in sorted(POLICY_DIR.glob("*.pt")):
+        assert "file_sha256" in json.loads(shipped.with_suffix(".json").read_text())
+        with caplog.at_level("WARNING"):
+            load_actor(shipped)
+    assert not caplog.records  # verified, no warning
+
+    copy = tmp_path / "idas.pt"
+    shutil.copy(POLICY_DIR / "idas.pt", copy)
+    shutil.copy(POLICY_DIR / "idas.json", tmp_path / "idas.json")
+    load_actor(copy)
+    _flip_a_weight_byte(copy)
+    with pytest.raises(InputError, match="checksum mismatch"):
+        load_actor(copy)
+
+
+# --- --seed, --workers, --copies ----------------------------------------------------------------------
+
+
+def test_seed_outside_sumos_range_is_refused_naming_the_flag(tmp_path: Path) -> None:
+    cases = []
+    for value in ("-1", str(2**31), str(2**64), "1e3"):
+        cases.append(eval_args(tmp_path / "e", "--seed", value))
+        cases.append(train_args(tmp_path / "t", "--seed", value))
+    for result in run_many(*cases):
+        assert "argument --seed" in result.stderr
+        assert_one_line(result.stderr, 2, result.returncode, "--seed")
+    config = tmp_path / "seed.toml"
+    config.write_text(f"seed = {2**31}\n")
+    result = run_cli(*train_args(tmp_path / "t", "--config", str(config)))
+    assert_usage_error(result, str(config), "seed", str(2**31))
+    assert not (tmp_path / "t").exists() and not (tmp_path / "e").exists()
+
+
+def test_seeds_at_the_top_of_the_range_run(tmp_path: Path) -> None:
+    """The largest seed is accepted, and the workers' seeds next to it stay in SUMO's range."""
+    from idas_sumo.sim.processes import SEED_LIMIT, derived_seed
+
+    assert derived_seed(SEED_LIMIT - 1, 1) == 0 and derived_seed(5, 2) == 7
+
+
+def test_workers_and_copies_are_bounded(tmp_path: Path) -> None:
+    from idas_sumo.sim.multinet import MAX_COPIES
+    from idas_sumo.sim.processes import max_workers
+
+    too_many = str(max_workers() + 1)
+    config = tmp_path / "w.toml"
+    config.write_text("workers = 1000\n")
+    start = time.monotonic()
+    results = run_many(
+        eval_args(tmp_path / "e", "--workers", "1000"),
+        eval_args(tmp_path / "e", "--workers", too_many),
+        eval_args(tmp_path / "e", "--copies", str(MAX_COPIES + 1)),
+        train_args(tmp_path / "t", "--workers", too_many),
+        train_args(tmp_path / "t", "--copies", str(10**9)),
+        train_args(tmp_path / "t", "--config", str(config)),
+    )
+    assert time.monotonic() - start < 30  # refused up front, not after forking
+    assert_usage_error(results[0], "--workers", "1000", "CPUs")
+    assert_usage_error(results[1], "--workers", too_many, "CPUs")
+    assert_usage_error(results[2], "--copies", str(MAX_COPIES))
+    assert_usage_error(results[3], "--workers", too_many)
+    assert_usage_error(results[4], "--copies")
+    assert_usage_error(results[5], str(config), "workers", "1000", "CPUs")
+
+
+# --- files that are not regular files -----------------------------------------------------------------
+
+
+def test_fifo_as_an_input_file_is_refused(tmp_path: Path) -> None:
+    """Reading a FIFO blocks until someone writes to it: --net once hung forever."""
+    from idas_sumo.agents.checkpoint_file import load_actor
+    from idas_sumo.errors import InputError
+    from idas_sumo.sim.netgen import read_merge_net
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    results = run_many(
+        eval_args(tmp_path / "o", net=fifo),
+        train_args(tmp_path / "t", "--config", str(fifo)),
+        ["train", "--net", str(fifo), "--out", str(tmp_path / "t"), "--no-progress"],
+        eval_args(tmp_path / "o", "--policy", str(fifo), baseline="idas"),
+        eval_args(tmp_path / "o", "--config", str(fifo)),
+        eval_args(tmp_path / "o", "--scenario", str(fifo)),
+        eval_args(tmp_path / "o", "--scenario", "/dev/zero"),
+    )
+    for result in results:
+        assert_usage_error(result, "not a regular file")
+    for read in (read_merge_net, load_actor):
+        with pytest.raises(InputError, match="not a regular file"):
+            read(fifo)
+
+
+# --- disk full ----------------------------------------------------------------------------------------
+
+
+def on_small_tmpfs(disk: Path, size: str, shell: str) -> subprocess.CompletedProcess[str]:
+    """Run ``shell`` (sh) with a real tmpfs of ``size`` mounted at ``disk``, in a private mount namespace
+    (``unshare``: as root, or as a user through a user namespace), so the mount vanishes with the
+    command, whatever happens to the test. A full tmpfs fails writes with ENOSPC, as a full disk does."""
+    disk.mkdir()
+    mount = f"mount -t tmpfs -o size={size} tmpfs {disk} || exit 99; "
+    result = subprocess.run(
+        ["unshare", "--mount", "--map-root-user", "sh", "-c", mount + shell],
+        capture_output=True,
+        text=True,
+        cwd=REPO_ROOT,
+        timeout=180,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    assert result.returncode != 99, f"cannot mount a tmpfs here: {result.stderr}"
+    return result
+
+
+SAVE_ON_A_FULL_DISK = """
+import sys
+sys.path.insert(0, "tests")
+from pathlib import Path
+from conftest import checkpoint_payload
+from idas_sumo.agents.learner import Learner, LearnerConfig
+from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
+path = Path(sys.argv[1])
+learner = Learner(LearnerConfig(), seed=1)
+save_checkpoint(path, checkpoint_payload(learner))  # ~1.8 MB: fits once, not twice
+before = path.read_bytes()
+try:
+    save_checkpoint(path, checkpoint_payload(learner, episode=99))
+except OSError as err:
+    assert err.filename == str(path), err.filename
+    print("OSError:", err)
+else:
+    raise AssertionError("the second checkpoint fit on the disk")
+assert path.read_bytes() == before and load_checkpoint(path).episode == 7
+print("left:", sorted(p.name for p in path.parent.iterdir()))
+"""
+
+
+def test_disk_full_while_saving_a_checkpoint_names_the_file(tmp_path: Path) -> None:
+    """torch's own write turns ENOSPC into a RuntimeError ("unexpected pos ..."): it must be the OSError
+    it is, naming the checkpoint, with the previous file intact and no temp file left."""
+    disk = tmp_path / "disk"
+    script = tmp_path / "save.py"
+    script.write_text(SAVE_ON_A_FULL_DISK)
+    result = on_small_tmpfs(disk, "3m", f"{sys.executable} {script} {disk / 'checkpoint.pt'}")
+    assert result.returncode == 0, result.stderr
+    assert f"OSError: [Errno 28] No space left on device: '{disk / 'checkpoint.pt'}'" in result.stdout
+    assert "left: ['checkpoint.pt']" in result.stdout, result.stdout
+
+
+@pytest.mark.sumo
+def test_disk_full_during_train_is_one_line_naming_the_checkpoint(tmp_path: Path) -> None:
+    disk = tmp_path / "disk"
+    run = disk / "run"
+    args = train_args(run, "--config", str(tiny_config(tmp_path)), "--stage", "robot", "--episodes", "1")
+    command = " ".join([sys.executable, "-m", "idas_sumo.cli", *args])
+    result = on_small_tmpfs(disk, "1m", f"{command}; code=$?; ls -a {run}; exit $code")
+    line = assert_one_line(result.stderr, 1, result.returncode, "No space left on device")
+    # The first checkpoint the run writes (robot.pt, its final one here), by its full path.
+    assert f"error: {run}/" in line and ".pt: No space left on device" in line, line
+    assert ".tmp" not in result.stdout, result.stdout
+
+
+# --- stale temp files ---------------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_stale_temp_files_are_removed_when_a_run_starts(tmp_path: Path) -> None:
+    """Writes killed by SIGKILL leave ``.checkpoint.pt.XXXX.tmp`` (MBs each): the next run removes them."""
+    run, out = tmp_path / "run", tmp_path / "eval"
+    config = tiny_config(tmp_path)
+    stale = [".checkpoint.pt.k1l2l3ed.tmp", ".metrics.csv.abcd1234.tmp"]
+    for directory in (run, out):
+        directory.mkdir()
+        for name in stale:
+            (directory / name).write_bytes(b"\0" * 1000)
+    (run / "keep.tmp").write_text("not ours: no leading dot")
+    results = run_many(
+        train_args(run, "--config", str(config), "--stage", "robot", "--episodes", "1", "--force"),
+        eval_args(out, "--scenarios", "1", "--force"),
+    )
+    for result in results:
+        assert result.returncode == 0, result.stderr
+    for directory in (run, out):
+        assert not [p.name for p in directory.iterdir() if p.name in stale]
+    assert (run / "keep.tmp").exists()
+
+
+# --- Ctrl-C and SIGTERM ---------------------------------------------------------------------------------
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_ctrl_c_while_two_workers_start_is_one_line(tmp_path: Path, command: str) -> None:
+    """It printed 31 lines of worker tracebacks; now: one line, exit 130, no worker left."""
+    if command == "train":
+        args = train_args(tmp_path / "run", "--config", str(tiny_config(tmp_path)), "--workers", "2")
+    else:
+        args = eval_args(tmp_path / "out", "--scenarios", "4", "--workers", "2", "--copies", "1")
+    proc = popen_cli(*args)
+    workers: list[int] = []
+
+    def workers_started() -> bool:
+        workers[:] = children_of(proc.pid)
+        return len(workers) >= 2
+
+    stderr = interrupt_when(proc, workers_started, settle_s=0.3)
+    assert proc.returncode == 130, stderr
+    assert stderr.splitlines() == ["idas-sumo: interrupted; completed outputs were kept"], stderr
+    assert workers and all(not Path(f"/proc/{pid}").exists() or _is_zombie(pid) for pid in workers)
+
+
+def _is_zombie(pid: int) -> bool:
+    with contextlib.suppress(OSError):
+        return "\nState:\tZ" in Path(f"/proc/{pid}/status").read_text()
+    return True
+
+
+def test_ctrl_c_while_the_run_cleans_up_is_not_exit_0(tmp_path: Path) -> None:
+    """Ctrl-C as a run finishes landed in an exit handler (closing SUMO): a traceback, then exit 0. Now
+    the cleanup completes, and the exit says the run was interrupted."""
+    script = (
+        "import atexit, os, signal, sys, time\n"
+        "from idas_sumo import cli\n"
+        "def cleanup():  # an exit handler like the SUMO backend's; Ctrl-C arrives while it runs\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    time.sleep(0.3)\n"
+        "    print('cleanup done', file=sys.stderr)\n"
+        "real = cli._netgen\n"
+        "def netgen(args):\n"
+        "    atexit.register(cleanup)  # registered during the command, as the backend's is on import\n"
+        "    return real(args)\n"
+        "cli._netgen = netgen\n"
+        f"sys.argv = ['idas-sumo', 'netgen', '--out', {str(tmp_path / 'n.net.xml')!r}]\n"
+        "sys.exit(cli.main())\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO_ROOT)
+    assert "Traceback" not in result.stderr and "Exception ignored" not in result.stderr, result.stderr
+    assert result.returncode == 130, result.stderr
+    assert result.stderr.splitlines() == [
+        "cleanup done",
+        "idas-sumo: interrupted; completed outputs were kept",
+    ]
+    assert (tmp_path / "n.net.xml").exists()
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_sigterm_during_evaluate_is_143_and_leaks_no_temp_dir(tmp_path: Path, workers: str) -> None:
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    args = eval_args(tmp_path / "out", "--scenarios", "40", "--workers", workers, "--copies", "2")
+    proc = popen_cli(*args, env={"TMPDIR": str(tmpdir)})
+
+    def sumo_running() -> bool:
+        return any(tmpdir.rglob("*.rou.xml"))
+
+    stderr = interrupt_when(proc, sumo_running, settle_s=0.5, signum=signal.SIGTERM)
+    assert proc.returncode == 143, stderr
+    assert stderr.splitlines() == ["idas-sumo: terminated (SIGTERM); completed outputs were kept"], stderr
+    time.sleep(0.5)  # a killed worker's files would be gone by now, or never
+    assert list(tmpdir.iterdir()) == []
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.sumo
+def test_sigterm_during_train_is_143_and_leaks_no_temp_dir(tmp_path: Path) -> None:
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    run = tmp_path / "run"
+    args = train_args(run, "--config", str(tiny_config(tmp_path)), "--stage", "robot", "--episodes", "100000")
+    proc = popen_cli(*args, env={"TMPDIR": str(tmpdir)})
+    metrics = run / "metrics.csv"
+    stderr = interrupt_when(
+        proc, lambda: metrics.exists() and len(metrics.read_text().splitlines()) >= 2, signum=signal.SIGTERM
+    )
+    assert proc.returncode == 143, stderr
+    assert stderr.splitlines()[-1].startswith("idas-sumo: terminated (SIGTERM)"), stderr
+    assert "Traceback" not in stderr
+    assert list(tmpdir.iterdir()) == []
+    assert (run / "checkpoint.pt").exists()
+
+
+# --- the shared worker start-up -----------------------------------------------------------------------
+
+
+def test_worker_start_up_lives_in_one_module() -> None:
+    """train and evaluate start workers through sim/processes.py, not each its own subprocess code."""
+    package = REPO_ROOT / "idas_sumo"
+    for module in ("training/workers.py", "evaluation/workers.py"):
+        source = (package / module).read_text()
+        assert "WorkerProcesses" in source, module
+        assert "subprocess" not in source and "Listener" not in source, module
