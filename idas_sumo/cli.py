@@ -422,6 +422,17 @@ def _check_eval_net(args: argparse.Namespace) -> None:
     random_starts = args.suite == "paper" and not args.scenario
     start_range = config.traffic.start_range_m if random_starts else None
     check_road_lengths(net, road_needs(start_range, config.max_episode_s))
+    # Cars placed by a file must start on the road (a car 1e308 m down a 250 m road once ran, exit 0).
+    from idas_sumo.env.scenario import Road, check_against_net, load_scenario
+    from idas_sumo.resources import SCENARIO_DIR
+
+    files = args.scenario or (
+        [] if random_starts else sorted((SCENARIO_DIR / "representative").glob("*.toml"))
+    )
+    speed_limits: dict[Road, float] = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
+    lengths: dict[Road, float] = {"main": net.main.length_m, "merge": net.merge.length_m}
+    for path in files:
+        check_against_net(load_scenario(path, speed_limits), speed_limits, lengths, str(path))
 
 
 def summary_table(summary: pd.DataFrame, title: str, labels: dict[str, str]) -> Any:

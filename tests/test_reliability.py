@@ -122,6 +122,18 @@ def test_net_with_roads_too_short_or_too_long_is_refused(tmp_path: Path) -> None
     assert sorted(p.name for p in tmp_path.iterdir() if p.is_dir()) == []  # nothing was started
 
 
+@pytest.mark.sumo
+def test_scenario_file_car_beyond_the_road_is_refused(tmp_path: Path) -> None:
+    """A car 1e308 m down a 250 m road ran with exit 0 (``check_against_net`` got no road lengths)."""
+    scenario = tmp_path / "far.toml"
+    scenario.write_text(
+        'name = "far"\n[[vehicles]]\nid = "ego"\nroad = "main"\nstart_pos_m = 1e308\nspeed_mps = 10.0\n'
+    )
+    result = run_cli(*eval_args(tmp_path / "out", "--scenario", str(scenario)))
+    assert_usage_error(result, str(scenario), "'ego'", "beyond the main road's length")
+    assert not (tmp_path / "out").exists()
+
+
 def test_road_bounds_follow_from_the_scenarios() -> None:
     """The bounds: starts + a car and the sensor range below; a car from the start must finish in time."""
     from idas_sumo.env.net_needs import check_road_lengths, road_needs
