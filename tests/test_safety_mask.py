@@ -72,30 +72,37 @@ def _snapshot(road: list[int], dist: list[float], copy: list[int] | None = None)
     )
 
 
+def _hits(road: list[int], dist: list[float], origin: list[int], copy: list[int] | None = None) -> list:
+    return geometric_collisions(_snapshot(road, dist, copy), np.array(origin, dtype=np.int64))
+
+
 def test_geometric_collisions_hand_worked() -> None:
     # Same road, fronts 4.9 m apart (bodies of 5 m overlap by 0.1 m); 5.0 m apart only touch.
-    assert geometric_collisions(_snapshot([MAIN, MAIN], [50.0, 54.9])) == [(0, 1)]
-    assert geometric_collisions(_snapshot([MAIN, MAIN], [50.0, 55.0])) == []
+    assert _hits([MAIN, MAIN], [50.0, 54.9], [MAIN, MAIN]) == [(0, 1)]
+    assert _hits([MAIN, MAIN], [50.0, 55.0], [MAIN, MAIN]) == []
     # Level on the two incoming roads: side by side, not overlapping (the conflict is at the merge point).
-    assert geometric_collisions(_snapshot([MAIN, MERGE], [3.0, 3.0])) == []
-    # Past the merge point both are on the outgoing road: overlap.
-    assert geometric_collisions(_snapshot([OUT, OUT], [-2.0, -1.0])) == [(0, 1)]
-    # An incoming car whose front is inside the body of an outgoing car ahead of it (in the junction).
-    assert geometric_collisions(_snapshot([MERGE, OUT], [1.0, -2.0])) == [(0, 1)]
+    assert _hits([MAIN, MERGE], [3.0, 3.0], [MAIN, MERGE]) == []
+    # Both fronts past the merge point, whichever road they came from: one road, overlap.
+    assert _hits([OUT, OUT], [-2.0, -1.0], [MAIN, MERGE]) == [(0, 1)]
+    # A car past the merge point and one behind it on the road it came from: the tail is on that road.
+    assert _hits([OUT, MERGE], [-2.0, 1.0], [MERGE, MERGE]) == [(0, 1)]
+    # ... but a car of the other road behind its tail is beside it, not in it.
+    assert _hits([OUT, MAIN], [-2.0, 1.0], [MERGE, MAIN]) == []
     # Different copies never collide; three cars: every overlapping pair once.
-    assert geometric_collisions(_snapshot([MAIN, MAIN], [50.0, 52.0], copy=[0, 1])) == []
-    assert geometric_collisions(_snapshot([MAIN, MAIN, MAIN], [50.0, 52.0, 54.0])) == [(0, 1), (0, 2), (1, 2)]
+    assert _hits([MAIN, MAIN], [50.0, 52.0], [MAIN, MAIN], copy=[0, 1]) == []
+    assert _hits([MAIN, MAIN, MAIN], [50.0, 52.0, 54.0], [MAIN] * 3) == [(0, 1), (0, 2), (1, 2)]
 
 
 def test_geometric_collisions_agree_with_the_pairwise_definition() -> None:
-    """The sorted sweep finds exactly the pairs of the n x n definition (either car on the outgoing road, or
-    both on one incoming road; bodies overlapping; one copy), whatever the order of the rows."""
+    """The sorted sweep finds exactly the pairs of the n x n definition (same incoming road of origin, or
+    both past the merge point; bodies overlapping; one copy), whatever the order of the rows."""
     for trial in range(300):
         rng = np.random.default_rng(trial)
         n = int(rng.integers(0, 40))
         copies = int(rng.integers(1, 4))
-        road = rng.integers(0, 3, n)
+        origin = rng.integers(0, 2, n)
         dist = np.round(rng.uniform(-30.0, 60.0, n), 1)
+        road = np.where(dist < 0.0, OUT, origin)
         length = rng.choice([4.0, 5.0, 7.5], n)
         copy = rng.integers(0, copies, n)
         snap = TrafficSnapshot(
@@ -112,12 +119,12 @@ def test_geometric_collisions_agree_with_the_pairwise_definition() -> None:
             (i, j)
             for i in range(n)
             for j in range(i + 1, n)
-            if (road[i] == road[j] or OUT in (road[i], road[j]))
+            if (origin[i] == origin[j] or road[i] == road[j] == OUT)
             and (copies == 1 or copy[i] == copy[j])
             and dist[i] < dist[j] + length[j]
             and dist[j] < dist[i] + length[i]
         ]
-        assert geometric_collisions(snap) == expected, trial
+        assert geometric_collisions(snap, origin) == expected, trial
 
 
 @pytest.mark.sumo
@@ -257,7 +264,6 @@ def test_train_config_carries_the_safety_mask(tmp_path: Path) -> None:
     from idas_sumo.resources import SCENARIO_DIR
 
     assert load_train_config(SCENARIO_DIR / "train_default.toml").safety_mask == "own_lane"
-    assert load_train_config(SCENARIO_DIR / "train_shipped.toml").safety_mask == "merge_aware"
 
 
 def test_train_flag_overrides_the_config(tmp_path: Path) -> None:

@@ -368,6 +368,7 @@ class MergeEngine:
         self.slots: list[_Slot] = []
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
+        self._origin = np.zeros(0, dtype=np.int64)
         self._rows: list[dict[str, int]] = []
         self._batch: AgentBatch | None = None
         self._time_s = 0.0
@@ -509,11 +510,11 @@ class MergeEngine:
             slot.active.sort(key=slot.order.__getitem__)
 
     def _cross_check(self, events: BatchStepEvents) -> None:
-        """Add the collisions SUMO did not report: cars of one running episode whose bodies overlap
-        along a shared lane (``geometric_collisions``). Both count as collided, as in a SUMO-reported
+        """Add the collisions SUMO did not report: cars of one running episode whose bodies overlap on
+        one road (``geometric_collisions``). Both count as collided, as in a SUMO-reported
         collision (their episodes end with r_collide), and leave the road as SUMO's ``--collision.action
         remove`` would take them; the snapshot is then read again without them."""
-        pairs = geometric_collisions(self.snapshot)
+        pairs = geometric_collisions(self.snapshot, self._origin)
         if not pairs:
             return
         snap = self.snapshot
@@ -564,6 +565,7 @@ class MergeEngine:
         limit = np.where(road == OUT, out_limit, own_limit)
         self._bounds = bounds
         self._controlled = controlled
+        self._origin = origin
         self.snapshot = TrafficSnapshot(
             ids=states.ids,
             road=road.astype(np.int64),
@@ -907,13 +909,16 @@ def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArra
     return np.asarray(nearest[found], dtype=np.int64)
 
 
-def geometric_collisions(snap: TrafficSnapshot) -> list[tuple[int, int]]:
-    """Rows (i, j), i < j, in order, of cars of one copy whose bodies overlap along a lane they share: the
-    same incoming road, or the outgoing road (with the junction, past the merge point) and either incoming
-    road behind it (``lane_relations``). A body spans [front, front + length] in distance to the merge
-    point; overlapping means a bumper gap below zero, SUMO's own criterion with
-    ``--collision.mingap-factor 0``. Cars of different incoming roads are side by side on two roads, not
-    overlapping.
+def geometric_collisions(snap: TrafficSnapshot, origin: IntArray) -> list[tuple[int, int]]:
+    """Rows (i, j), i < j, in order, of cars of one copy whose bodies overlap on one road.
+
+    A body spans [front, front + length] in distance to the merge point; overlapping means a bumper gap
+    below zero, SUMO's own criterion with ``--collision.mingap-factor 0``. The part of a body before the
+    merge point lies on the car's incoming road (``origin``: MAIN or MERGE, also once it is on the
+    outgoing road), the part past it on the outgoing road (the junction included). So two overlapping
+    cars collide when they came from the same road, or when both fronts are past the merge point. Cars
+    of the two roads before it are side by side, however close in projection (an outgoing car's tail
+    and an incoming car of the other road included).
 
     Sorted by (copy, distance) only neighbours closer than the longest car can overlap, so this costs
     O(n log n) per step rather than an n x n matrix (measured on 256 cars in 16 copies: 0.07 ms; the
@@ -942,10 +947,9 @@ def geometric_collisions(snap: TrafficSnapshot) -> list[tuple[int, int]]:
         return []
     i = np.concatenate(found_i)
     j = np.concatenate(found_j)
-    road_i, road_j = snap.road[i], snap.road[j]
-    shared = (road_i == road_j) | (road_i == OUT) | (road_j == OUT)
+    one_road = (origin[i] == origin[j]) | ((snap.road[i] == OUT) & (snap.road[j] == OUT))
     overlap = (d[i] < d[j] + snap.length_m[j]) & (d[j] < d[i] + snap.length_m[i])
-    keep = shared & overlap
+    keep = one_road & overlap
     lo, hi = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
     return sorted(zip(lo.tolist(), hi.tolist(), strict=True))
 
