@@ -72,8 +72,14 @@ def _snapshot(road: list[int], dist: list[float], copy: list[int] | None = None)
     )
 
 
-def _hits(road: list[int], dist: list[float], origin: list[int], copy: list[int] | None = None) -> list:
-    return geometric_collisions(_snapshot(road, dist, copy), np.array(origin, dtype=np.int64))
+def _hits(
+    road: list[int],
+    dist: list[float],
+    origin: list[int],
+    copy: list[int] | None = None,
+    joined_m: float = 0.0,
+) -> list:
+    return geometric_collisions(_snapshot(road, dist, copy), np.array(origin, dtype=np.int64), joined_m)
 
 
 def test_geometric_collisions_hand_worked() -> None:
@@ -84,6 +90,12 @@ def test_geometric_collisions_hand_worked() -> None:
     assert _hits([MAIN, MERGE], [3.0, 3.0], [MAIN, MERGE]) == []
     # Both fronts past the merge point, whichever road they came from: one road, overlap.
     assert _hits([OUT, OUT], [-2.0, -1.0], [MAIN, MERGE]) == [(0, 1)]
+    # With a 9.4 m junction the two roads' lanes join only 9.4 m past the merge point: before, side by side
+    # (SUMO's junction check is the one that sees shapes touch there); after, one lane.
+    assert _hits([OUT, OUT], [-2.0, -1.0], [MAIN, MERGE], joined_m=9.4) == []
+    assert _hits([OUT, OUT], [-12.0, -10.0], [MAIN, MERGE], joined_m=9.4) == [(0, 1)]
+    assert _hits([OUT, OUT], [-12.0, -9.0], [MAIN, MERGE], joined_m=9.4) == []
+    assert _hits([OUT, OUT], [-2.0, -1.0], [MAIN, MAIN], joined_m=9.4) == [(0, 1)]
     # A car past the merge point and one behind it on the road it came from: the tail is on that road.
     assert _hits([OUT, MERGE], [-2.0, 1.0], [MERGE, MERGE]) == [(0, 1)]
     # ... but a car of the other road behind its tail is beside it, not in it.
@@ -95,7 +107,7 @@ def test_geometric_collisions_hand_worked() -> None:
 
 def test_geometric_collisions_agree_with_the_pairwise_definition() -> None:
     """The sorted sweep finds exactly the pairs of the n x n definition (same incoming road of origin, or
-    both past the merge point; bodies overlapping; one copy), whatever the order of the rows."""
+    both past the point where the lanes joined; bodies overlapping; one copy), whatever the row order."""
     for trial in range(300):
         rng = np.random.default_rng(trial)
         n = int(rng.integers(0, 40))
@@ -103,6 +115,7 @@ def test_geometric_collisions_agree_with_the_pairwise_definition() -> None:
         origin = rng.integers(0, 2, n)
         dist = np.round(rng.uniform(-30.0, 60.0, n), 1)
         road = np.where(dist < 0.0, OUT, origin)
+        joined_m = rng.choice([0.0, 9.4], n)
         length = rng.choice([4.0, 5.0, 7.5], n)
         copy = rng.integers(0, copies, n)
         snap = TrafficSnapshot(
@@ -119,12 +132,12 @@ def test_geometric_collisions_agree_with_the_pairwise_definition() -> None:
             (i, j)
             for i in range(n)
             for j in range(i + 1, n)
-            if (origin[i] == origin[j] or road[i] == road[j] == OUT)
+            if (origin[i] == origin[j] or (dist[i] < -joined_m[i] and dist[j] < -joined_m[j]))
             and (copies == 1 or copy[i] == copy[j])
             and dist[i] < dist[j] + length[j]
             and dist[j] < dist[i] + length[i]
         ]
-        assert geometric_collisions(snap, origin) == expected, trial
+        assert geometric_collisions(snap, origin, joined_m) == expected, trial
 
 
 @pytest.mark.sumo
@@ -191,9 +204,20 @@ def test_the_evaluation_row_says_collided(net_path: Path) -> None:
 def test_an_overlap_sumo_did_not_report_is_a_collision(
     net_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """With SUMO's collision report silenced, the geometric cross-check alone ends both episodes."""
+    """SUMO neither removes colliding cars (collision action 'warn') nor reports them (silenced): the
+    geometric cross-check alone ends both episodes, once the cars share the outgoing lane."""
     import libsumo
 
+    from idas_sumo.sim.backend import SumoBackend
+
+    sumo_args = SumoBackend._args
+
+    def warn_only(self: SumoBackend, route_file: Path) -> list[str]:
+        args = sumo_args(self, route_file)
+        args[args.index("--collision.action") + 1] = "warn"
+        return args
+
+    monkeypatch.setattr(SumoBackend, "_args", warn_only)
     monkeypatch.setattr(libsumo.simulation, "getCollisions", lambda: [])
     (outcome,) = _collide_run(net_path, "own_lane")
     assert outcome.geometric_collisions >= 1
@@ -205,12 +229,11 @@ def test_an_overlap_sumo_did_not_report_is_a_collision(
 @pytest.mark.sumo
 def test_each_collision_counts_once(net_path: Path) -> None:
     """SUMO's report and the cross-check never count one pair twice: whichever sees the overlap first
-    takes both cars off the road. Here the cross-check is first: in the projection the junction lies
-    past the merge point (on the outgoing road), so the level cars overlap there before SUMO's shapes
-    touch at the junction's end."""
+    takes both cars off the road. Here SUMO is first: the level cars' shapes touch in the junction,
+    before their lanes join (where the cross-check would count them)."""
     (outcome,) = _collide_run(net_path, "own_lane")
     assert outcome.collisions == 1
-    assert outcome.geometric_collisions == 1
+    assert outcome.geometric_collisions == 0
 
 
 def test_cli_refuses_a_wrong_safety_mask(capsys: pytest.CaptureFixture[str]) -> None:

@@ -514,7 +514,7 @@ class MergeEngine:
         one road (``geometric_collisions``). Both count as collided, as in a SUMO-reported
         collision (their episodes end with r_collide), and leave the road as SUMO's ``--collision.action
         remove`` would take them; the snapshot is then read again without them."""
-        pairs = geometric_collisions(self.snapshot, self._origin)
+        pairs = geometric_collisions(self.snapshot, self._origin, self._via_length_by_code[self._origin])
         if not pairs:
             return
         snap = self.snapshot
@@ -909,16 +909,22 @@ def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArra
     return np.asarray(nearest[found], dtype=np.int64)
 
 
-def geometric_collisions(snap: TrafficSnapshot, origin: IntArray) -> list[tuple[int, int]]:
+def geometric_collisions(
+    snap: TrafficSnapshot, origin: IntArray, joined_past_m: FloatArray | float = 0.0
+) -> list[tuple[int, int]]:
     """Rows (i, j), i < j, in order, of cars of one copy whose bodies overlap on one road.
 
     A body spans [front, front + length] in distance to the merge point; overlapping means a bumper gap
-    below zero, SUMO's own criterion with ``--collision.mingap-factor 0``. The part of a body before the
-    merge point lies on the car's incoming road (``origin``: MAIN or MERGE, also once it is on the
-    outgoing road), the part past it on the outgoing road (the junction included). So two overlapping
-    cars collide when they came from the same road, or when both fronts are past the merge point. Cars
-    of the two roads before it are side by side, however close in projection (an outgoing car's tail
-    and an incoming car of the other road included).
+    below zero, SUMO's own criterion with ``--collision.mingap-factor 0``. A car drives on the lanes of
+    its incoming road (``origin``: MAIN or MERGE) until its lane joins the outgoing one,
+    ``joined_past_m`` past the merge point (per car or one value: the junction's internal lane of its
+    road; 0 for a net without one). So two overlapping cars collide when they came from the same road,
+    or when both fronts are past the point where their lanes joined. Before that the two roads' cars are
+    side by side, however close in projection; in the junction SUMO's own check
+    (``--collision.check-junctions``) sees when their shapes touch. Counting every projected overlap
+    inside the junction called near misses collisions: 3 of 100 paper-suite episodes (own-lane mask,
+    IDM ego) where the cars came within 0.6 m in projection while their lanes were still apart, and the
+    leader pulled away.
 
     Sorted by (copy, distance) only neighbours closer than the longest car can overlap, so this costs
     O(n log n) per step rather than an n x n matrix (measured on 256 cars in 16 copies: 0.07 ms; the
@@ -947,7 +953,8 @@ def geometric_collisions(snap: TrafficSnapshot, origin: IntArray) -> list[tuple[
         return []
     i = np.concatenate(found_i)
     j = np.concatenate(found_j)
-    one_road = (origin[i] == origin[j]) | ((snap.road[i] == OUT) & (snap.road[j] == OUT))
+    joined = d < -np.broadcast_to(np.asarray(joined_past_m, dtype=np.float64), d.shape)
+    one_road = (origin[i] == origin[j]) | (joined[i] & joined[j])
     overlap = (d[i] < d[j] + snap.length_m[j]) & (d[j] < d[i] + snap.length_m[i])
     keep = one_road & overlap
     lo, hi = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
