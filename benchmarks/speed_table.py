@@ -1,0 +1,219 @@
+"""The speed story in one run and one table: SUMO alone, the environment, training, evaluation.
+
+    python benchmarks/speed_table.py [--quick]
+
+Rows, all measured in this one run (the machine is shared: compare rows of one run, not runs):
+
+* **env step vs raw libsumo** at N = 8, 32, 128 and 512 vehicles (N/2 per road, every vehicle an agent,
+  random allowed actions; N ≥ 128 on a generated net with 4 km roads so the queues fit). *raw*: the least
+  any controller needs per step (``simulationStep``, the id list, four getters and one ``setSpeed`` per
+  vehicle, ``env_throughput.run_raw``). *env*: one ``MergeParallelEnv.step`` (observations, masks and
+  rewards of every agent, ``env_throughput.run_env``). *engine ×K*: the episode engine that training and
+  evaluation use, running K copies of the N-vehicle world side by side in one SUMO (K·N ≈ 128 vehicles),
+  timed over observe + observations + masks + step + rewards; its steps/s counts N-vehicle world-steps
+  (K per SUMO step) so it compares with raw at the same N. Ratio = engine (or env) / raw.
+* **training**: ``run_training`` with the default config and ``--workers 2`` in the robot and the intelligent
+  world, from random weights (episodes run to the 60 s timeout: the slow case) and from the shipped
+  ``idas.pt`` (episodes as long as a trained policy makes them), with the projected wall time of the paper's
+  curriculum (20,000 robot + 50,000 intelligent episodes) at the trained pace.
+* **paper evaluation**: ``idas-sumo evaluate --baseline all --suite paper --scenarios 100 --workers 2``.
+
+``--quick`` shrinks every measurement (a smoke run of the script; its numbers are not worth quoting).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from rich.console import Console
+from rich.table import Table
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from env_throughput import make_scenario, run_env, run_raw
+
+from idas_sumo.env.engine import AgentBatch, MergeEngine
+from idas_sumo.env.scenario import Scenario
+from idas_sumo.resources import DEFAULT_NET, resolve_user_path
+from idas_sumo.sim.netgen import MergeNet, NetParams, generate_net, read_merge_net
+from idas_sumo.training.config import TrainConfig
+from idas_sumo.training.loop import run_training
+
+SIZES = (8, 32, 128, 512)
+LONG_ROAD_M = 4000.0
+VEHICLES_PER_SUMO_STEP = 128
+"""The engine's copies are chosen so K·N is about this many vehicles per SUMO step."""
+EPISODE_STEPS = 100
+"""Steps before a reset (not timed); the cars stay clear of the merge point."""
+SHIPPED_POLICY = "policies/idas.pt"
+PAPER_ROBOT_EPISODES = 20_000
+PAPER_INTELLIGENT_EPISODES = 50_000
+
+
+@dataclass
+class Timed:
+    steps: int = 0
+    seconds: float = 0.0
+    vehicles: int = 0
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.seconds if self.seconds > 0 else float("nan")
+
+
+def run_engine(net: MergeNet, scenario: Scenario, copies: int, steps: int, seed: int) -> Timed:
+    """K copies of the scenario on one engine; one timed step = observe, observations, masks, step."""
+    rng = np.random.default_rng(seed)
+    engine = MergeEngine(net, copies=copies, seed=seed)
+    timed = Timed()
+    perf = time.perf_counter
+    try:
+        while timed.steps < steps:
+            engine.reset([scenario] * copies)
+            for _ in range(EPISODE_STEPS):
+                t0 = perf()
+                batch: AgentBatch = engine.observe()
+                _ = batch.obs  # the observations every learning policy reads
+                elapsed = perf() - t0
+                if not len(batch):
+                    break
+                scores = np.where(batch.masks.astype(bool), rng.random(batch.masks.shape) + 1e-9, -1.0)
+                actions = np.argmax(scores, axis=1)  # a random allowed action (the draw is not timed)
+                t0 = perf()
+                engine.step(actions)
+                timed.seconds += elapsed + perf() - t0
+                timed.vehicles += len(engine.snapshot)
+                timed.steps += copies  # K world-steps of N vehicles per SUMO step
+                if timed.steps >= steps:
+                    break
+    finally:
+        engine.close()
+    return timed
+
+
+def train_pace(net: Path, stage: str, episodes: int, init_from: str) -> tuple[float, float]:
+    """(episodes/s, agent-steps/s) of a real ``run_training`` with 2 workers (start-up included)."""
+    config = TrainConfig(stage=stage, checkpoint_every=10**9, init_from=init_from).with_overrides(
+        episodes=episodes, workers=2
+    )  # type: ignore[arg-type]
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        run_training(net, config, Path(tmp) / "run", progress=False)
+        wall = time.perf_counter() - start
+        with (Path(tmp) / "run" / "metrics.csv").open(newline="") as f:
+            steps = sum(int(r["agent_steps"]) for r in csv.DictReader(f))
+    return episodes / wall, steps / wall
+
+
+def paper_eval_seconds(scenarios: int) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        subprocess.run(
+            [
+                *(sys.executable, "-m", "idas_sumo.cli", "evaluate", "--baseline", "all", "--suite", "paper"),
+                *("--scenarios", str(scenarios), "--workers", "2", "--out", str(Path(tmp) / "eval")),
+            ],
+            check=True,
+            capture_output=True,
+        )
+        return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help="tiny measurements: checks the script runs")
+    args = parser.parse_args()
+    steps = 60 if args.quick else 400
+    train_episodes = 8 if args.quick else 96
+    eval_scenarios = 4 if args.quick else 100
+
+    console = Console(width=150)
+    table = Table(title="idas-sumo speed, one run (2-core machine; ratios are within this run)")
+    for col in ("what", "N / world", "raw", "measured", "ratio", "µs per vehicle-step raw | measured"):
+        table.add_column(col, justify="right")
+    with tempfile.TemporaryDirectory(prefix="idas_speed_") as tmp:
+        short = read_merge_net(DEFAULT_NET)
+        long_path = generate_net(
+            Path(tmp) / "long.net.xml", NetParams(main_length_m=LONG_ROAD_M, merge_length_m=LONG_ROAD_M)
+        )
+        long = read_merge_net(long_path)
+        for n in SIZES:
+            net = short if n <= 32 else long
+            scenario = make_scenario(n, net, EPISODE_STEPS)
+            copies = max(1, VEHICLES_PER_SUMO_STEP // n)
+            console.print(f"[dim]N = {n}: raw, env, engine x{copies}...[/dim]")
+            raw = run_raw(net, scenario, steps, EPISODE_STEPS)
+            env = run_env(net, scenario, max(steps // 4, 20), EPISODE_STEPS, seed=0)
+            eng = run_engine(net, scenario, copies, steps, seed=0)
+            raw_us = 1e6 / raw.steps_per_s / n
+            for label, measured in (
+                ("env step (1 world)", env.steps_per_s),
+                (f"engine step x{copies}", eng.steps_per_s),
+            ):
+                table.add_row(
+                    label,
+                    str(n),
+                    f"{raw.steps_per_s:,.0f} steps/s",
+                    f"{measured:,.0f} steps/s",
+                    f"{measured / raw.steps_per_s:.2f}",
+                    f"{raw_us:.1f} | {1e6 / measured / n:.1f}",
+                )
+
+    net_path = resolve_user_path("sumo_nets/tjunction.net.xml")
+    torch.set_num_threads(os.cpu_count() or 1)
+    pace: dict[str, float] = {}
+    for stage in ("robot", "intelligent"):
+        for label, init in (
+            ("random weights", ""),
+            ("from shipped idas.pt", str(resolve_user_path(SHIPPED_POLICY))),
+        ):
+            console.print(f"[dim]training, {stage} world, {label}...[/dim]")
+            eps, agent_steps = train_pace(net_path, stage, train_episodes, init)
+            pace[f"{stage}/{label}"] = eps
+            table.add_row(
+                f"train, {label}, 2 workers",
+                stage,
+                "",
+                f"{eps:.2f} episodes/s",
+                "",
+                f"{agent_steps:,.0f} agent-steps/s",
+            )
+    hours = (
+        PAPER_ROBOT_EPISODES / pace["robot/from shipped idas.pt"]
+        + PAPER_INTELLIGENT_EPISODES / pace["intelligent/from shipped idas.pt"]
+    ) / 3600
+    table.add_row(
+        "paper curriculum (20k + 50k), projected",
+        "train_default",
+        "",
+        f"{hours:.1f} h",
+        "",
+        "at the trained pace",
+    )
+    console.print("[dim]paper evaluation...[/dim]")
+    seconds = paper_eval_seconds(eval_scenarios)
+    table.add_row(
+        f"paper evaluation, 5 methods x {eval_scenarios}",
+        "paper suite",
+        "",
+        f"{seconds:.0f} s wall",
+        "",
+        "--workers 2",
+    )
+    console.print(table)
+    console.print(f"load average (1 min) after: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+
+
+if __name__ == "__main__":
+    main()
