@@ -197,3 +197,18 @@ def test_gym_env_refuses_an_ego_that_never_drives(net_path: Path) -> None:
             env.reset(seed=0)
     finally:
         env.close()
+
+
+@pytest.mark.sumo
+def test_gym_env_draws_again_until_its_ego_drives(net_path: Path) -> None:
+    """With a 3 s timeout many random egos would enter too late: reset draws until the ego acts."""
+    from idas_sumo.env.gym_env import MergeEnv
+
+    env = MergeEnv(net_path, traffic=TrafficConfig(p_depart_later=0.8), config=EnvConfig(max_episode_s=3.0))
+    try:
+        for seed in range(6):
+            obs, info = env.reset(seed=seed)
+            assert info["ego"] in env.sim.active_agents
+            assert obs.shape == env.observation_space.shape
+    finally:
+        env.close()
