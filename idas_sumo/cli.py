@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import contextlib
+import errno
 import logging
 import math
 import os
@@ -43,6 +44,11 @@ RESULTS_DIR = Path("results")
 MISSING = "–"
 """The table's cell for a value that does not exist (no perfect episode, so no speed)."""
 SIGTERM_EXIT = 128 + signal.SIGTERM
+PATH_ERRNOS = frozenset({errno.ENAMETOOLONG, errno.ELOOP})
+"""OS errors that say a path the user typed cannot name a file (too long, a symlink loop): bad input."""
+MAX_SCENARIOS = 100_000
+"""``evaluate --scenarios`` at most: the suite's scenarios are drawn up front (10^9 filled the memory
+before the first episode); 100 000 already take hours per method (the paper uses 100)."""
 NETGEN_FLAGS: dict[str, tuple[str, str]] = {
     "main_length_m": ("--main-length", "main road length to the merge point, m"),
     "merge_length_m": ("--merge-length", "merge road length to the merge point, m"),
@@ -105,6 +111,21 @@ def _copies(text: str) -> int:
     return value
 
 
+def _scenario_count(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_SCENARIOS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_SCENARIOS}, got {value}")
+    return value
+
+
+def _out_path(text: str) -> Path:
+    """An output path; an empty one (``--out ""``, an unset shell variable) would mean the current
+    directory without the user having named it."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+    return Path(text)
+
+
 def _input_file(text: str) -> Path:
     """An input file flag's path (``resolve_user_path``); a FIFO, device or socket is refused here, since
     reading one can block forever or never end. A missing file or a directory is left to the reader,
@@ -160,7 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     net = sub.add_parser("netgen", help="generate the two-road merge network with netconvert")
-    net.add_argument("--out", default=DEFAULT_NET_NAME, help="output .net.xml (default: %(default)s)")
+    net.add_argument(
+        "--out", type=_out_path, default=DEFAULT_NET_NAME, help="output .net.xml (default: %(default)s)"
+    )
     defaults = NetParams()
     for field, (flag, what) in NETGEN_FLAGS.items():
         net.add_argument(
@@ -221,7 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="which car the safety mask follows: own_lane (the paper) or merge_aware (a shield) "
         f"({from_config('safety_mask')})",
     )
-    train.add_argument("--out", type=Path, help="run directory (default: runs/<stage>)")
+    train.add_argument("--out", type=_out_path, help="run directory (default: runs/<stage>)")
     again = train.add_mutually_exclusive_group()
     again.add_argument(
         "--resume",
@@ -252,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument(
         "--scenarios",
-        type=_positive_int,
+        type=_scenario_count,
         default=100,
         help="random scenarios of the paper suite (default: %(default)s)",
     )
@@ -288,7 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument(
         "--out",
-        type=Path,
+        type=_out_path,
         help=f"output directory (default: a new {RESULTS_DIR}/<method>-<suite>-<seed>, "
         "or the same name with -2, -3, ... when that exists)",
     )
@@ -318,7 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     plot = sub.add_parser("plot", help="draw PNG plots from an evaluation output directory")
-    plot.add_argument("dir", type=Path, help="directory written by `idas-sumo evaluate`")
+    plot.add_argument("dir", type=_out_path, help="directory written by `idas-sumo evaluate`")
     return parser
 
 
@@ -568,6 +591,9 @@ def _run(argv: Sequence[str] | None, late: _LateSignals | None) -> int:
         return err.exit_code
     except OSError as err:  # disk full, I/O error: outputs are atomic, so earlier files are intact
         where = f"{err.filename}: " if err.filename else ""
+        if err.errno in PATH_ERRNOS:  # the name itself is unusable, wherever the OS noticed
+            print(f"idas-sumo: error: {where}{err.strerror}", file=sys.stderr)
+            return 2
         print(
             f"idas-sumo: error: {where}{err.strerror or err} (files written before are intact)",
             file=sys.stderr,

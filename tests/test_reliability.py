@@ -31,6 +31,8 @@ from test_hardening import (
     train_args,
 )
 
+from idas_sumo.resources import DEFAULT_NET as NET
+
 # --- helpers ------------------------------------------------------------------------------------------
 
 
@@ -528,3 +530,42 @@ def test_worker_start_up_lives_in_one_module() -> None:
         source = (package / module).read_text()
         assert "WorkerProcesses" in source, module
         assert "subprocess" not in source and "Listener" not in source, module
+
+
+# --- siblings found by trying more bad inputs -----------------------------------------------------------
+
+
+@pytest.mark.sumo
+def test_more_bad_inputs_are_one_line_exit_2(tmp_path: Path) -> None:
+    """Each of these was a traceback, an exit 1, a SUMO error mid-run or a hang before."""
+    text = NET.read_text()
+    assert 'speed="20.00"' in text
+    zero = tmp_path / "zero.net.xml"
+    zero.write_text(text.replace('speed="20.00"', 'speed="0.00"'))  # ZeroDivisionError
+    fast = tmp_path / "fast.net.xml"
+    fast.write_text(text.replace('speed="20.00"', 'speed="60.00"'))  # SUMO: departure speed too high
+    far = tmp_path / "far.toml"
+    far.write_text("[traffic]\nstart_range_m = 1e9\n")  # no road can hold these starts
+    long_name = str(tmp_path / ("a" * 300))
+    cases = {
+        "zero speed": (eval_args(tmp_path / "o", net=zero), [str(zero), "speed limit of 0 m/s"]),
+        "too fast": (eval_args(tmp_path / "o", net=fast), [str(fast), "speed limit of 60 m/s", "top speed"]),
+        "start range": (
+            eval_args(tmp_path / "o", "--config", str(far)),
+            ["no main road fits", "start_range_m"],
+        ),
+        "netgen /proc": (["netgen", "--out", "/proc/x.net.xml"], ["--out /proc/x.net.xml", "cannot write"]),
+        "scenarios 1e9": (eval_args(tmp_path / "o", "--scenarios", str(10**9)), ["--scenarios", "at most"]),
+        "long --net": (eval_args(tmp_path / "o", net=Path(long_name)), ["File name too long"]),
+        "long --out": (eval_args(Path(long_name), "--scenarios", "1"), ["File name too long"]),
+        "long train --out": (train_args(Path(long_name), "--episodes", "1"), ["File name too long"]),
+    }
+    start = time.monotonic()
+    results = run_many(*(args for args, _ in cases.values()))
+    assert time.monotonic() - start < 60
+    for (name, (_, needles)), result in zip(cases.items(), results, strict=True):
+        try:
+            assert_usage_error(result, *needles)
+        except AssertionError as err:
+            raise AssertionError(f"case {name}: {err}") from None
+    assert not (tmp_path / "o").exists()

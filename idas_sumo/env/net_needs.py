@@ -13,6 +13,7 @@ The bounds come from what an episode uses:
 - the outgoing road holds the finish line (``FINISH_DISTANCE_PAST_MERGE_M`` past the merge point, the
   merging zone's far edge) plus a car length, and the sensor range ahead of the merge point: a car
   must not leave the net before it counts as finished;
+- every speed limit is positive and at most the cars' top speed (``CONTROLLED_MAX_SPEED_MPS``);
 - a car at the very start of an incoming road, driving at the speed limits, reaches the finish line
   within the episode (the evaluation's ``DEFAULT_MAX_EPISODE_S`` or the run's own, if longer): a
   shorter run (a smoke test) may time out by choice, a road too long to drive may not.
@@ -26,7 +27,7 @@ from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
 from idas_sumo.env.layout import VISIBILITY_M
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.errors import InputError
-from idas_sumo.sim.backend import VEHICLE_LENGTH_M
+from idas_sumo.sim.backend import CONTROLLED_MAX_SPEED_MPS, VEHICLE_LENGTH_M
 from idas_sumo.sim.netgen import MergeNet, RoadInfo
 
 __all__ = ["RoadNeeds", "check_road_lengths", "road_needs"]
@@ -66,6 +67,14 @@ def road_needs(start_range_m: float | None, max_episode_s: float) -> RoadNeeds:
 def check_road_lengths(net: MergeNet, needs: RoadNeeds) -> None:
     """An InputError naming the net, the road, its length and the bounds with their reasons, for the
     first road that misses them; nothing for a usable net."""
+    for what, road in (("main", net.main), ("merge", net.merge), ("outgoing", net.out)):
+        # Checked first: the bounds below divide by the limits. A car cannot drive a limit above its
+        # own top speed: SUMO refused such a start ("departure speed too high") mid-run, exit 1.
+        if not 0.0 < road.speed_limit_mps <= CONTROLLED_MAX_SPEED_MPS:
+            raise InputError(
+                f"{net.path}: the {what} road {road.edge_id!r} has a speed limit of {road.speed_limit_mps:g} m/s; "
+                f"the cars need one above 0 and at most {CONTROLLED_MAX_SPEED_MPS:g} m/s (their top speed)"
+            )
     starts = (
         ""
         if needs.start_range_m is None
@@ -73,10 +82,17 @@ def check_road_lengths(net: MergeNet, needs: RoadNeeds) -> None:
     )
     for what, road in (("main", net.main), ("merge", net.merge)):
         lo, hi = needs.min_incoming_m, needs.max_incoming_m(road, net.out)
+        if lo > hi:  # no road fits: the starts lie farther out than a car can drive in an episode
+            raise InputError(
+                f"{net.path}: no {what} road fits these scenarios: starts up to {needs.start_range_m:g} m in "
+                f"need a road of at least {lo:g} m, but from its start a car at {road.speed_limit_mps:g} m/s "
+                f"reaches the finish within {needs.episode_s:g} s only on a road of at most {hi:.0f} m "
+                "(lower start_range_m or raise max_episode_s)"
+            )
         if not lo <= road.length_m <= hi:
             raise InputError(
                 f"{net.path}: the {what} road {road.edge_id!r} is {road.length_m:g} m long; the scenarios "
-                f"need {lo:g} to {max(hi, lo):.0f} m ({starts}the {VISIBILITY_M:g} m sensor range; "
+                f"need {lo:g} to {hi:.0f} m ({starts}the {VISIBILITY_M:g} m sensor range; "
                 f"from its start a car must reach the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m past the "
                 f"merge within {needs.episode_s:g} s at the speed limits)"
             )

@@ -7,6 +7,7 @@ exactly what was asked to the merge point (netconvert would otherwise trim them 
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import subprocess
@@ -14,7 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from idas_sumo.errors import InputError, SimulationError
-from idas_sumo.io_utils import atomic_path
+from idas_sumo.io_utils import atomic_open, atomic_path
+
+_BAD_PLACE_ERRNOS = frozenset(
+    {errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EISDIR}
+)
+"""Errors that mean ``--out`` names a place files cannot be written (bad input, exit 2), unlike a full disk."""
 
 MAIN_EDGE = "main"
 MERGE_EDGE = "merge"
@@ -124,8 +130,14 @@ def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
     stem = out.name.removesuffix(".net.xml")
     nod = out.with_name(f"{stem}.nod.xml")
     edg = out.with_name(f"{stem}.edg.xml")
-    nod.write_text(node_xml)
-    edg.write_text(edge_xml)
+    for plain, text in ((nod, node_xml), (edg, edge_xml)):
+        try:
+            with atomic_open(plain) as f:
+                f.write(text)
+        except OSError as err:
+            if err.errno not in _BAD_PLACE_ERRNOS:
+                raise  # a full disk or an I/O error: a runtime failure (exit 1), named by the CLI
+            raise InputError(f"--out {out}: cannot write {plain} ({err.strerror})") from None
     with atomic_path(out) as tmp:
         cmd = [
             str(sumo_binary("netconvert")),

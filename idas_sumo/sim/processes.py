@@ -175,13 +175,16 @@ class WorkerProcesses:
                 with contextlib.suppress(ProcessLookupError):
                     proc.terminate()
         deadline = time.monotonic() + KILL_GRACE_S
-        for proc in self.procs:
-            try:
-                proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    proc.kill()
-                proc.wait()
+        try:
+            for proc in self.procs:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
+        finally:  # also when a second Ctrl-C cuts the grace period short: no worker survives us
+            for proc in self.procs:
+                if proc.poll() is None:
+                    with contextlib.suppress(ProcessLookupError):
+                        proc.kill()
+                    proc.wait()
         for conn in self.conns:
             conn.close()
         for f in self._stderr:
