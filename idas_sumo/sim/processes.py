@@ -125,9 +125,7 @@ class WorkerProcesses:
                 if all(p.poll() is not None for p in self.procs):
                     raise SimulationError(self._failed_to_start()) from None
                 if time.monotonic() > deadline:
-                    raise SimulationError(
-                        f"a {self.what} did not start within {CONNECT_TIMEOUT_S:g} s"
-                    ) from None
+                    raise SimulationError(f"{self._a} did not start within {CONNECT_TIMEOUT_S:g} s") from None
         sock.setblocking(True)
         conn = Connection(sock.detach())
         try:
@@ -141,7 +139,11 @@ class WorkerProcesses:
     def _failed_to_start(self) -> str:
         tail = self.stderr_tail(0) if self._stderr else ""
         where = f": {tail}" if tail else " (see its error above)"
-        return f"a {self.what} failed to start{where}"
+        return f"{self._a} failed to start{where}"
+
+    @property
+    def _a(self) -> str:
+        return f"{'an' if self.what[:1] in 'aeiou' else 'a'} {self.what}"
 
     def stderr_tail(self, i: int, lines: int = 5) -> str:
         """The last ``lines`` lines of worker i's captured stderr, joined with " | " ("" if none)."""
