@@ -569,3 +569,63 @@ def test_more_bad_inputs_are_one_line_exit_2(tmp_path: Path) -> None:
         except AssertionError as err:
             raise AssertionError(f"case {name}: {err}") from None
     assert not (tmp_path / "o").exists()
+
+
+# --- SIGKILL and --resume -----------------------------------------------------------------------------
+
+KILL_TOML = TINY_TOML.replace("checkpoint_every = 1000", "checkpoint_every = 1")
+
+
+def _final_weights(run: Path) -> dict[str, Any]:
+    import torch
+
+    return torch.load(run / "robot.pt", weights_only=True)["learner"]
+
+
+@pytest.mark.sumo
+def test_sigkill_at_any_moment_then_resume_gives_the_same_weights(tmp_path: Path) -> None:
+    """SIGKILL (no cleanup at all) at several points of a run, each followed by ``--resume``: the run
+    ends with the weights of an uninterrupted run with the same seed."""
+    import torch
+
+    config = tmp_path / "kill.toml"
+    config.write_text(KILL_TOML)
+    args = ["--config", str(config), "--stage", "robot", "--episodes", "12"]
+    whole = tmp_path / "whole"
+    assert run_cli(*train_args(whole, *args), timeout=120).returncode == 0
+    expected = _final_weights(whole)
+
+    run = tmp_path / "run"
+    metrics = run / "metrics.csv"
+    command = train_args(run, *args)
+    for rows in (2, 5, 9):  # after 1, 4 and 8 episodes (a header line, then one row per episode)
+        proc = popen_cli(*command)
+        try:
+            deadline = time.monotonic() + 60
+            while proc.poll() is None and time.monotonic() < deadline:
+                # Not before the first checkpoint: then there is no run to resume (see the report).
+                if (run / "checkpoint.pt").exists() and len(metrics.read_text().splitlines()) >= rows:
+                    break
+                time.sleep(0.01)
+            assert proc.poll() is None, f"finished before the kill: {proc.communicate()}"
+            proc.kill()
+        finally:
+            proc.communicate()
+        command = train_args(run, "--resume")
+    result = run_cli(*command, timeout=120)
+    assert result.returncode == 0, result.stderr
+    got = _final_weights(run)
+    for net in ("actor", "value", "central"):
+        for name, tensor in expected[net].items():
+            assert torch.equal(got[net][name], tensor), f"{net}.{name} differs after the kills"
+    assert len(metrics.read_text().splitlines()) == 13  # every episode once
+    assert not [p for p in run.iterdir() if p.name.endswith(".tmp")]
+
+
+@pytest.mark.sumo
+def test_resume_of_a_run_killed_before_its_first_checkpoint_says_what_to_do(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.csv").write_text("stage,episode\nrobot,0\n")  # what a kill before it leaves
+    result = run_cli(*train_args(run, "--resume"))
+    assert_usage_error(result, str(run), "before its first checkpoint", "--force")

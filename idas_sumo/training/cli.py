@@ -14,6 +14,7 @@ from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
 from idas_sumo.training.loop import CHECKPOINT_NAME, run_training, stored_config
+from idas_sumo.training.metrics import METRICS_NAME
 
 __all__ = ["config_from_args", "train_from_args"]
 
@@ -59,6 +60,13 @@ def train_from_args(args: argparse.Namespace) -> int:
     source = str(getattr(args, "config", None) or DEFAULT_TRAIN_CONFIG)
     out = Path(getattr(args, "out", None) or Path("runs") / config.stage)
     resume = bool(getattr(args, "resume", False))
+    if resume and not (out / CHECKPOINT_NAME).is_file() and (out / METRICS_NAME).is_file():
+        # Killed before its first checkpoint: its config was never saved, so --resume alone cannot
+        # know what to continue; the same command with --force runs it again from the start.
+        raise InputError(
+            f"{out}: the run stopped before its first checkpoint, so there is nothing to resume; "
+            "start it over with the same flags and --force"
+        )
     if resume and (out / CHECKPOINT_NAME).is_file():
         # The run's own config is the base, so that only what the user typed can differ from it.
         config = config_from_args(args, base=stored_config(out))
