@@ -629,3 +629,18 @@ def test_resume_of_a_run_killed_before_its_first_checkpoint_says_what_to_do(tmp_
     (run / "metrics.csv").write_text("stage,episode\nrobot,0\n")  # what a kill before it leaves
     result = run_cli(*train_args(run, "--resume"))
     assert_usage_error(result, str(run), "before its first checkpoint", "--force")
+
+
+@pytest.mark.sumo
+def test_a_damaged_cached_multi_copy_net_is_rebuilt(tmp_path: Path) -> None:
+    """A truncated cache file was blamed on the user's net ("SUMO could not load"), an edited one ran
+    silently with other roads: the cache's digest catches both, and the net is built again."""
+    from idas_sumo.sim.multinet import build_copies, check_copies
+
+    built = build_copies(NET, 2, cache_dir=tmp_path)
+    good = built.read_bytes()
+    for damage in (good[:2000], good.replace(b'length="250.00"', b'length="25.00"', 1)):
+        assert damage != good
+        built.write_bytes(damage)
+        assert build_copies(NET, 2, cache_dir=tmp_path) == built
+        check_copies(NET, built, 2)  # built again (equal but for netconvert's time stamp), and checked

@@ -435,4 +435,5 @@ def test_workers_building_the_same_net_at_once_agree(merge_net: MergeNet, tmp_pa
     assert len(outputs) == 1
     (path,) = outputs
     check_copies(merge_net.path, Path(path), 5)
-    assert [p.name for p in tmp_path.iterdir()] == [Path(path).name]  # no temp file left behind
+    name = Path(path).name  # the net and its digest, no temp file left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name, f"{name}.sha256"]

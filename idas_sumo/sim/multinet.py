@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
-from idas_sumo.io_utils import atomic_path
+from idas_sumo.io_utils import atomic_open, atomic_path
 from idas_sumo.sim.netgen import MergeNet, RoadInfo, read_merge_net, sumo_binary
 
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
@@ -235,16 +235,25 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
     except OSError as err:
         raise InputError(f"{cache}: cannot create the net cache directory ({err.strerror})") from None
     out = cache / f"{cache_key(src, copies)[:24]}-k{copies}.net.xml"
-    if out.is_file():
+    digest = out.with_name(out.name + ".sha256")
+    # A cached net is used only with the digest written when it was built and checked: a truncated
+    # or edited cache file was blamed on the user's net, or ran silently with other roads.
+    if out.is_file() and digest.is_file() and digest.read_text().strip() == _file_sha256(out):
         return out
     workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_multinet_"))
     try:
         with atomic_path(out) as tmp:
             _build(src, copies, tmp, workdir)
             check_copies(src, tmp, copies)
+            with atomic_open(digest) as f:
+                f.write(_file_sha256(tmp) + "\n")
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     return out
+
+
+def _file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 # -- the merge network, K times ---------------------------------------------------------------------
