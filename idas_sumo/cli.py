@@ -444,7 +444,8 @@ def _check_eval_net(args: argparse.Namespace) -> None:
     # representative suites place their cars themselves (checked against the roads when loaded).
     random_starts = args.suite == "paper" and not args.scenario
     start_range = config.traffic.start_range_m if random_starts else None
-    check_road_lengths(net, road_needs(start_range, config.max_episode_s))
+    source = f"{args.config}" if args.config is not None else "max_episode_s"
+    check_road_lengths(net, road_needs(start_range, config.max_episode_s, source))
     # Cars placed by a file must start on the road (a car 1e308 m down a 250 m road once ran, exit 0).
     from idas_sumo.env.scenario import Road, check_against_net, load_scenario
     from idas_sumo.resources import SCENARIO_DIR

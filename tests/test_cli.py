@@ -124,7 +124,9 @@ def test_no_nan_speed_when_no_episode_is_perfect(
     tmp_path: Path, net_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     config = tmp_path / "short.toml"
-    config.write_text("max_episode_s = 1.0\n")  # nobody finishes in 1 s: no success, no perfect episode
+    # 6 s: the nearest car could finish (shorter episodes are refused), the cars behind it cannot:
+    # no success, no perfect episode.
+    config.write_text("max_episode_s = 6.0\n")
     out = tmp_path / "out"
     assert (
         main([*evaluate_args(out, net_path, "--scenarios", "2", "--config", str(config)), "--others", "idm"])

@@ -156,7 +156,7 @@ def test_road_bounds_follow_from_the_scenarios() -> None:
         with pytest.raises(InputError, match=r"n\.net\.xml"):
             check_road_lengths(bad, needs)
     # A shorter episode (a smoke run) does not shrink the bound below the evaluation's 60 s.
-    assert road_needs(200.0, 15.0) == needs
+    assert road_needs(200.0, 15.0).episode_s == needs.episode_s == 60.0
     assert road_needs(None, 60.0).min_incoming_m == 100.0  # scenario files: the sensor range only
 
 
@@ -546,6 +546,8 @@ def test_more_bad_inputs_are_one_line_exit_2(tmp_path: Path) -> None:
     fast.write_text(text.replace('speed="20.00"', 'speed="60.00"'))  # SUMO: departure speed too high
     far = tmp_path / "far.toml"
     far.write_text("[traffic]\nstart_range_m = 1e9\n")  # no road can hold these starts
+    short_episodes = tmp_path / "short.toml"
+    short_episodes.write_text("max_episode_s = 0.5\n")  # every episode a timeout (0.01: a traceback)
     long_name = str(tmp_path / ("a" * 300))
     cases = {
         "zero speed": (eval_args(tmp_path / "o", net=zero), [str(zero), "speed limit of 0 m/s"]),
@@ -553,6 +555,14 @@ def test_more_bad_inputs_are_one_line_exit_2(tmp_path: Path) -> None:
         "start range": (
             eval_args(tmp_path / "o", "--config", str(far)),
             ["no main road fits", "start_range_m"],
+        ),
+        "0.5 s episodes": (
+            eval_args(tmp_path / "o", "--config", str(short_episodes)),
+            [str(short_episodes), "max_episode_s = 0.5 s", "time out"],
+        ),
+        "0.5 s training": (
+            train_args(tmp_path / "o", "--config", str(short_episodes)),
+            [str(short_episodes), "max_episode_s = 0.5 s", "time out"],
         ),
         "netgen /proc": (["netgen", "--out", "/proc/x.net.xml"], ["--out /proc/x.net.xml", "cannot write"]),
         "scenarios 1e9": (eval_args(tmp_path / "o", "--scenarios", str(10**9)), ["--scenarios", "at most"]),

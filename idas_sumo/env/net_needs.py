@@ -16,7 +16,9 @@ The bounds come from what an episode uses:
 - every speed limit is positive and at most the cars' top speed (``CONTROLLED_MAX_SPEED_MPS``);
 - a car at the very start of an incoming road, driving at the speed limits, reaches the finish line
   within the episode (the evaluation's ``DEFAULT_MAX_EPISODE_S`` or the run's own, if longer): a
-  shorter run (a smoke test) may time out by choice, a road too long to drive may not.
+  shorter run (a smoke test) may time out by choice, a road too long to drive may not;
+- and the other way round, the run's episodes are long enough for the car starting nearest the merge
+  to finish (else every episode times out).
 """
 
 from __future__ import annotations
@@ -40,8 +42,17 @@ class RoadNeeds:
     start_range_m: float | None
     """Random starts lie up to this far from an incoming road's start (None: the scenarios place
     their cars themselves, and ``check_against_net`` checks those positions against the roads)."""
-    episode_s: float
-    """A car at an incoming road's start must reach the finish line within this, at the speed limits."""
+    run_episode_s: float
+    """The run's own episode length (``max_episode_s``)."""
+    source: str = "max_episode_s"
+    """Where ``run_episode_s`` comes from, for messages (a config file)."""
+
+    @property
+    def episode_s(self) -> float:
+        """A car at an incoming road's start must reach the finish line within this, at the speed
+        limits: the evaluation's episode, or the run's own if longer (a shorter run, a smoke test,
+        may time out by choice)."""
+        return max(self.run_episode_s, DEFAULT_MAX_EPISODE_S)
 
     @property
     def min_incoming_m(self) -> float:
@@ -58,10 +69,11 @@ class RoadNeeds:
         return VEHICLE_LENGTH_M + road.speed_limit_mps * max(self.episode_s - to_finish_s, 0.0)
 
 
-def road_needs(start_range_m: float | None, max_episode_s: float) -> RoadNeeds:
+def road_needs(start_range_m: float | None, max_episode_s: float, source: str = "max_episode_s") -> RoadNeeds:
     """The bounds for scenarios whose random starts reach ``start_range_m`` from a road's start (None
-    for scenarios that place their cars themselves) and whose episodes last ``max_episode_s``."""
-    return RoadNeeds(start_range_m, max(max_episode_s, DEFAULT_MAX_EPISODE_S))
+    for scenarios that place their cars themselves) and whose episodes last ``max_episode_s`` (set
+    in ``source``)."""
+    return RoadNeeds(start_range_m, max_episode_s, source)
 
 
 def check_road_lengths(net: MergeNet, needs: RoadNeeds) -> None:
@@ -102,3 +114,14 @@ def check_road_lengths(net: MergeNet, needs: RoadNeeds) -> None:
             f"scenarios need at least {needs.min_out_m:g} m (the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m "
             f"past the merge plus a {VEHICLE_LENGTH_M:g} m car, and the {VISIBILITY_M:g} m sensor range ahead)"
         )
+    for what, road in (("main", net.main), ("merge", net.merge)):
+        # The car starting nearest the merge (or at it, for scenario files) must be able to finish:
+        # 0.5 s episodes ended every run as timeouts (0 %, exit 0), 0.01 s ones in a ZeroDivisionError.
+        nearest_m = 0.0 if needs.start_range_m is None else max(road.length_m - needs.start_range_m, 0.0)
+        need_s = nearest_m / road.speed_limit_mps + FINISH_DISTANCE_PAST_MERGE_M / net.out.speed_limit_mps
+        if needs.run_episode_s < need_s:
+            raise InputError(
+                f"{needs.source}: max_episode_s = {needs.run_episode_s:g} s is shorter than the {need_s:.1f} s "
+                f"a car starting nearest the merge on the {what} road of {net.path} needs to reach the finish "
+                f"{FINISH_DISTANCE_PAST_MERGE_M:g} m past it at the speed limits: every episode would time out"
+            )

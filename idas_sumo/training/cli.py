@@ -52,7 +52,7 @@ def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> No
             f"(pass --workers {limit} or fewer)"
         )
     start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
-    check_road_lengths(read_merge_net(Path(args.net)), road_needs(start_range, config.max_episode_s))
+    check_road_lengths(read_merge_net(Path(args.net)), road_needs(start_range, config.max_episode_s, source))
 
 
 def train_from_args(args: argparse.Namespace) -> int:
