@@ -10,6 +10,7 @@ import contextlib
 import itertools
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
@@ -62,15 +63,20 @@ def atomic_path(path: Path) -> Iterator[Path]:
         raise
 
 
-def remove_stale_temps(directory: Path) -> list[Path]:
+def remove_stale_temps(directory: Path, older_than_s: float = 0.0) -> list[Path]:
     """Remove the temp files ``atomic_open``/``atomic_path`` left in ``directory`` when a write was
     killed before its rename (SIGKILL, power loss: no cleanup ran); the files removed.
 
     Call it when a run starts in ``directory``: a temp file there is then never a live write (two
-    runs never write into one directory at once).
+    runs never write into one directory at once). In a directory that several processes write at
+    once (the net cache), ``older_than_s`` spares the temp files of writes that may still be live.
     """
     removed = []
+    now = time.time()
     for path in directory.glob(f".*{TEMP_SUFFIX}"):
+        with contextlib.suppress(OSError):
+            if older_than_s and now - path.lstat().st_mtime < older_than_s:
+                continue
         if path.is_file() and not path.is_symlink():
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()

@@ -654,3 +654,17 @@ def test_a_damaged_cached_multi_copy_net_is_rebuilt(tmp_path: Path) -> None:
         built.write_bytes(damage)
         assert build_copies(NET, 2, cache_dir=tmp_path) == built
         check_copies(NET, built, 2)  # built again (equal but for netconvert's time stamp), and checked
+
+
+@pytest.mark.sumo
+def test_stale_temp_files_in_the_net_cache_are_removed(tmp_path: Path) -> None:
+    """Killed builds left ``.<net>.XXXX.tmp`` in the cache forever; one of a live build is spared."""
+    from idas_sumo.sim.multinet import STALE_TEMP_S, build_copies
+
+    old, live = tmp_path / ".abc-k2.net.xml.k1l2m3n4.tmp", tmp_path / ".abc-k2.net.xml.x9y8z7w6.tmp"
+    for path in (old, live):
+        path.write_bytes(b"\0" * 1000)
+    hours_ago = time.time() - 2 * STALE_TEMP_S
+    os.utime(old, (hours_ago, hours_ago))
+    build_copies(NET, 2, cache_dir=tmp_path)
+    assert not old.exists() and live.exists()

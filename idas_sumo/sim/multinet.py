@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
-from idas_sumo.io_utils import atomic_open, atomic_path
+from idas_sumo.io_utils import atomic_open, atomic_path, remove_stale_temps
 from idas_sumo.sim.netgen import MergeNet, RoadInfo, read_merge_net, sumo_binary
 
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
@@ -41,6 +41,8 @@ CACHE_FORMAT = 1
 COPY_MARGIN_M = 100.0
 """Free space between two copies' bounding boxes (copies never touch, and sumo-gui shows them apart)."""
 MAX_COPIES = 4096
+STALE_TEMP_S = 3600.0
+"""A temp file in the cache this old is a killed build's (a live build takes seconds to minutes)."""
 
 
 def copy_prefix(k: int, copies: int) -> str:
@@ -234,6 +236,7 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
         cache.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise InputError(f"{cache}: cannot create the net cache directory ({err.strerror})") from None
+    remove_stale_temps(cache, older_than_s=STALE_TEMP_S)  # builds killed before their rename
     out = cache / f"{cache_key(src, copies)[:24]}-k{copies}.net.xml"
     digest = out.with_name(out.name + ".sha256")
     # A cached net is used only with the digest written when it was built and checked: a truncated
