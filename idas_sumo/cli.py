@@ -43,7 +43,9 @@ RESULTS_DIR = Path("results")
 """Where ``evaluate`` without ``--out`` writes: a new ``<method>-<suite>-<seed>`` folder per run."""
 MISSING = "–"
 """The table's cell for a value that does not exist (no perfect episode, so no speed)."""
-SIGTERM_EXIT = 128 + signal.SIGTERM
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+"""Signals that stop a run like Ctrl-C does (cleanup, checkpoint), with exit 128 + the signal."""
+TERMINATED = "idas-sumo: terminated ({}); completed outputs were kept"
 PATH_ERRNOS = frozenset({errno.ENAMETOOLONG, errno.ELOOP})
 """OS errors that say a path the user typed cannot name a file (too long, a symlink loop): bad input."""
 MAX_SCENARIOS = 100_000
@@ -62,7 +64,12 @@ NETGEN_FLAGS: dict[str, tuple[str, str]] = {
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where Ctrl-C would be so that the same cleanup runs (checkpoint, temp files)."""
+    """SIGTERM (or SIGHUP), raised where Ctrl-C would be so that the same cleanup runs (checkpoint,
+    temp files)."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__(signum)
+        self.signum = signum
 
 
 class _Parser(argparse.ArgumentParser):
@@ -494,24 +501,37 @@ def _plot(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM raises ``Terminated`` (a KeyboardInterrupt) while the command runs, so a stopped run
-    cleans up as after Ctrl-C; the previous handler comes back afterwards (main may run in a test)."""
+    """SIGTERM, and SIGHUP (the terminal closed) unless it is ignored (``nohup``), raise
+    ``Terminated`` (a KeyboardInterrupt) while the command runs, so a stopped run cleans up as after
+    Ctrl-C; the previous handlers come back afterwards (main may run in a test)."""
     if threading.current_thread() is not threading.main_thread():
         yield  # signal handlers can only be set from the main thread
         return
 
     def terminate(signum: int, frame: object) -> None:
-        raise Terminated
+        raise Terminated(signum)
 
-    previous = signal.signal(signal.SIGTERM, terminate)
+    previous = {
+        signum: signal.signal(signum, terminate)
+        for signum in STOP_SIGNALS
+        if signal.getsignal(signum) is not signal.SIG_IGN
+    }
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 INTERRUPTED = "idas-sumo: interrupted; completed outputs were kept"
-TERMINATED = "idas-sumo: terminated (SIGTERM); completed outputs were kept"
+
+
+def _stopped(signum: int) -> int:
+    """Say that a signal stopped the run; its exit code (130 for Ctrl-C, 143 for SIGTERM, ...)."""
+    line = INTERRUPTED if signum == signal.SIGINT else TERMINATED.format(signal.Signals(signum).name)
+    with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
+        print(line, file=sys.stderr)
+    return 128 + signum
 
 
 class _LateSignals:
@@ -529,8 +549,9 @@ class _LateSignals:
         atexit.register(self._exit_if_caught)
 
     def install(self) -> None:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, self._record)
+        for signum in (signal.SIGINT, *STOP_SIGNALS):
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                signal.signal(signum, self._record)
 
     def _record(self, signum: int, frame: object) -> None:
         self.caught = self.caught or signum
@@ -540,8 +561,7 @@ class _LateSignals:
         if self.caught is None or self.reported:
             return code
         self.reported = True
-        print(TERMINATED if self.caught == signal.SIGTERM else INTERRUPTED, file=sys.stderr)
-        return SIGTERM_EXIT if self.caught == signal.SIGTERM else 130
+        return _stopped(self.caught)
 
     def _exit_if_caught(self) -> None:
         if self.caught is None or self.reported:
@@ -578,12 +598,10 @@ def _run(argv: Sequence[str] | None, late: _LateSignals | None) -> int:
         finally:
             if late is not None:
                 late.install()
-    except Terminated:
-        print(TERMINATED, file=sys.stderr)
-        return SIGTERM_EXIT
+    except Terminated as stop:
+        return _stopped(stop.signum)
     except KeyboardInterrupt:
-        print(INTERRUPTED, file=sys.stderr)
-        return 130
+        return _stopped(signal.SIGINT)
     except InputError as err:
         print(f"idas-sumo: error: {err}", file=sys.stderr)
         return 2
