@@ -1,5 +1,5 @@
 """``idas-sumo``: netgen | train | evaluate | plot. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
-130 Ctrl-C, 143 SIGTERM."""
+130 Ctrl-C, 143 SIGTERM (129 SIGHUP)."""
 
 from __future__ import annotations
 
