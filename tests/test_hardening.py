@@ -316,8 +316,9 @@ def test_resume_or_init_from_a_bad_checkpoint_leaves_it_untouched(tmp_path: Path
 def test_interrupted_checkpoint_write_keeps_the_previous_file(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The disk fills up (or Ctrl-C comes) half-way through torch.save: the old checkpoint survives."""
-    import torch
+    """The disk fills up (or Ctrl-C comes) half-way through writing the file: the old checkpoint
+    survives. (A real full disk, on a tmpfs: test_reliability.)"""
+    import contextlib
 
     from idas_sumo.training import checkpoint as ckpt
 
@@ -325,17 +326,24 @@ def test_interrupted_checkpoint_write_keeps_the_previous_file(
     learner = _learner()
     ckpt.save_checkpoint(path, _payload(learner))
     before = path.read_bytes()
-    real_save = torch.save
+    real_open = ckpt.atomic_open
 
     for failure in (OSError(errno.ENOSPC, "No space left on device"), KeyboardInterrupt()):
 
-        def half_then_fail(obj: Any, f: Any, _failure: BaseException = failure) -> None:
-            real_save(obj, f)
-            f.seek(len(before) // 2)
-            f.truncate()
-            raise _failure
+        class HalfThenFail:
+            def __init__(self, f: Any, _failure: BaseException = failure) -> None:
+                self.f, self.failure = f, _failure
 
-        monkeypatch.setattr(ckpt.torch, "save", half_then_fail)
+            def write(self, data: Any) -> int:
+                self.f.write(bytes(data)[: len(before) // 2])
+                raise self.failure
+
+        @contextlib.contextmanager
+        def failing_open(*args: Any, **kwargs: Any) -> Any:
+            with real_open(*args, **kwargs) as f:
+                yield HalfThenFail(f)
+
+        monkeypatch.setattr(ckpt, "atomic_open", failing_open)
         with pytest.raises(type(failure)):
             ckpt.save_checkpoint(path, _payload(learner, episode=99, global_episode=99))
         monkeypatch.undo()
