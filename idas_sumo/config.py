@@ -26,9 +26,13 @@ def did_you_mean(word: str, choices: typing.Iterable[str]) -> str:
 def load_toml(path: str | Path) -> dict[str, Any]:
     """Read a TOML file; a missing file or a syntax error is an InputError naming the file."""
     p = Path(path)
+    if p.exists() and not p.is_file() and not p.is_dir():  # reading a FIFO blocks until written to
+        raise InputError(f"{p}: not a regular file (a FIFO, device or socket), expected a TOML file")
     try:
         with p.open("rb") as f:
             return tomllib.load(f)
+    except RecursionError:  # tomllib recurses into nested arrays and tables
+        raise InputError(f"{p}: TOML nested too deeply to read") from None
     except FileNotFoundError:
         raise InputError(f"{p}: file not found") from None
     except IsADirectoryError:

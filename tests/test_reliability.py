@@ -42,14 +42,18 @@ def _learner() -> Any:
     return Learner(LearnerConfig(), seed=1)
 
 
-def build_net(path: Path, length_m: float) -> Path:
-    """A merge net of the right shape with every road ``length_m`` long, built with the project's own
-    plain XML and netconvert (``generate_net``'s NetParams refuses such lengths, as it should)."""
-    from idas_sumo.sim.netgen import NetParams, _plain_xml, sumo_binary
+def build_net(path: Path, length_m: float = 250.0, junction: str = "priority") -> Path:
+    """A merge net of the right shape with every road ``length_m`` long and a merge junction of type
+    ``junction``, built with the project's own plain XML and netconvert (``generate_net``'s NetParams
+    refuses such lengths, as it should)."""
+    from idas_sumo.sim.netgen import MERGE_JUNCTION, NetParams, _plain_xml, sumo_binary
 
     fields = dataclasses.asdict(NetParams())
     fields.update(main_length_m=length_m, merge_length_m=length_m, out_length_m=length_m)
     node_xml, edge_xml = _plain_xml(SimpleNamespace(**fields))  # type: ignore[arg-type]
+    merge_node = f'<node id="{MERGE_JUNCTION}" x="0.000" y="0.000" type="priority"/>'
+    assert merge_node in node_xml
+    node_xml = node_xml.replace(merge_node, merge_node.replace('"priority"', f'"{junction}"'))
     nod, edg = path.with_suffix(".nod.xml"), path.with_suffix(".edg.xml")
     nod.write_text(node_xml)
     edg.write_text(edge_xml)
@@ -556,6 +560,9 @@ def test_more_bad_inputs_are_one_line_exit_2(tmp_path: Path) -> None:
     far.write_text("[traffic]\nstart_range_m = 1e9\n")  # no road can hold these starts
     short_episodes = tmp_path / "short.toml"
     short_episodes.write_text("max_episode_s = 0.5\n")  # every episode a timeout (0.01: a traceback)
+    deep = tmp_path / "deep.toml"
+    deep.write_text("x = " + "[" * 100_000 + "]" * 100_000 + "\n")  # a RecursionError in tomllib
+    signal_net = build_net(tmp_path / "signal.net.xml", junction="traffic_light")  # ran, exit 0
     long_name = str(tmp_path / ("a" * 300))
     cases = {
         "zero speed": (eval_args(tmp_path / "o", net=zero), [str(zero), "speed limit of 0 m/s"]),
@@ -571,6 +578,11 @@ def test_more_bad_inputs_are_one_line_exit_2(tmp_path: Path) -> None:
         "0.5 s training": (
             train_args(tmp_path / "o", "--config", str(short_episodes)),
             [str(short_episodes), "max_episode_s = 0.5 s", "time out"],
+        ),
+        "deep TOML": (eval_args(tmp_path / "o", "--config", str(deep)), [str(deep), "nested too deeply"]),
+        "traffic light": (
+            eval_args(tmp_path / "o", net=signal_net),
+            [str(signal_net), "signal (traffic_light)"],
         ),
         "netgen /proc": (["netgen", "--out", "/proc/x.net.xml"], ["--out /proc/x.net.xml", "cannot write"]),
         "scenarios 1e9": (eval_args(tmp_path / "o", "--scenarios", str(10**9)), ["--scenarios", "at most"]),

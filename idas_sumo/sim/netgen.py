@@ -218,6 +218,14 @@ def read_merge_net(path: str | Path) -> MergeNet:
             f"{p}: {len(junctions)} junctions with several incoming roads; expected exactly one merge"
         )
     junction = junctions[0]
+    kind = str(junction.getType())
+    if kind.startswith("traffic_light") or kind.startswith("rail_"):
+        # A signal decides who goes: the merge the scenarios pose (cars negotiating the gap) is gone,
+        # and the results would still look like an ordinary evaluation.
+        raise InputError(
+            f"{p}: the merge junction {junction.getID()!r} is a signal ({kind}); "
+            "the scenarios need an unsignalled merge (e.g. type priority, as netgen makes)"
+        )
     incoming = [e for e in junction.getIncoming() if e.getFunction() != "internal"]
     outgoing = [e for e in junction.getOutgoing() if e.getFunction() != "internal"]
     if len(incoming) != 2:
