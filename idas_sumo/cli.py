@@ -283,8 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument(
         "--scenarios",
         type=_scenario_count,
-        default=100,
-        help="random scenarios of the paper suite (default: %(default)s)",
+        help="random scenarios of the paper suite (default: 100), start offsets per b_type of the "
+        "driver-types suite (default: 10)",
     )
     ev.add_argument(
         "--config",
@@ -429,8 +429,9 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     title = f"{args.suite} suite, seed {args.seed}, others: {others}"
     Console().print(summary_table(result.summary, title, METHOD_LABELS))
-    names = ["episodes.csv", "summary.csv", "flow.csv"] + (["trajectories.csv"] if args.trajectories else [])
-    print(f"wrote {result.out}/: {', '.join(names)}")
+    for line in result.verdicts:
+        print(line)
+    print(f"wrote {result.out}/: {', '.join(result.written)}")
     if args.plots:
         from idas_sumo.evaluation.plots import plot_directory
 
@@ -468,21 +469,29 @@ def _check_eval_net(args: argparse.Namespace) -> None:
 
 def summary_table(summary: pd.DataFrame, title: str, labels: dict[str, str]) -> Any:
     """The summary as a rich Table; a speed that does not exist (no perfect episode) shows as MISSING."""
+    from rich.console import Group
     from rich.table import Table
 
     table = Table(title=title)
     for col in ("method", "scenarios", "success %", "perfect %", "avg speed (perfect), m/s"):
         table.add_column(col)
+    # Our further metrics in a second table: nine columns do not fit an 80-column terminal.
+    more = Table(title="further metrics, % of scenarios")
+    for col in ("method", "perfect w/o flow %", "collision %", "timeout %", "ego success %"):
+        more.add_column(col)
     for row in summary.to_dict("records"):
         speed = float(row["avg_speed_perfect_mps"])
+        label = labels.get(str(row["method"]), str(row["method"]))
         table.add_row(
-            labels.get(str(row["method"]), str(row["method"])),
+            label,
             str(row["scenarios"]),
             f"{row['success_pct']:.0f}",
             f"{row['perfect_pct']:.0f}",
             f"{speed:.2f}" if math.isfinite(speed) else MISSING,
         )
-    return table
+        pcts = ("perfect_no_flow_pct", "collision_pct", "timeout_pct", "ego_success_pct")
+        more.add_row(label, *(f"{row[c]:.0f}" for c in pcts))
+    return Group(table, more)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -494,6 +503,9 @@ def _train(args: argparse.Namespace) -> int:
 def _plot(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.plots import plot_directory
 
+    for csv in sorted(Path(args.dir).glob("*.csv")) if Path(args.dir).is_dir() else []:
+        if csv.exists() and not csv.is_file():  # reading a FIFO blocks until written to
+            raise InputError(f"{csv}: not a regular file (a FIFO, device or socket), expected a CSV file")
     for png in plot_directory(args.dir):
         print(f"wrote {png}")
     return 0

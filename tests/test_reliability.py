@@ -328,6 +328,10 @@ def test_fifo_as_an_input_file_is_refused(tmp_path: Path) -> None:
         eval_args(tmp_path / "o", "--scenario", str(fifo)),
         eval_args(tmp_path / "o", "--scenario", "/dev/zero"),
     )
+    plotted = tmp_path / "plotted"
+    plotted.mkdir()
+    os.mkfifo(plotted / "episodes.csv")
+    results.append(run_cli("plot", str(plotted), timeout=30))
     for result in results:
         assert_usage_error(result, "not a regular file")
     for read in (read_merge_net, load_actor):
