@@ -13,6 +13,7 @@ import pytest
 
 from idas_sumo.cli import main
 from idas_sumo.evaluation.metrics import (
+    BASE_EPISODE_COLUMNS,
     EPISODE_COLUMNS,
     FLOW_COLUMNS,
     SUMMARY_COLUMNS,
@@ -30,8 +31,13 @@ DESIGN_EPISODE_COLUMNS = [
     "scenario", "seed", "method", "ego_id", "ego_road", "ego_prio", "ego_type", "success", "perfect",
     "collisions", "hard_brakes", "hard_brakes_merge_zone", "ego_finish_time_s", "ego_mean_speed_mps",
     "mean_speed_mps", "total_reward", "normalized_reward",
+    # issue #15, at the end so that readers of the first columns keep working
+    "perfect_no_flow", "timeout", "ego_success", "ego_travel_time_s", "ego_merge_time_s", "ego_merge_speed_mps",
 ]  # fmt: skip
-DESIGN_SUMMARY_COLUMNS = ["method", "scenarios", "success_pct", "perfect_pct", "avg_speed_perfect_mps"]
+DESIGN_SUMMARY_COLUMNS = [
+    "method", "scenarios", "success_pct", "perfect_pct", "avg_speed_perfect_mps",
+    "perfect_no_flow_pct", "collision_pct", "timeout_pct", "ego_success_pct",
+]  # fmt: skip
 DESIGN_FLOW_COLUMNS = [
     "scenario", "method", "vehicles", "throughput_veh_per_h", "mean_speed_mps", "mean_travel_time_s",
     "mean_time_loss_s", "hard_brakes", "merge_time_s",
@@ -88,6 +94,9 @@ def run_dir(request: pytest.FixtureRequest) -> Path:
 
 def test_design_columns_match_the_code() -> None:
     assert list(EPISODE_COLUMNS) == DESIGN_EPISODE_COLUMNS
+    # The columns before issue #15 keep their names and places.
+    assert list(EPISODE_COLUMNS[: len(BASE_EPISODE_COLUMNS)]) == list(BASE_EPISODE_COLUMNS)
+    assert len(BASE_EPISODE_COLUMNS) == 17
     assert list(SUMMARY_COLUMNS) == DESIGN_SUMMARY_COLUMNS
     assert list(FLOW_COLUMNS) == DESIGN_FLOW_COLUMNS
 
@@ -186,6 +195,17 @@ def test_episode_numbers_agree_with_trajectories(run_dir: Path) -> None:
             assert ep.success == 0 and ep.perfect == 0
         if ep.success:
             assert np.isfinite(ep.ego_finish_time_s)
+        # Travel and merge times are measured from the ego's entry, which is its first row.
+        entry = ego["time_s"].min()
+        crossed = ego[ego["dist_to_merge_m"] <= 0.0]["time_s"]
+        if len(crossed):
+            assert ep.ego_merge_time_s == pytest.approx(crossed.min() - entry, abs=1e-3)
+            before = ego[ego["time_s"] < crossed.min()]
+            assert ep.ego_merge_speed_mps == pytest.approx(before["speed_mps"].mean(), abs=1e-4)
+        else:
+            assert np.isnan(ep.ego_merge_time_s) and np.isnan(ep.ego_merge_speed_mps)
+        if ep.ego_success:
+            assert np.isfinite(ep.ego_travel_time_s) and ep.ego_travel_time_s <= ep.ego_finish_time_s + 1e-9
 
 
 @pytest.mark.sumo
@@ -194,6 +214,16 @@ def test_summary_agrees_with_episodes(run_dir: Path) -> None:
     summary = pd.read_csv(run_dir / "summary.csv").iloc[0]
     assert summary["success_pct"] == pytest.approx(100.0 * episodes["success"].mean(), abs=0.01)
     assert summary["perfect_pct"] == pytest.approx(100.0 * episodes["perfect"].mean(), abs=0.01)
+    assert summary["perfect_no_flow_pct"] == pytest.approx(
+        100.0 * episodes["perfect_no_flow"].mean(), abs=0.01
+    )
+    assert summary["collision_pct"] == pytest.approx(100.0 * (episodes["collisions"] > 0).mean(), abs=0.01)
+    assert summary["timeout_pct"] == pytest.approx(100.0 * episodes["timeout"].mean(), abs=0.01)
+    assert summary["ego_success_pct"] == pytest.approx(100.0 * episodes["ego_success"].mean(), abs=0.01)
+    # Each relaxes or restricts success as its definition says.
+    assert (episodes["perfect"] <= episodes["perfect_no_flow"]).all()
+    assert (episodes["perfect_no_flow"] <= episodes["success"]).all()
+    assert (episodes["success"] <= episodes["ego_success"]).all()
     perfect = episodes[episodes["perfect"] == 1]
     if len(perfect):
         assert summary["avg_speed_perfect_mps"] == pytest.approx(perfect["mean_speed_mps"].mean(), abs=1e-3)
@@ -217,15 +247,17 @@ def test_representative_suite(tmp_path: Path, net_path: Path, method: str) -> No
 
 @pytest.mark.sumo
 def test_driver_types_suite(tmp_path: Path, net_path: Path) -> None:
-    evaluate(tmp_path / "d", net_path, "--baseline", "idm", "--suite", "driver-types")
+    evaluate(tmp_path / "d", net_path, "--baseline", "idm", "--suite", "driver-types", "--scenarios", "2")
     episodes = pd.read_csv(tmp_path / "d" / "episodes.csv")
-    assert len(episodes) == 9
-    np.testing.assert_allclose(episodes["ego_type"], np.linspace(-2.0, 2.0, 9))
+    assert len(episodes) == 2 * 9  # two start offsets, nine driver types each
+    np.testing.assert_allclose(episodes["ego_type"], np.tile(np.linspace(-2.0, 2.0, 9), 2))
     assert episodes["scenario"].is_unique
-    assert episodes["scenario"].str.startswith("s1-btype").all()
+    assert episodes["scenario"].str.match(r"sweep0[01]-btype[+-]\d\.\d$").all()
+    assert (episodes["ego_id"] == "merge_car").all() and (episodes["ego_road"] == "merge").all()
     # The normalisation divides by r_finish of the ego's own driver type.
     finish = (15.0 * episodes["ego_type"] + 50.0) / 4.0
     np.testing.assert_allclose(episodes["normalized_reward"], episodes["total_reward"] / finish, atol=1e-3)
+    assert pd.read_csv(tmp_path / "d" / "summary.csv")["scenarios"].tolist() == [18]
 
 
 @pytest.mark.sumo
@@ -297,6 +329,8 @@ def _facts(**overrides: object) -> EpisodeFacts:
         "duration_s": 4.0,
         "start_time_s": 10.0,
         "free_flow_time_s": {"a": 2.5, "b": 3.0, "c": 9.0},
+        "timed_out": False,
+        "ego_end_reason": "finished",
     }
     base.update(overrides)
     return EpisodeFacts(**base)  # type: ignore[arg-type]
@@ -340,21 +374,60 @@ def test_episode_row_hand_computed() -> None:
     # Controlled vehicles only: the SUMO car does not count.
     assert row["mean_speed_mps"] == pytest.approx(np.mean([15, 15, 16, 17, 18, 10, 12, 14, 14, 16]))
     assert row["normalized_reward"] == pytest.approx(10.0 / ((15.0 * 2.0 + 50.0) / 4.0))
+    assert (row["perfect_no_flow"], row["timeout"], row["ego_success"]) == (1, 0, 1)
+    assert row["ego_travel_time_s"] == pytest.approx(3.0)  # on the road from t = 10, finished at 13
+    assert row["ego_merge_time_s"] == pytest.approx(2.0)  # past the merge point at t = 12
+    assert row["ego_merge_speed_mps"] == pytest.approx(15.0)  # its speeds at t = 10 and 11
+
+
+def test_late_ego_times_from_its_entry() -> None:
+    """b enters at t = 11, a second after the episode started: the finish time counts from the episode's
+    start, travel and merge times from b's entry."""
+    traj = _trajectory()
+    traj = traj[~((traj["vehicle"] == "b") & (traj["time_s"] < 11.0))]
+    row = episode_row(traj, _facts(ego_id="b", ego_road="merge"))
+    assert row["ego_finish_time_s"] == pytest.approx(4.0)  # 14 - start 10
+    assert row["ego_travel_time_s"] == pytest.approx(3.0)  # 14 - entry 11
+    assert row["ego_merge_time_s"] == pytest.approx(2.0)  # 13 - entry 11
+    assert row["ego_merge_speed_mps"] == pytest.approx(np.mean([12, 14]))  # t = 11, 12
 
 
 @pytest.mark.parametrize(
-    ("overrides", "success", "perfect"),
+    ("overrides", "success", "perfect", "perfect_no_flow"),
     [
-        ({"collisions": 1}, 0, 0),
-        ({"all_finished": False}, 0, 0),
-        ({"impedes": 1}, 1, 0),
-        ({"hard_brakes_merge_zone": 2, "hard_brakes": 2}, 1, 0),
-        ({"hard_brakes": 3}, 1, 1),  # hard brakes outside the merging zone cost no reward
+        ({"collisions": 1}, 0, 0, 0),
+        ({"all_finished": False}, 0, 0, 0),
+        ({"impedes": 1}, 1, 0, 0),
+        ({"hard_brakes_merge_zone": 2, "hard_brakes": 2}, 1, 0, 1),  # only the flow penalty
+        ({"hard_brakes": 3}, 1, 1, 1),  # hard brakes outside the merging zone cost no reward
+        ({"hard_brakes_merge_zone": 1, "hard_brakes": 1, "impedes": 2}, 1, 0, 0),
     ],
 )
-def test_success_and_perfect(overrides: dict[str, object], success: int, perfect: int) -> None:
+def test_success_and_perfect(
+    overrides: dict[str, object], success: int, perfect: int, perfect_no_flow: int
+) -> None:
     row = episode_row(_trajectory(), _facts(**overrides))
-    assert (row["success"], row["perfect"]) == (success, perfect)
+    assert (row["success"], row["perfect"], row["perfect_no_flow"]) == (success, perfect, perfect_no_flow)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "timeout", "ego_success"),
+    [
+        ({"timed_out": True, "all_finished": False, "ego_end_reason": "timeout"}, 1, 0),
+        # The ego finished, another car did not: a timeout, and the ego's own success.
+        ({"timed_out": True, "all_finished": False, "ego_end_reason": "finished"}, 1, 1),
+        # Everyone finished in the last step: no timeout.
+        ({"timed_out": True, "all_finished": True}, 0, 1),
+        # Ended by a collision before the time limit.
+        ({"collisions": 1, "all_finished": False, "ego_end_reason": "collided"}, 0, 0),
+        ({"collisions": 1, "all_finished": False, "ego_end_reason": "finished"}, 0, 1),
+        # An ego that never entered has no end reason.
+        ({"timed_out": True, "all_finished": False, "ego_end_reason": ""}, 1, 0),
+    ],
+)
+def test_timeout_and_ego_success(overrides: dict[str, object], timeout: int, ego_success: int) -> None:
+    row = episode_row(_trajectory(), _facts(**overrides))
+    assert (row["timeout"], row["ego_success"]) == (timeout, ego_success)
 
 
 def test_ego_that_never_finishes_has_no_finish_time() -> None:
@@ -369,6 +442,10 @@ def test_summary_rows_hand_computed() -> None:
             "success": [1, 1, 0, 1, 0],
             "perfect": [1, 0, 0, 1, 0],
             "mean_speed_mps": [10.0, 99.0, 99.0, 14.0, 5.0],
+            "perfect_no_flow": [1, 1, 0, 1, 0],
+            "collisions": [0, 0, 2, 0, 1],
+            "timeout": [0, 0, 1, 0, 0],
+            "ego_success": [1, 1, 1, 1, 0],
         }
     )
     rows = summary_rows(episodes)
@@ -380,8 +457,14 @@ def test_summary_rows_hand_computed() -> None:
         "success_pct": 75.0,
         "perfect_pct": 50.0,
         "avg_speed_perfect_mps": 12.0,
+        "perfect_no_flow_pct": 75.0,
+        "collision_pct": 25.0,  # scenarios with a collision, not collisions
+        "timeout_pct": 25.0,
+        "ego_success_pct": 100.0,
     }
+    assert list(idm) == DESIGN_SUMMARY_COLUMNS
     assert fsm["success_pct"] == 0.0 and np.isnan(fsm["avg_speed_perfect_mps"])
+    assert (fsm["collision_pct"], fsm["ego_success_pct"]) == (100.0, 0.0)
 
 
 @pytest.mark.sumo

@@ -2,7 +2,11 @@
 
 Definitions (docs/design-notes.md, "Definitions"; ours where the paper is silent): *success* = no collision and every
 controlled vehicle finished in time; *perfect* = success and no reward deduction for any agent (no
-impede, no flow penalty); throughput = vehicles past the merge point per hour of simulated time.
+impede, no flow penalty); *perfect without flow* = success and no impede (the flow penalty ignored);
+*timeout* = the episode was cut off with some controlled car neither finished nor collided; *ego success* =
+the method's own car finished (so did not collide), whatever the others did; throughput = vehicles past the
+merge point per hour of simulated time. Success and perfect are env/engine.py's ``is_success`` and
+``is_perfect``, the ones training and validation use.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ TRAJECTORY_COLUMNS: tuple[str, ...] = (
     "action",
     "allowed_actions",
 )
-EPISODE_COLUMNS: tuple[str, ...] = (
+BASE_EPISODE_COLUMNS: tuple[str, ...] = (
     "scenario",
     "seed",
     "method",
@@ -46,12 +50,28 @@ EPISODE_COLUMNS: tuple[str, ...] = (
     "total_reward",
     "normalized_reward",
 )
+"""The first columns of ``EPISODE_COLUMNS``, those of every episodes.csv ever written (plots need no more)."""
+EPISODE_COLUMNS: tuple[str, ...] = (
+    *BASE_EPISODE_COLUMNS,
+    # Added for issue #15 (at the end, so that readers of the first columns keep working):
+    "perfect_no_flow",
+    "timeout",
+    "ego_success",
+    "ego_travel_time_s",
+    "ego_merge_time_s",
+    "ego_merge_speed_mps",
+)
 SUMMARY_COLUMNS: tuple[str, ...] = (
     "method",
     "scenarios",
     "success_pct",
     "perfect_pct",
     "avg_speed_perfect_mps",
+    # Added for issue #15, at the end as above:
+    "perfect_no_flow_pct",
+    "collision_pct",
+    "timeout_pct",
+    "ego_success_pct",
 )
 FLOW_COLUMNS: tuple[str, ...] = (
     "scenario",
@@ -87,6 +107,26 @@ class EpisodeFacts:
     start_time_s: float
     free_flow_time_s: dict[str, float]
     """Per vehicle: time to drive from its start to the finish line at its road's limit."""
+    timed_out: bool = False
+    """The episode was cut off at its time limit (``EpisodeOutcome.timed_out``)."""
+    ego_end_reason: str = ""
+    """How the ego's episode ended (``EpisodeOutcome.end_reasons``); empty if it never entered."""
+
+
+def is_perfect_no_flow(success: bool, impedes: int) -> bool:
+    """Perfect success with the flow penalty (hard brakes in the merging zone) ignored."""
+    return is_perfect(success, impedes, hard_brakes_merge_zone=0)
+
+
+def is_timeout(timed_out: bool, all_finished: bool) -> bool:
+    """The time limit ended the episode before every controlled car finished (a car that collided
+    also counts as not finished: a scenario can count as both a collision and a timeout)."""
+    return timed_out and not all_finished
+
+
+def is_ego_success(ego_end_reason: str) -> bool:
+    """The method's own car finished (a car that collides ends 'collided'), whatever the others did."""
+    return ego_end_reason == "finished"
 
 
 def merge_crossings(trajectory: pd.DataFrame) -> pd.Series:
@@ -102,12 +142,24 @@ def finish_times(trajectory: pd.DataFrame) -> pd.Series:
     return done.groupby("vehicle")["time_s"].min().reindex(trajectory["vehicle"].unique())
 
 
+def entry_times(trajectory: pd.DataFrame) -> pd.Series:
+    """Per vehicle, the first time it is on the road (cars enter at staggered times)."""
+    return trajectory.groupby("vehicle")["time_s"].min().reindex(trajectory["vehicle"].unique())
+
+
+def _seconds(value: float) -> float:
+    return round(float(value), 3) if np.isfinite(value) else np.nan
+
+
 def episode_row(trajectory: pd.DataFrame, facts: EpisodeFacts) -> dict[str, object]:
     controlled = trajectory[trajectory["controlled"]]
     ego = trajectory[trajectory["vehicle"] == facts.ego_id]
     success = is_success(facts.collisions, facts.all_finished)
     perfect = is_perfect(success, facts.impedes, facts.hard_brakes_merge_zone)
     ego_finish = finish_times(ego).get(facts.ego_id, np.nan)
+    ego_entry = entry_times(ego).get(facts.ego_id, np.nan)
+    ego_merge = merge_crossings(ego).get(facts.ego_id, np.nan)
+    before_merge = ego[ego["time_s"] < ego_merge]  # empty (NaN speed) if it never got there
     return {
         "scenario": facts.scenario,
         "seed": facts.seed,
@@ -121,13 +173,20 @@ def episode_row(trajectory: pd.DataFrame, facts: EpisodeFacts) -> dict[str, obje
         "collisions": facts.collisions,
         "hard_brakes": facts.hard_brakes,
         "hard_brakes_merge_zone": facts.hard_brakes_merge_zone,
-        "ego_finish_time_s": round(float(ego_finish - facts.start_time_s), 3)
-        if np.isfinite(ego_finish)
-        else np.nan,
+        # From the episode's start (kept for old readers); ego_travel_time_s is from the ego's entry.
+        "ego_finish_time_s": _seconds(ego_finish - facts.start_time_s),
         "ego_mean_speed_mps": round(float(ego["speed_mps"].mean()), 4),
         "mean_speed_mps": round(float(controlled["speed_mps"].mean()), 4),
         "total_reward": round(facts.ego_total_reward, 4),
         "normalized_reward": round(facts.ego_total_reward / float(finish_reward(facts.ego_type)), 4),
+        "perfect_no_flow": int(is_perfect_no_flow(success, facts.impedes)),
+        "timeout": int(is_timeout(facts.timed_out, facts.all_finished)),
+        "ego_success": int(is_ego_success(facts.ego_end_reason)),
+        "ego_travel_time_s": _seconds(ego_finish - ego_entry),
+        "ego_merge_time_s": _seconds(ego_merge - ego_entry),
+        "ego_merge_speed_mps": round(float(before_merge["speed_mps"].mean()), 4)
+        if len(before_merge)
+        else np.nan,
     }
 
 
@@ -151,8 +210,12 @@ def flow_row(trajectory: pd.DataFrame, facts: EpisodeFacts) -> dict[str, object]
     }
 
 
+def _pct(flags: pd.Series) -> float:
+    return round(100.0 * float(flags.mean()), 2)
+
+
 def summary_rows(episodes: pd.DataFrame) -> list[dict[str, object]]:
-    """The paper's table: one row per method."""
+    """The paper's table, one row per method, and our further columns (the flags of ``episode_row``)."""
     rows: list[dict[str, object]] = []
     for method, group in episodes.groupby("method", sort=False):
         perfect = group[group["perfect"] == 1]
@@ -160,11 +223,15 @@ def summary_rows(episodes: pd.DataFrame) -> list[dict[str, object]]:
             {
                 "method": method,
                 "scenarios": len(group),
-                "success_pct": round(100.0 * group["success"].mean(), 2),
-                "perfect_pct": round(100.0 * group["perfect"].mean(), 2),
+                "success_pct": _pct(group["success"]),
+                "perfect_pct": _pct(group["perfect"]),
                 "avg_speed_perfect_mps": round(float(perfect["mean_speed_mps"].mean()), 3)
                 if len(perfect)
                 else np.nan,
+                "perfect_no_flow_pct": _pct(group["perfect_no_flow"]),
+                "collision_pct": _pct(group["collisions"] > 0),
+                "timeout_pct": _pct(group["timeout"]),
+                "ego_success_pct": _pct(group["ego_success"]),
             }
         )
     return rows

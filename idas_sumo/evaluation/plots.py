@@ -10,8 +10,9 @@ import pandas as pd
 
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.errors import InputError
-from idas_sumo.evaluation.metrics import EPISODE_COLUMNS, TRAJECTORY_COLUMNS
+from idas_sumo.evaluation.metrics import BASE_EPISODE_COLUMNS, TRAJECTORY_COLUMNS
 from idas_sumo.evaluation.policies import METHOD_LABELS
+from idas_sumo.evaluation.sweep import is_sweep_scenario, spearman_test
 from idas_sumo.io_utils import atomic_open
 
 ZONE_COLOR = "#9ecae1"
@@ -52,7 +53,8 @@ def plot_directory(directory: Path) -> list[Path]:
         raise InputError(f"{directory}: not a directory written by `idas-sumo evaluate`")
     if not (directory / "episodes.csv").exists():
         raise InputError(f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first)")
-    episodes = _read(directory / "episodes.csv", EPISODE_COLUMNS)
+    # The columns of every episodes.csv ever written: older directories plot too.
+    episodes = _read(directory / "episodes.csv", BASE_EPISODE_COLUMNS)
     written = [summary_bars(episodes, directory / "summary.png")]
     names = episodes["scenario"].astype(str)
     if names.isin(["s1", "s2", "s3", "s4"]).any():
@@ -62,7 +64,7 @@ def plot_directory(directory: Path) -> list[Path]:
         traj = _read(traj_path, ("scenario", "run_method", *TRAJECTORY_COLUMNS))
         if names.isin(["s1", "s2", "s3", "s4"]).any():
             written.append(profiles(traj, directory / "profiles.png"))
-        if names.str.startswith("s1-btype").any():
+        if names.map(is_sweep_scenario).any():
             written.append(driver_type_sweep(episodes, traj, directory / "driver_types.png"))
     return written
 
@@ -155,31 +157,47 @@ def profiles(traj: pd.DataFrame, path: Path) -> Path:
 
 
 def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) -> Path:
-    """Merge car's merge time against its driver type, and its velocity profiles (paper Fig. 6)."""
+    """Merge car's merge time against its driver type (mean and standard deviation over the start
+    offsets, Spearman's rho and p in the legend), and its velocity profiles at the first start offset
+    (paper Fig. 6)."""
     import matplotlib.pyplot as plt
 
-    sweep = episodes[episodes["scenario"].astype(str).str.startswith("s1-btype")]
+    sweep = episodes[episodes["scenario"].astype(str).map(is_sweep_scenario)]
+    # Directories written before issue #15 have no merge time: their finish time stands in.
+    time_col = "ego_merge_time_s" if "ego_merge_time_s" in sweep.columns else "ego_finish_time_s"
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8))
     # Methods often tie exactly; shrinking markers and varied dashes keep every tied line visible.
     styles = [("o", 10, "-"), ("s", 7, "--"), ("^", 6, ":"), ("D", 4, "-."), ("x", 6, "-")]
     for k, (method, rows) in enumerate(sweep.groupby("method", sort=False)):
         marker, size, line = styles[k % len(styles)]
-        left.plot(
-            rows["ego_type"],
-            rows["ego_finish_time_s"],
+        stats = rows.groupby("ego_type")[time_col].agg(["mean", "std"]).fillna({"std": 0.0})
+        valid = rows.dropna(subset=[time_col])
+        rho, p = spearman_test(valid["ego_type"], valid[time_col])
+        trend = f" (ρ = {rho:+.2f}, p = {p:.3f})" if np.isfinite(rho) else " (ρ undefined)"
+        left.errorbar(
+            stats.index,
+            stats["mean"],
+            yerr=stats["std"],
             marker=marker,
             markersize=size,
             linestyle=line,
+            capsize=3,
             markerfacecolor="none" if k % 2 == 0 else None,
-            label=_label(method),
+            label=_label(method) + trend,
         )
     left.set_xlabel("merge car driver type $b_{type}$")
-    left.set_ylabel("merge car finish time, s")
+    what = "merge time (from its entry)" if time_col == "ego_merge_time_s" else "finish time"
+    left.set_ylabel(f"merge car {what}, s")
     left.legend(fontsize=8)
     cmap = plt.get_cmap("viridis")
     first_method = sweep["method"].iloc[0] if len(sweep) else None
+    first_start = str(sweep["scenario"].iloc[0]).rsplit("-btype", 1)[0] if len(sweep) else ""
+    shown = sweep[
+        (sweep["method"] == first_method)
+        & sweep["scenario"].astype(str).str.startswith(first_start + "-btype")
+    ]
     speeds = []
-    for _, row in sweep[sweep["method"] == first_method].iterrows():
+    for _, row in shown.iterrows():
         run = traj[(traj["scenario"] == row["scenario"]) & (traj["run_method"] == first_method)]
         ego = run[run["vehicle"] == row["ego_id"]]
         color = cmap((row["ego_type"] + 2.0) / 4.0)
@@ -190,6 +208,6 @@ def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) ->
         right.text(0.03, 0.95, "all profiles coincide", transform=right.transAxes, va="top", fontsize=9)
     right.set_xlabel("time, s")
     right.set_ylabel("merge car speed, m/s")
-    right.set_title(f"{_label(first_method)}: velocity by driver type")
+    right.set_title(f"{_label(first_method)}: velocity by driver type ({first_start})")
     right.legend(fontsize=7, ncol=3, title="$b_{type}$")
     return _save(fig, path)

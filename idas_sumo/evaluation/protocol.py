@@ -7,7 +7,7 @@ not depend on ``copies``."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -28,7 +28,6 @@ from idas_sumo.env.engine import (
 )
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.env.scenario import (
-    B_TYPE_RANGE,
     Scenario,
     TrafficConfig,
     VehicleSpec,
@@ -37,12 +36,17 @@ from idas_sumo.env.scenario import (
 )
 from idas_sumo.env.snapshot import ROAD_NAMES
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
+from idas_sumo.evaluation.sweep import DEFAULT_SWEEP_OFFSETS, sweep_scenarios
 from idas_sumo.resources import SCENARIO_DIR
 
 Suite = Literal["paper", "representative", "driver-types"]
 SUITES: tuple[str, ...] = ("paper", "representative", "driver-types")
 REPRESENTATIVE = ("s1", "s2", "s3", "s4")
-DRIVER_TYPE_SWEEP = tuple(float(x) for x in np.linspace(*B_TYPE_RANGE, 9))
+DEFAULT_PAPER_SCENARIOS = 100
+"""The paper suite's size (the paper's 100 random scenarios) when ``--scenarios`` is not given."""
+DEFAULT_SUITE_SIZE: dict[str, int] = {"paper": DEFAULT_PAPER_SCENARIOS, "driver-types": DEFAULT_SWEEP_OFFSETS}
+"""``--scenarios`` when not given: random scenarios of the paper suite, start offsets per b_type of the
+driver-types suite (the representative suite has its four)."""
 
 
 @dataclass(frozen=True)
@@ -85,9 +89,18 @@ def file_cases(paths: list[Path], seed: int, speed_limits: dict) -> list[EvalCas
 
 
 def suite_cases(
-    suite: Suite, n_scenarios: int, seed: int, speed_limits: dict, traffic: TrafficConfig
+    suite: Suite,
+    n_scenarios: int,
+    seed: int,
+    speed_limits: dict,
+    traffic: TrafficConfig,
+    road_lengths_m: Mapping[str, float] | None = None,
 ) -> list[EvalCase]:
-    """The cases of a suite; the same cases (same scenarios, same egos) for every method."""
+    """The cases of a suite; the same cases (same scenarios, same egos) for every method.
+
+    ``n_scenarios``: random scenarios of the paper suite; start offsets per b_type of the driver-types
+    suite (evaluation/sweep.py), which needs the net's ``road_lengths_m`` to place its cars in projection.
+    """
     if suite == "paper":
         cases = []
         for i in range(n_scenarios):
@@ -103,14 +116,13 @@ def suite_cases(
             merge_car = next(v.id for v in scenario.vehicles if v.road == "merge")
             cases.append(EvalCase(scenario, merge_car, seed, tuple(v.id for v in scenario.vehicles)))
         return cases
-    base = load_scenario(SCENARIO_DIR / "representative" / "s1.toml", speed_limits)
-    cases = []
-    for b_type in DRIVER_TYPE_SWEEP:
-        vehicles = tuple(replace(v, b_type=b_type) if v.road == "merge" else v for v in base.vehicles)
-        scenario = Scenario(f"s1-btype{b_type:+.1f}", vehicles, base.main_prio, base.merge_prio)
-        merge_car = next(v.id for v in vehicles if v.road == "merge")
-        cases.append(EvalCase(scenario, merge_car, seed, (merge_car,)))
-    return cases
+    if road_lengths_m is None:
+        raise ValueError("the driver-types suite needs the net's road lengths")
+    # The merge car runs the method; the main car, the others' method (IDAS by default).
+    return [
+        EvalCase(case.scenario, case.merge_car, seed, (case.merge_car,))
+        for case in sweep_scenarios(n_scenarios, seed, speed_limits, road_lengths_m)
+    ]
 
 
 @dataclass
@@ -231,6 +243,8 @@ def _result(
         duration_s=outcome.duration_s,
         start_time_s=outcome.start_time_s,
         free_flow_time_s=_free_flow_times(engine, scenario.vehicles),
+        timed_out=outcome.timed_out,
+        ego_end_reason=outcome.end_reasons.get(case.ego, ""),
     )
     return EpisodeResult(episode_row(trajectory, facts), flow_row(trajectory, facts), trajectory)
 

@@ -20,8 +20,9 @@ from idas_sumo.evaluation.metrics import (
     TRAJECTORY_COLUMNS,
     summary_rows,
 )
-from idas_sumo.evaluation.policies import LEARNED_METHODS, POLICY_DIR, resolve_policy
+from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, POLICY_DIR, resolve_policy
 from idas_sumo.evaluation.protocol import (
+    DEFAULT_SUITE_SIZE,
     EpisodeResult,
     EvalConfig,
     EvalJob,
@@ -32,6 +33,13 @@ from idas_sumo.evaluation.protocol import (
     run_jobs,
     suite_cases,
 )
+from idas_sumo.evaluation.sweep import (
+    DRIVER_TYPE_COLUMNS,
+    TREND_COLUMNS,
+    driver_type_rows,
+    trend_rows,
+    verdict,
+)
 from idas_sumo.io_utils import atomic_open, output_directory, write_csv_atomic
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import MergeNet, read_merge_net
@@ -39,6 +47,10 @@ from idas_sumo.sim.netgen import MergeNet, read_merge_net
 log = logging.getLogger(__name__)
 SETTINGS_NAME = "settings.json"
 """Beside the CSVs: the settings that made them (methods, suite, seed, others, traffic, safety mask)."""
+DRIVER_TYPES_NAME = "driver_types.csv"
+"""The driver-types suite's merge times per method and b_type (evaluation/sweep.py)."""
+TREND_NAME = "driver_types_trend.csv"
+"""Its rank correlation of merge time against b_type, per method."""
 
 
 @dataclass(frozen=True)
@@ -46,7 +58,9 @@ class EvalRequest:
     net: Path
     methods: tuple[str, ...]
     suite: Suite = "paper"
-    scenarios: int = 100
+    scenarios: int | None = None
+    """Random scenarios of the paper suite, start offsets per b_type of the driver-types suite; None: the
+    suite's default (``DEFAULT_SUITE_SIZE``)."""
     seed: int = 0
     others: str | None = None
     """Method for every non-ego vehicle; None: the shipped IDAS policy if present, else IDM."""
@@ -85,6 +99,11 @@ class EvalOutput:
     """The directory the CSVs were written to."""
     summary: pd.DataFrame
     """The paper's table: one row per method (``summary.csv``)."""
+    verdicts: tuple[str, ...] = ()
+    """The driver-types suite: one line per method, the direction and rank correlation of merge time
+    against the merge car's b_type."""
+    written: tuple[str, ...] = ()
+    """The names of the files written into ``out``."""
 
 
 def run_evaluation(req: EvalRequest) -> EvalOutput:
@@ -97,6 +116,8 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
     if req.safety_mask is not None:
         eval_config = replace(eval_config, safety_mask=req.safety_mask)
     others_name = req.others or default_others()
+    if req.scenarios is None and req.suite in DEFAULT_SUITE_SIZE:
+        req = replace(req, scenarios=DEFAULT_SUITE_SIZE[req.suite])
     policies: dict[str, Policy] = {
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
     }
@@ -113,7 +134,10 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         if req.scenario_files:
             cases = file_cases(list(req.scenario_files), req.seed, speed_limits)
         else:
-            cases = suite_cases(req.suite, req.scenarios, req.seed, speed_limits, eval_config.traffic)
+            lengths = {"main": net.main.length_m, "merge": net.merge.length_m}
+            cases = suite_cases(
+                req.suite, req.scenarios or 0, req.seed, speed_limits, eval_config.traffic, lengths
+            )
         log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
         jobs = eval_jobs(cases, list(policies))
         episodes, flows, trajectories = [], [], []
@@ -135,13 +159,27 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         write_csv_atomic(episode_frame, out / "episodes.csv")
         write_csv_atomic(summary, out / "summary.csv")
         write_csv_atomic(pd.DataFrame(flows, columns=list(FLOW_COLUMNS)), out / "flow.csv")
+        written = ["episodes.csv", "summary.csv", "flow.csv"]
+        verdicts: list[str] = []
+        if req.suite == "driver-types" and not req.scenario_files:
+            sweep = pd.DataFrame(driver_type_rows(episode_frame), columns=list(DRIVER_TYPE_COLUMNS))
+            trends = trend_rows(episode_frame)
+            write_csv_atomic(sweep, out / DRIVER_TYPES_NAME)
+            write_csv_atomic(pd.DataFrame(trends, columns=list(TREND_COLUMNS)), out / TREND_NAME)
+            written += [DRIVER_TYPES_NAME, TREND_NAME]
+            labels = {m: METHOD_LABELS.get(m, m) for m in req.methods}
+            verdicts = [
+                verdict(row, labels[str(row["method"])], METHOD_LABELS.get(others_name, others_name))
+                for row in trends
+            ]
         with atomic_open(out / SETTINGS_NAME) as f:
             json.dump(_settings(req, others_name, eval_config), f, indent=2, default=str)
             f.write("\n")
         if req.trajectories:
             columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
             write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
-    return EvalOutput(out, summary)
+            written.append("trajectories.csv")
+    return EvalOutput(out, summary, tuple(verdicts), tuple(written))
 
 
 def _settings(req: EvalRequest, others: str, eval_config: EvalConfig) -> dict[str, object]:
