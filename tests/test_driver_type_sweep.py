@@ -114,8 +114,11 @@ def test_sweep_scenarios_reach_the_merging_zone_together_merge_car_not_ahead() -
 
 
 def test_sweep_on_roads_too_short_is_an_input_error() -> None:
-    with pytest.raises(InputError, match="driver-types suite needs roads longer than"):
-        sweep_scenarios(1, 0, LIMITS, {"main": 250.0, "merge": 100.0})
+    # 170 m at most before the merge point, 6 m more for the merge car, a car length: 181 m, whatever the seed.
+    for seed in range(5):
+        with pytest.raises(InputError, match=r"needs roads of at least 181 m .* merge road is 180 m"):
+            sweep_scenarios(1, seed, LIMITS, {"main": 250.0, "merge": 180.0})
+    assert len(sweep_scenarios(1, 0, LIMITS, {"main": 181.0, "merge": 181.0})) == len(SWEEP_B_TYPES)
 
 
 def test_sweep_scenario_names() -> None:

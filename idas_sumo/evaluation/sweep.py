@@ -99,6 +99,14 @@ def sweep_scenarios(
 ) -> list[SweepCase]:
     """``n_offsets`` starts drawn from ``seed``, each with every b_type (offset by offset)."""
     speed_cap = min(speed_limits_mps["main"], speed_limits_mps["merge"])
+    # The farthest start any offset can draw, and a car length behind it to the road's start.
+    need_m = MAIN_DIST_TO_MERGE_M[1] + MERGE_LAG_M[1] + VEHICLE_LENGTH_M
+    for road in ("main", "merge"):
+        if road_lengths_m[road] < need_m:
+            raise InputError(
+                f"the driver-types suite needs roads of at least {need_m:g} m to the merge point; "
+                f"the net's {road} road is {road_lengths_m[road]:g} m"
+            )
     cases = []
     for k in range(n_offsets):
         rng = np.random.default_rng([seed, k])
@@ -109,12 +117,6 @@ def sweep_scenarios(
             "main": road_lengths_m["main"] - dist_main,
             "merge": road_lengths_m["merge"] - (dist_main + lag),
         }
-        for road, start in starts.items():
-            if start < VEHICLE_LENGTH_M:
-                raise InputError(
-                    f"the driver-types suite needs roads longer than {dist_main + lag + VEHICLE_LENGTH_M:.0f} m; "
-                    f"the net's {road} road is {road_lengths_m[road]:.0f} m"
-                )
         for b_type in b_types:
             vehicles = (
                 VehicleSpec(MAIN_CAR_ID, "main", round(starts["main"], 3), speed, MAIN_CAR_B_TYPE),
