@@ -408,6 +408,17 @@ def test_disk_full_during_train_is_one_line_naming_the_checkpoint(tmp_path: Path
     assert ".tmp" not in result.stdout, result.stdout
 
 
+@pytest.mark.sumo
+def test_disk_full_while_writing_csvs_names_the_file(tmp_path: Path) -> None:
+    """The write of a CSV names no file when the disk is full: the line said only "No space left"."""
+    disk = tmp_path / "disk"
+    out = disk / "out"
+    command = " ".join([sys.executable, "-m", "idas_sumo.cli", *eval_args(out, "--scenarios", "30")])
+    result = on_small_tmpfs(disk, "4k", command)
+    line = assert_one_line(result.stderr, 1, result.returncode, "No space left on device")
+    assert f"error: {out}/" in line and ".csv: No space left on device" in line, line
+
+
 # --- stale temp files ---------------------------------------------------------------------------------
 
 
