@@ -703,3 +703,23 @@ def test_stale_temp_files_in_the_net_cache_are_removed(tmp_path: Path) -> None:
     os.utime(old, (hours_ago, hours_ago))
     build_copies(NET, 2, cache_dir=tmp_path)
     assert not old.exists() and live.exists()
+
+
+def test_worker_count_is_bounded_in_the_python_api_too() -> None:
+    from idas_sumo.errors import InputError
+    from idas_sumo.sim.processes import WorkerProcesses, max_workers
+
+    for count in (0, max_workers() + 1, 1000):
+        with pytest.raises(InputError, match=r"workers: \d+ is not in \[1, "):
+            WorkerProcesses("builtins:print", count, "test worker")
+
+
+def test_workers_start_run_their_entry_and_stop() -> None:
+    """``builtins:print`` as the entry: each worker prints its connection and exits 0."""
+    from idas_sumo.sim.processes import WorkerProcesses
+
+    pool = WorkerProcesses("builtins:print", 2, "test worker", capture_stderr=True)
+    assert len(pool.conns) == 2
+    procs = list(pool.procs)
+    pool.close()
+    assert [p.returncode for p in procs] == [0, 0]

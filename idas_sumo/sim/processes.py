@@ -116,25 +116,29 @@ class WorkerProcesses:
 
     def _accept(self, server: socket.socket, authkey: bytes, deadline: float) -> Connection:
         """The next worker's authenticated connection, waited for in short slices (so a signal is
-        handled at once); an error if every worker died or none called back in time."""
+        handled at once); an error if every worker died or none called back in time. A caller
+        without the key (another local program) is dropped, and the wait goes on."""
         while True:
             try:
                 sock, _ = server.accept()
-                break
             except TimeoutError:
                 if all(p.poll() is not None for p in self.procs):
                     raise SimulationError(self._failed_to_start()) from None
                 if time.monotonic() > deadline:
                     raise SimulationError(f"{self._a} did not start within {CONNECT_TIMEOUT_S:g} s") from None
-        sock.setblocking(True)
-        conn = Connection(sock.detach())
-        try:
-            deliver_challenge(conn, authkey)
-            answer_challenge(conn, authkey)
-        except BaseException:
-            conn.close()
-            raise
-        return conn
+                continue
+            sock.setblocking(True)
+            conn = Connection(sock.detach())
+            try:
+                deliver_challenge(conn, authkey)
+                answer_challenge(conn, authkey)
+            except (AuthenticationError, EOFError, OSError):
+                conn.close()
+                continue
+            except BaseException:
+                conn.close()
+                raise
+            return conn
 
     def _failed_to_start(self) -> str:
         tail = self.stderr_tail(0) if self._stderr else ""
