@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as dt
+import hashlib
 import json
 import platform
 import shutil
@@ -76,7 +77,7 @@ def main() -> None:
     parser.add_argument("name", choices=("idas", "idas_v", "idas_direct"))
     parser.add_argument("--command", required=True, help="the train command that made the run")
     parser.add_argument("--stages", nargs="*", help="only these stages' metrics (default: all in the run)")
-    parser.add_argument("--note", default="", help="added to the metadata's note (e.g. a warm start's cost)")
+    parser.add_argument("--note", default="", help="how the run relates to the paper's budget and recipe")
     args = parser.parse_args()
     data = load_checkpoint(args.checkpoint)
     metrics = pd.read_csv(args.checkpoint.parent / "metrics.csv")
@@ -87,6 +88,7 @@ def main() -> None:
     meta = {
         "policy": args.name,
         "file": f"{args.name}.pt",
+        "file_sha256": hashlib.sha256(args.checkpoint.read_bytes()).hexdigest(),
         "made_with": args.command,
         "source_checkpoint": str(args.checkpoint),
         "stage_of_checkpoint": data.stage,
@@ -100,8 +102,7 @@ def main() -> None:
         "config": data.config.as_dict(),
         "packages": {**packages, "python": platform.python_version()},
         "shipped_on": dt.date.today().isoformat(),
-        "note": "Trained with a budget that fits one laptop session, far below the paper's 20k + 50k episodes; "
-        "see docs/results.md." + (f" {args.note}" if args.note else ""),
+        "note": args.note or "See docs/results.md for how this policy was trained.",
     }
     out = POLICY_DIR
     out.mkdir(exist_ok=True)
