@@ -24,7 +24,6 @@ Rows, all measured in this one run (the machine is shared: compare rows of one r
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import subprocess
 import sys
@@ -40,13 +39,12 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from env_throughput import make_scenario, run_env, run_raw
+from train_throughput import measure as train_pace
 
 from idas_sumo.env.engine import AgentBatch, MergeEngine
 from idas_sumo.env.scenario import Scenario
 from idas_sumo.resources import DEFAULT_NET, resolve_user_path
 from idas_sumo.sim.netgen import MergeNet, NetParams, generate_net, read_merge_net
-from idas_sumo.training.config import TrainConfig
-from idas_sumo.training.loop import run_training
 
 SIZES = (8, 32, 128, 512)
 LONG_ROAD_M = 4000.0
@@ -98,20 +96,6 @@ def run_engine(net: MergeNet, scenario: Scenario, copies: int, steps: int, seed:
     finally:
         engine.close()
     return timed
-
-
-def train_pace(net: Path, stage: str, episodes: int, init_from: str) -> tuple[float, float]:
-    """(episodes/s, agent-steps/s) of a real ``run_training`` with 2 workers (start-up included)."""
-    config = TrainConfig(stage=stage, checkpoint_every=10**9, init_from=init_from).with_overrides(
-        episodes=episodes, workers=2
-    )  # type: ignore[arg-type]
-    with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
-        run_training(net, config, Path(tmp) / "run", progress=False)
-        wall = time.perf_counter() - start
-        with (Path(tmp) / "run" / "metrics.csv").open(newline="") as f:
-            steps = sum(int(r["agent_steps"]) for r in csv.DictReader(f))
-    return episodes / wall, steps / wall
 
 
 def paper_eval_seconds(scenarios: int) -> float:
@@ -179,7 +163,7 @@ def main() -> None:
             ("from shipped idas.pt", str(resolve_user_path(SHIPPED_POLICY))),
         ):
             console.print(f"[dim]training, {stage} world, {label}...[/dim]")
-            eps, agent_steps = train_pace(net_path, stage, train_episodes, init)
+            eps, agent_steps = train_pace(net_path, stage, 2, train_episodes, init)
             pace[f"{stage}/{label}"] = eps
             table.add_row(
                 f"train, {label}, 2 workers",

@@ -25,9 +25,10 @@ from idas_sumo.training.config import TrainConfig
 from idas_sumo.training.loop import run_training
 
 
-def measure(net: Path, stage: str, workers: int, episodes: int) -> tuple[float, float]:
-    """(episodes/s, agent-steps/s) of one short run, start-up of workers included."""
-    config = TrainConfig(stage=stage, checkpoint_every=10**9).with_overrides(
+def measure(net: Path, stage: str, workers: int, episodes: int, init_from: str = "") -> tuple[float, float]:
+    """(episodes/s, agent-steps/s) of one short run, start-up of workers included; ``init_from``: the
+    checkpoint to start from (empty: random weights)."""
+    config = TrainConfig(stage=stage, checkpoint_every=10**9, init_from=init_from).with_overrides(
         episodes=episodes, workers=workers
     )  # type: ignore[arg-type]
     with tempfile.TemporaryDirectory() as tmp:

@@ -236,17 +236,22 @@ def _vehicles_at_start(
         if traffic.start_without_braking:
             speeds = _speeds_without_braking(positions, speeds)
         types = rng.uniform(*B_TYPE_RANGE, size=n)
-        for i in range(n):
-            vehicles.append(
-                VehicleSpec(
-                    id=f"{road}{i}",
-                    road=road,
-                    start_pos_m=round(float(positions[i]), 3),
-                    speed_mps=round(float(speeds[i]), 3),
-                    b_type=round(float(types[i]), 3),
-                )
-            )
+        vehicles += [_drawn_vehicle(road, i, positions[i], speeds[i], types[i]) for i in range(n)]
     return vehicles
+
+
+def _drawn_vehicle(
+    road: Road, index: int, start_m: float, speed_mps: float, b_type: float, depart_s: float = 0.0
+) -> VehicleSpec:
+    """A generated car, its numbers rounded to mm, mm/s and ms as scenario files write them."""
+    return VehicleSpec(
+        id=f"{road}{index}",
+        road=road,
+        start_pos_m=round(float(start_m), 3),
+        speed_mps=round(float(speed_mps), 3),
+        b_type=round(float(b_type), 3),
+        depart_s=round(float(depart_s), 3),
+    )
 
 
 def _staggered_vehicles(
@@ -296,17 +301,7 @@ def _staggered_vehicles(
                 speeds[i] = min(speeds[i], _fastest_start(gap, speed))
             departs[i] = t
             ahead = (VEHICLE_LENGTH_M, float(speeds[i]), t)
-        for i in range(n):
-            vehicles.append(
-                VehicleSpec(
-                    id=f"{road}{i}",
-                    road=road,
-                    start_pos_m=round(float(starts[i]), 3),
-                    speed_mps=round(float(speeds[i]), 3),
-                    b_type=round(float(types[i]), 3),
-                    depart_s=round(float(departs[i]), 3),
-                )
-            )
+        vehicles += [_drawn_vehicle(road, i, starts[i], speeds[i], types[i], departs[i]) for i in range(n)]
     return vehicles
 
 
