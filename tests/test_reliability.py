@@ -648,7 +648,7 @@ def test_sigkill_at_any_moment_then_resume_gives_the_same_weights(tmp_path: Path
         try:
             deadline = time.monotonic() + 60
             while proc.poll() is None and time.monotonic() < deadline:
-                # Not before the first checkpoint: then there is no run to resume (see the report).
+                # checkpoint.pt exists from the run's start (its starting point is saved first).
                 if (run / "checkpoint.pt").exists() and len(metrics.read_text().splitlines()) >= rows:
                     break
                 time.sleep(0.01)
@@ -665,6 +665,44 @@ def test_sigkill_at_any_moment_then_resume_gives_the_same_weights(tmp_path: Path
             assert torch.equal(got[net][name], tensor), f"{net}.{name} differs after the kills"
     assert len(metrics.read_text().splitlines()) == 13  # every episode once
     assert not [p for p in run.iterdir() if p.name.endswith(".tmp")]
+
+
+@pytest.mark.sumo
+def test_sigkill_before_the_first_periodic_checkpoint_then_resume_gives_the_same_weights(
+    tmp_path: Path,
+) -> None:
+    """A run saves its starting point as a checkpoint: SIGKILL after two episodes of a run whose first
+    periodic checkpoint is far away, then ``--resume``, ends with the weights of an uninterrupted run (the
+    run could not be resumed at all before)."""
+    import torch
+
+    config = tmp_path / "late.toml"
+    config.write_text(TINY_TOML)  # checkpoint_every = 1000: no periodic checkpoint in this run
+    args = ["--config", str(config), "--stage", "robot", "--episodes", "6"]
+    whole = tmp_path / "whole"
+    assert run_cli(*train_args(whole, *args), timeout=120).returncode == 0
+    expected = _final_weights(whole)
+
+    run = tmp_path / "run"
+    metrics = run / "metrics.csv"
+    proc = popen_cli(*train_args(run, *args))
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < deadline:
+            if metrics.exists() and len(metrics.read_text().splitlines()) >= 3:
+                break
+            time.sleep(0.01)
+        assert proc.poll() is None, f"finished before the kill: {proc.communicate()}"
+        proc.kill()
+    finally:
+        proc.communicate()
+    result = run_cli(*train_args(run, "--resume"), timeout=120)
+    assert result.returncode == 0, result.stderr
+    got = _final_weights(run)
+    for net in ("actor", "value", "central"):
+        for name, tensor in expected[net].items():
+            assert torch.equal(got[net][name], tensor), f"{net}.{name} differs after the kill"
+    assert len(metrics.read_text().splitlines()) == 7  # every episode once
 
 
 @pytest.mark.sumo

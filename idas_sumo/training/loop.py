@@ -440,6 +440,10 @@ def _train_stage(
     then re-raises KeyboardInterrupt."""
     stage_bar = _StageBar(bar, plan, state.episode)
     try:
+        if state.global_episode == 0 and not run.latest.exists():
+            # A fresh run's starting point is a checkpoint too: a kill (even SIGKILL) before the first
+            # periodic one then resumes from here to the weights of an uninterrupted run.
+            save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
         if validation is not None and validation.owed:
             validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
             stage_bar.validated(validation.best)
