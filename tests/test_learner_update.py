@@ -358,3 +358,24 @@ def test_next_row_reuse_gives_the_update_of_the_plain_next_observations(central:
     torch.testing.assert_close(a.value.advantage, b.value.advantage)
     for pa, pb in zip(learners[0].actor.parameters(), learners[1].actor.parameters(), strict=True):
         torch.testing.assert_close(pa, pb)
+
+
+def test_an_update_without_agent_steps_changes_nothing() -> None:
+    """A round whose learning cars never acted (late entries, short episodes) gives an empty batch: no step,
+    zero losses (Categorical on zero rows raised inside torch before)."""
+    full = make_batch()
+    empty = Batch(
+        **{
+            f.name: (None if (v := getattr(full, f.name)) is None else v[:0])
+            for f in dataclasses.fields(full)
+        }
+    )
+    learner = sgd_learner(central=True)
+    before = copy.deepcopy(learner.state_dict())
+    stats = learner.update(empty)
+    assert set(stats) == set(learner.update(full).keys()) and all(v == 0.0 for v in stats.values())
+    learner2 = sgd_learner(central=True)
+    learner2.update(empty)
+    for net in ("actor", "value", "central", "value_target", "central_target"):
+        for name, tensor in before[net].items():
+            assert torch.equal(learner2.state_dict()[net][name], tensor), f"{net}.{name} moved"

@@ -152,6 +152,20 @@ class ActorStep:
     """Global L2 norm of the actor's gradient before clipping."""
 
 
+UPDATE_STAT_NAMES: tuple[str, ...] = (
+    "actor_loss",
+    "v_loss",
+    "q_loss",
+    "entropy",
+    "adv_v_mean",
+    "adv_q_mean",
+    "v_mean",
+    "q_mean",
+    "actor_grad_norm",
+)
+"""The scalar metrics ``Learner.update`` returns, in metrics.csv's order."""
+
+
 @dataclass(frozen=True)
 class UpdateRecord:
     """What the last ``Learner.update`` regressed its critics to and stepped its actor with."""
@@ -289,6 +303,10 @@ class Learner:
         critics as they were before their step. What each part regressed to and handed on is kept in
         ``last_update``.
         """
+        if batch.action.numel() == 0:
+            # A round in which no learning car acted (each entered too late, or the episodes were cut
+            # short): nothing to learn from, so no step; the metrics row says so with zero losses.
+            return dict.fromkeys(UPDATE_STAT_NAMES, 0.0)
         b = self._checked(batch)
         value_step = self._update_value_critic(b)
         policy = self._policy(b)
