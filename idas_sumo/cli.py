@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--workers",
         type=_workers,
-        help=f"rollout processes, one SUMO each ({from_config('workers')})",
+        help=f"rollout processes, one SUMO each, at most the CPU count ({from_config('workers')})",
     )
     train.add_argument(
         "--copies",
@@ -243,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--seed",
         type=_seed,
-        help=f"the one seed everything random flows from ({from_config('seed')})",
+        help=f"the one seed everything random flows from, in [0, 2^31) ({from_config('seed')})",
     )
     train.add_argument(
         "--safety-mask",
@@ -306,7 +306,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="evaluate this scenario TOML instead of a suite (repeatable; ego = its first vehicle)",
     )
     ev.add_argument(
-        "--seed", type=_seed, default=2019, help="scenario seed (default: %(default)s, not used in training)"
+        "--seed",
+        type=_seed,
+        default=2019,
+        help="scenario seed in [0, 2^31) (default: %(default)s, not used in training)",
     )
     ev.add_argument(
         "--others", help="method for every non-ego vehicle (default: shipped IDAS if present, else idm)"
@@ -337,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers",
         type=_workers,
         default=1,
-        help="processes sharing the episodes, one SUMO each (2 keeps both cores busy); "
+        help="processes sharing the episodes, one SUMO each, at most the CPU count (2 keeps both cores busy); "
         "results do not depend on it (default: %(default)s)",
     )
     ev.add_argument(
