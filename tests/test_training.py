@@ -762,3 +762,18 @@ def test_unguarded_script_trains_with_two_workers(net_path: Path, tmp_path: Path
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.count("trained once") == 1
     assert len(read_metrics(tmp_path / "run")) == 2
+
+
+def test_validation_criterion_ranks_by_return_or_by_success_first() -> None:
+    from idas_sumo.training.config import ConfigValueError, TrainConfig
+    from idas_sumo.training.validation import ValidationScore, validation_key
+
+    safe = ValidationScore(joint_return=40.0, perfect_rate=0.1, success_rate=0.95, mean_end_time_s=27.0)
+    fast = ValidationScore(joint_return=60.0, perfect_rate=0.2, success_rate=0.70, mean_end_time_s=30.0)
+    assert validation_key(fast, "joint_return") > validation_key(safe, "joint_return")
+    assert validation_key(safe, "success_then_return") > validation_key(fast, "success_then_return")
+    tie = ValidationScore(joint_return=45.0, perfect_rate=0.1, success_rate=0.95, mean_end_time_s=27.0)
+    assert validation_key(tie, "success_then_return") > validation_key(safe, "success_then_return")
+    assert TrainConfig().validation_criterion == "joint_return"
+    with pytest.raises(ConfigValueError, match="validation_criterion"):
+        TrainConfig(validation_criterion="speed")  # type: ignore[arg-type]

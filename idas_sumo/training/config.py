@@ -20,9 +20,21 @@ from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 from idas_sumo.sim.multinet import MAX_COPIES
 
-__all__ = ["RESUME_FIELDS", "STAGES", "Stage", "TrainConfig", "load_train_config", "train_config_from_dict"]
+__all__ = [
+    "RESUME_FIELDS",
+    "STAGES",
+    "VALIDATION_CRITERIA",
+    "Stage",
+    "TrainConfig",
+    "ValidationCriterion",
+    "load_train_config",
+    "train_config_from_dict",
+]
 
 Stage = Literal["robot", "intelligent", "direct", "curriculum"]
+ValidationCriterion = Literal["joint_return", "success_then_return"]
+VALIDATION_CRITERIA: tuple[str, ...] = ("joint_return", "success_then_return")
+
 STAGES: tuple[str, ...] = ("robot", "intelligent", "direct", "curriculum")
 
 ROBOT_EPISODES = 20_000  # paper: stage 1, Robot World
@@ -99,6 +111,9 @@ class TrainConfig:
     """Held-out scenarios per validation, drawn from the stage's traffic generator."""
     validation_seed: int = 123
     """Seed of the held-out scenarios: apart from ``seed`` and from evaluation's 2019."""
+    validation_criterion: ValidationCriterion = "joint_return"
+    """What picks ``<stage>_best.pt``: 'joint_return' (the paper's objective) or 'success_then_return'
+    (ours: the success rate first, the joint return among equals)."""
     safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
     """Which car the safety mask follows in training and validation (``EnvConfig.safety_mask``):
     'own_lane' (the paper) or 'merge_aware' (ours, a shield; the shipped policies were trained with it)."""
@@ -122,6 +137,11 @@ class TrainConfig:
             raise ConfigValueError(f"copies must be in [1, {MAX_COPIES}], got {self.copies}")
         if not self.max_episode_s > 0.0:
             raise ConfigValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+        if self.validation_criterion not in VALIDATION_CRITERIA:
+            raise ConfigValueError(
+                f"validation_criterion must be one of {', '.join(VALIDATION_CRITERIA)}, "
+                f"got {self.validation_criterion!r}"
+            )
         if self.stage not in STAGES:
             raise ConfigValueError(f"stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
         if self.robot_traffic.max_controlled < 1:

@@ -34,10 +34,16 @@ from idas_sumo.io_utils import ensure_writable_dir
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.netgen import read_merge_net
 from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint, save_checkpoint
-from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig
+from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig, ValidationCriterion
 from idas_sumo.training.curriculum import StagePlan, plan_stages
 from idas_sumo.training.metrics import METRICS_NAME, TENSORBOARD_DIR, MetricsSink
-from idas_sumo.training.validation import VALIDATION_COLUMNS, score_episodes, validation_tasks
+from idas_sumo.training.validation import (
+    VALIDATION_COLUMNS,
+    ValidationScore,
+    score_episodes,
+    validation_key,
+    validation_tasks,
+)
 from idas_sumo.training.workers import EpisodeTask, RolloutWorkers, make_workers
 
 __all__ = ["CHECKPOINT_NAME", "run_training", "stored_config"]
@@ -365,7 +371,8 @@ class _StageValidation:
     tasks: list[EpisodeTask]
     sink: MetricsSink
     best_path: Path
-    best: float = float("-inf")
+    criterion: ValidationCriterion = "joint_return"
+    best: tuple[float, float] = (float("-inf"), float("-inf"))
     validated_at: int = -1
     """The stage episode of the last validation."""
     owed: bool = False
@@ -385,12 +392,16 @@ class _StageValidation:
         tasks = validation_tasks(
             plan.traffic, run.speed_limits, config.validation_scenarios, config.validation_seed
         )
-        validation = cls(workers, tasks, sink, run.out_dir / f"{plan.name}_best.pt")
+        validation = cls(
+            workers, tasks, sink, run.out_dir / f"{plan.name}_best.pt", config.validation_criterion
+        )
         if resumed is not None:
             # The stage's validations before the checkpoint: the best so far, and whether the
             # checkpoint's own episode was validated already (then not twice).
             kept = [r for r in sink.kept if r["stage"] == plan.name]
-            validation.best = max((float(r["joint_return"]) for r in kept), default=float("-inf"))
+            validation.best = max(
+                (validation_key(_score_of(r), validation.criterion) for r in kept), default=validation.best
+            )
             if kept and int(kept[-1]["episode"]) == resumed.episode:
                 validation.validated_at = resumed.episode
             validated_to = (
@@ -399,12 +410,18 @@ class _StageValidation:
             validation.owed = _passed_multiple(validated_to, resumed.global_episode, config.validate_every)
         return validation
 
+    @property
+    def best_return(self) -> float:
+        """The joint return of the best validation so far (what the progress bar shows)."""
+        return self.best[0] if self.criterion == "joint_return" else self.best[1]
+
     def run(self, learner: Learner, checkpoint: TrainingCheckpoint, wall_s: float) -> None:
         """Score the greedy policy; save ``checkpoint`` as ``best_path`` when it beats the best so far."""
         score = score_episodes([e.stats for e in self.workers.run(learner, self.tasks)])
-        improved = score.joint_return > self.best
+        key = validation_key(score, self.criterion)
+        improved = key > self.best
         if improved:
-            self.best = score.joint_return
+            self.best = key
             save_checkpoint(self.best_path, dataclasses.replace(checkpoint, validation=score))
         self.validated_at = checkpoint.episode
         row = {
@@ -424,6 +441,11 @@ class _StageValidation:
             100 * score.perfect_rate,
             " (best so far)" if improved else "",
         )
+
+
+def _score_of(row: dict[str, str]) -> ValidationScore:
+    """A validation.csv row's score."""
+    return ValidationScore(**{f.name: float(row[f.name]) for f in dataclasses.fields(ValidationScore)})
 
 
 def _train_stage(
@@ -446,7 +468,7 @@ def _train_stage(
             save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
         if validation is not None and validation.owed:
             validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
-            stage_bar.validated(validation.best)
+            stage_bar.validated(validation.best_return)
         while state.episode < plan.episodes:
             _round(run, plan, learner, state, workers, sink, validation, stage_bar)
     except KeyboardInterrupt:
@@ -499,7 +521,7 @@ def _round(
             log.info("checkpoint at episode %d (%s)", state.global_episode, plan.name)
         if validation is not None and validation_due:
             validation.run(learner, checkpoint, run.wall_s())
-            stage_bar.validated(validation.best)
+            stage_bar.validated(validation.best_return)
 
 
 def _episode_tasks(run: _Run, plan: StagePlan, state: _RunState) -> list[EpisodeTask]:

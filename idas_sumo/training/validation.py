@@ -15,9 +15,10 @@ import numpy as np
 
 from idas_sumo.agents.rollout import EpisodeStats
 from idas_sumo.env.scenario import Road, TrafficConfig, generate_scenario
+from idas_sumo.training.config import ValidationCriterion
 from idas_sumo.training.workers import EpisodeTask
 
-__all__ = ["VALIDATION_COLUMNS", "ValidationScore", "score_episodes", "validation_tasks"]
+__all__ = ["VALIDATION_COLUMNS", "ValidationScore", "score_episodes", "validation_key", "validation_tasks"]
 
 VALIDATION_COLUMNS: tuple[str, ...] = (
     "stage",
@@ -56,6 +57,14 @@ def validation_tasks(
         )
         for i in range(scenarios)
     ]
+
+
+def validation_key(score: ValidationScore, criterion: ValidationCriterion) -> tuple[float, float]:
+    """What ranks validations (larger is better). 'joint_return': the paper's objective, the return
+    alone. 'success_then_return' (ours): the success rate first, the joint return among equals."""
+    if criterion == "success_then_return":
+        return (score.success_rate, score.joint_return)
+    return (score.joint_return, 0.0)
 
 
 def score_episodes(stats: Sequence[EpisodeStats]) -> ValidationScore:
