@@ -621,6 +621,39 @@ def test_more_bad_inputs_are_one_line_exit_2(tmp_path: Path) -> None:
 KILL_TOML = TINY_TOML.replace("checkpoint_every = 1000", "checkpoint_every = 1")
 
 
+def _kill_once_metrics_reach(command: list[str], metrics: Path, lines: int) -> None:
+    """Start ``command`` and SIGKILL it (no cleanup at all) once ``metrics`` holds ``lines`` lines."""
+    proc = popen_cli(*command)
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < deadline:
+            # checkpoint.pt exists from the run's start (its starting point is saved first).
+            if metrics.exists() and len(metrics.read_text().splitlines()) >= lines:
+                break
+            time.sleep(0.01)
+        assert proc.poll() is None, f"finished before the kill: {proc.communicate()}"
+        proc.kill()
+    finally:
+        proc.communicate()
+
+
+def _uninterrupted_run(tmp_path: Path, toml: str, episodes: int) -> tuple[list[str], dict[str, Any]]:
+    """The robot-stage train arguments for ``toml`` and the final weights of a run never stopped."""
+    config = tmp_path / "run.toml"
+    config.write_text(toml)
+    args = ["--config", str(config), "--stage", "robot", "--episodes", str(episodes)]
+    assert run_cli(*train_args(tmp_path / "whole", *args), timeout=120).returncode == 0
+    return args, _final_weights(tmp_path / "whole")
+
+
+def _assert_same_weights(got: dict[str, Any], expected: dict[str, Any]) -> None:
+    import torch
+
+    for net in ("actor", "value", "central"):
+        for name, tensor in expected[net].items():
+            assert torch.equal(got[net][name], tensor), f"{net}.{name} differs after the kill"
+
+
 def _final_weights(run: Path) -> dict[str, Any]:
     import torch
 
@@ -631,38 +664,16 @@ def _final_weights(run: Path) -> dict[str, Any]:
 def test_sigkill_at_any_moment_then_resume_gives_the_same_weights(tmp_path: Path) -> None:
     """SIGKILL (no cleanup at all) at several points of a run, each followed by ``--resume``: the run
     ends with the weights of an uninterrupted run with the same seed."""
-    import torch
-
-    config = tmp_path / "kill.toml"
-    config.write_text(KILL_TOML)
-    args = ["--config", str(config), "--stage", "robot", "--episodes", "12"]
-    whole = tmp_path / "whole"
-    assert run_cli(*train_args(whole, *args), timeout=120).returncode == 0
-    expected = _final_weights(whole)
-
+    args, expected = _uninterrupted_run(tmp_path, KILL_TOML, episodes=12)
     run = tmp_path / "run"
     metrics = run / "metrics.csv"
     command = train_args(run, *args)
     for rows in (2, 5, 9):  # after 1, 4 and 8 episodes (a header line, then one row per episode)
-        proc = popen_cli(*command)
-        try:
-            deadline = time.monotonic() + 60
-            while proc.poll() is None and time.monotonic() < deadline:
-                # checkpoint.pt exists from the run's start (its starting point is saved first).
-                if (run / "checkpoint.pt").exists() and len(metrics.read_text().splitlines()) >= rows:
-                    break
-                time.sleep(0.01)
-            assert proc.poll() is None, f"finished before the kill: {proc.communicate()}"
-            proc.kill()
-        finally:
-            proc.communicate()
+        _kill_once_metrics_reach(command, metrics, rows)
         command = train_args(run, "--resume")
     result = run_cli(*command, timeout=120)
     assert result.returncode == 0, result.stderr
-    got = _final_weights(run)
-    for net in ("actor", "value", "central"):
-        for name, tensor in expected[net].items():
-            assert torch.equal(got[net][name], tensor), f"{net}.{name} differs after the kills"
+    _assert_same_weights(_final_weights(run), expected)
     assert len(metrics.read_text().splitlines()) == 13  # every episode once
     assert not [p for p in run.iterdir() if p.name.endswith(".tmp")]
 
@@ -674,34 +685,14 @@ def test_sigkill_before_the_first_periodic_checkpoint_then_resume_gives_the_same
     """A run saves its starting point as a checkpoint: SIGKILL after two episodes of a run whose first
     periodic checkpoint is far away, then ``--resume``, ends with the weights of an uninterrupted run (the
     run could not be resumed at all before)."""
-    import torch
-
-    config = tmp_path / "late.toml"
-    config.write_text(TINY_TOML)  # checkpoint_every = 1000: no periodic checkpoint in this run
-    args = ["--config", str(config), "--stage", "robot", "--episodes", "6"]
-    whole = tmp_path / "whole"
-    assert run_cli(*train_args(whole, *args), timeout=120).returncode == 0
-    expected = _final_weights(whole)
-
+    # TINY_TOML: checkpoint_every = 1000, so no periodic checkpoint in this run.
+    args, expected = _uninterrupted_run(tmp_path, TINY_TOML, episodes=6)
     run = tmp_path / "run"
     metrics = run / "metrics.csv"
-    proc = popen_cli(*train_args(run, *args))
-    try:
-        deadline = time.monotonic() + 60
-        while proc.poll() is None and time.monotonic() < deadline:
-            if metrics.exists() and len(metrics.read_text().splitlines()) >= 3:
-                break
-            time.sleep(0.01)
-        assert proc.poll() is None, f"finished before the kill: {proc.communicate()}"
-        proc.kill()
-    finally:
-        proc.communicate()
+    _kill_once_metrics_reach(train_args(run, *args), metrics, 3)  # after 2 episodes
     result = run_cli(*train_args(run, "--resume"), timeout=120)
     assert result.returncode == 0, result.stderr
-    got = _final_weights(run)
-    for net in ("actor", "value", "central"):
-        for name, tensor in expected[net].items():
-            assert torch.equal(got[net][name], tensor), f"{net}.{name} differs after the kill"
+    _assert_same_weights(_final_weights(run), expected)
     assert len(metrics.read_text().splitlines()) == 7  # every episode once
 
 
