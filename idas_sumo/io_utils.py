@@ -7,6 +7,7 @@ covers), with the permissions of an ordinary new file.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import itertools
 import os
 import tempfile
@@ -174,3 +175,12 @@ def ensure_writable_dir(out: Path, flag: str = "--out") -> Path:
     if not os.access(out, os.W_OK):
         raise InputError(f"{flag} {out}: directory is not writable")
     return out
+
+
+def file_digest(path: Path) -> str:
+    """The SHA-256 (hex) of a file's bytes, as ``sha256sum`` prints it."""
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

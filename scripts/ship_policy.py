@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as dt
-import hashlib
 import json
 import platform
 import shutil
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from idas_sumo.io_utils import file_digest
 from idas_sumo.resources import POLICY_DIR
 from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint
 
@@ -88,7 +88,7 @@ def main() -> None:
     meta = {
         "policy": args.name,
         "file": f"{args.name}.pt",
-        "file_sha256": hashlib.sha256(args.checkpoint.read_bytes()).hexdigest(),
+        "file_sha256": file_digest(args.checkpoint),
         "made_with": args.command,
         "source_checkpoint": str(args.checkpoint),
         "stage_of_checkpoint": data.stage,

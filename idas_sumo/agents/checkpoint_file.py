@@ -41,6 +41,7 @@ from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.config import from_dict
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.errors import InputError
+from idas_sumo.io_utils import file_digest
 
 __all__ = [
     "CHECKPOINT_KIND",
@@ -48,7 +49,6 @@ __all__ = [
     "TRAIN_CHECKPOINT_FORMAT",
     "PolicyCheckpoint",
     "content_digest",
-    "file_digest",
     "load_actor",
 ]
 
@@ -190,15 +190,6 @@ def content_digest(data: dict[str, Any]) -> str:
             h.update(f"{type(value).__name__}:{value!r};".encode())
 
     feed({k: v for k, v in data.items() if k != CHECKSUM_KEY})
-    return h.hexdigest()
-
-
-def file_digest(path: Path) -> str:
-    """The SHA-256 (hex) of a file's bytes, as ``sha256sum`` prints it."""
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
     return h.hexdigest()
 
 

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
-from idas_sumo.io_utils import atomic_open, atomic_path, remove_stale_temps
+from idas_sumo.io_utils import atomic_open, atomic_path, file_digest, remove_stale_temps
 from idas_sumo.sim.netgen import MergeNet, RoadInfo, read_merge_net, sumo_binary
 
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
@@ -241,7 +241,7 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
     digest = out.with_name(out.name + ".sha256")
     # A cached net is used only with the digest written when it was built and checked: a truncated
     # or edited cache file was blamed on the user's net, or ran silently with other roads.
-    if out.is_file() and digest.is_file() and digest.read_text().strip() == _file_sha256(out):
+    if out.is_file() and digest.is_file() and digest.read_text().strip() == file_digest(out):
         return out
     workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_multinet_"))
     try:
@@ -249,14 +249,10 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
             _build(src, copies, tmp, workdir)
             check_copies(src, tmp, copies)
             with atomic_open(digest) as f:
-                f.write(_file_sha256(tmp) + "\n")
+                f.write(file_digest(tmp) + "\n")
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     return out
-
-
-def _file_sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 # -- the merge network, K times ---------------------------------------------------------------------
