@@ -178,17 +178,18 @@ class UpdateRecord:
     def stats(self) -> dict[str, float]:
         """The scalar metrics ``update`` returns (one row of metrics.csv columns)."""
         central = self.central
-        return {
-            "actor_loss": self.actor.loss,
-            "v_loss": self.value.loss,
-            "q_loss": 0.0 if central is None else central.loss,
-            "entropy": self.actor.entropy,
-            "adv_v_mean": float(self.value.advantage.mean().item()),
-            "adv_q_mean": 0.0 if central is None else float(central.advantage.mean().item()),
-            "v_mean": float(self.value.prediction.mean().item()),
-            "q_mean": 0.0 if central is None else float(central.prediction.mean().item()),
-            "actor_grad_norm": self.actor.grad_norm,
-        }
+        values = (
+            self.actor.loss,
+            self.value.loss,
+            0.0 if central is None else central.loss,
+            self.actor.entropy,
+            float(self.value.advantage.mean().item()),
+            0.0 if central is None else float(central.advantage.mean().item()),
+            float(self.value.prediction.mean().item()),
+            0.0 if central is None else float(central.prediction.mean().item()),
+            self.actor.grad_norm,
+        )
+        return dict(zip(UPDATE_STAT_NAMES, values, strict=True))
 
 
 @dataclass(frozen=True)
@@ -372,7 +373,7 @@ class Learner:
         where[cut_off] = n + torch.arange(cut_off.numel(), device=next_row.device)
         extra_obs = b.next_obs[cut_off]
         bank = torch.cat([values, self.value(extra_obs)])
-        target_bank = self.value_target(torch.cat([b.obs, extra_obs]))
+        target_bank = torch.cat([self.value_target(b.obs), self.value_target(extra_obs)])
         ended = where < 0
         where = where.clamp(min=0)
         zero = torch.zeros((), dtype=values.dtype, device=values.device)
