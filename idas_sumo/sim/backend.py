@@ -89,6 +89,19 @@ def release_slot(owner: _SlotHolder) -> None:
         hold_slot(None)
 
 
+def end_run(owner: _SlotHolder, running: bool, workdir: Path | None) -> None:
+    """What closing an in-process simulation takes, for either backend: ``libsumo.close`` when a run is
+    open (errors ignored: the run may have died), the slot freed, the run's temp folder removed."""
+    if running:
+        import libsumo
+
+        with contextlib.suppress(Exception):
+            libsumo.close()
+    release_slot(owner)
+    if workdir is not None:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
 def start_or_load(args: Sequence[str], running: bool, net_path: object) -> None:
     """``libsumo.start`` (or ``load`` when a run is open) with SUMO's own reason on failure (bad input)."""
     import libsumo
@@ -263,16 +276,9 @@ class SumoBackend:
         self._released = set()
 
     def close(self) -> None:
-        if self._running:
-            import libsumo
-
-            with contextlib.suppress(Exception):
-                libsumo.close()
-            self._running = False
-        release_slot(self)
-        if self._workdir is not None:
-            shutil.rmtree(self._workdir, ignore_errors=True)
-            self._workdir = None
+        end_run(self, self._running, self._workdir)
+        self._running = False
+        self._workdir = None
 
     @property
     def running(self) -> bool:

@@ -210,20 +210,9 @@ class BatchBackend:
         self._active_copies = len(scenarios)
 
     def close(self) -> None:
-        import shutil
-
-        if self._running:
-            import contextlib
-
-            import libsumo
-
-            with contextlib.suppress(Exception):
-                libsumo.close()
-            self._running = False
-        _backend.release_slot(self)
-        if self._workdir is not None:
-            shutil.rmtree(self._workdir, ignore_errors=True)
-            self._workdir = None
+        _backend.end_run(self, self._running, self._workdir)
+        self._running = False
+        self._workdir = None
 
     @property
     def running(self) -> bool:
