@@ -29,7 +29,7 @@ from idas_sumo.resources import (
     resolve_user_path,
 )
 from idas_sumo.sim.multinet import MAX_COPIES
-from idas_sumo.sim.netgen import NetParams
+from idas_sumo.sim.netgen import PRIORITIES, NetParams
 from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 
 if TYPE_CHECKING:
@@ -201,6 +201,12 @@ def build_parser() -> argparse.ArgumentParser:
             default=getattr(defaults, field),
             help=f"{what} (default: %(default)s)",
         )
+    net.add_argument(
+        "--priority",
+        choices=PRIORITIES,
+        default=defaults.priority,
+        help="right of way: the main road's, or equal (a zipper junction) (default: %(default)s)",
+    )
 
     train = sub.add_parser("train", help="train IDAS (robot world, intelligent world, or both)")
     train.add_argument(
@@ -361,7 +367,7 @@ def _netgen(args: argparse.Namespace) -> int:
     from idas_sumo.env.scenario import TrafficConfig
     from idas_sumo.sim.netgen import describe, generate_net, read_merge_net
 
-    params = NetParams(**{field: getattr(args, field) for field in NETGEN_FLAGS})
+    params = NetParams(**{field: getattr(args, field) for field in NETGEN_FLAGS}, priority=args.priority)
     path = generate_net(args.out, params)
     net = read_merge_net(path)
     print(describe(net))

@@ -3,6 +3,12 @@
 Layout: the main road runs straight into the merge junction; the merge road joins it at ``angle_deg``;
 one outgoing road leaves the junction. Every edge carries an explicit ``length`` so the roads measure
 exactly what was asked to the merge point (netconvert would otherwise trim them at the junction).
+
+Priority: ``main`` gives the main road right of way (a priority junction, main edge priority above the
+merge edge's); ``equal`` gives both roads the same edge priority on a zipper junction. Equal edge
+priorities alone are not enough: on a priority junction netconvert then ranks the roads by geometry and
+the straight main road keeps its right of way (connection states M and m); a zipper junction makes both
+connections Z (SUMO's drivers take turns).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import os
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError
 from idas_sumo.io_utils import atomic_open, atomic_path
@@ -28,6 +35,11 @@ OUT_EDGE = "out"
 MERGE_JUNCTION = "merge_point"
 MAIN_EDGE_PRIORITY = 2  # SUMO road priority: the main road has right of way at the junction
 MERGE_EDGE_PRIORITY = 1
+PRIORITIES = ("main", "equal")
+"""``NetParams.priority``: the main road has right of way, or neither road has (a zipper junction)."""
+LENGTH_BOUNDS_M = (20.0, 10_000.0)
+SPEED_BOUNDS_MPS = (1.0, 70.0)
+ANGLE_BOUNDS_DEG = (5.0, 90.0)
 
 
 @dataclass(frozen=True)
@@ -42,18 +54,25 @@ class NetParams:
     out_speed_mps: float = 20.0
     angle_deg: float = 30.0
     """Angle between the merge road and the main road."""
+    priority: str = "main"
+    """Who has right of way at the merge: ``main`` (the paper's net) or ``equal`` (a zipper junction)."""
 
     def __post_init__(self) -> None:
+        lo, hi = LENGTH_BOUNDS_M
         for name in ("main_length_m", "merge_length_m", "out_length_m"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and 20.0 <= value <= 10_000.0):
-                raise InputError(f"--{_flag(name)}: {value} m is outside [20, 10000] m")
+            if not (math.isfinite(value) and lo <= value <= hi):
+                raise InputError(f"--{_flag(name)}: {value} m is outside [{lo:g}, {hi:g}] m")
+        lo, hi = SPEED_BOUNDS_MPS
         for name in ("main_speed_mps", "merge_speed_mps", "out_speed_mps"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and 1.0 <= value <= 70.0):
-                raise InputError(f"--{_flag(name)}: {value} m/s is outside [1, 70] m/s")
-        if not (math.isfinite(self.angle_deg) and 5.0 <= self.angle_deg <= 90.0):
-            raise InputError(f"--angle: {self.angle_deg} degrees is outside [5, 90]")
+            if not (math.isfinite(value) and lo <= value <= hi):
+                raise InputError(f"--{_flag(name)}: {value} m/s is outside [{lo:g}, {hi:g}] m/s")
+        lo, hi = ANGLE_BOUNDS_DEG
+        if not (math.isfinite(self.angle_deg) and lo <= self.angle_deg <= hi):
+            raise InputError(f"--angle: {self.angle_deg} degrees is outside [{lo:g}, {hi:g}]")
+        if self.priority not in PRIORITIES:
+            raise InputError(f"--priority: {self.priority!r} is not one of {', '.join(PRIORITIES)}")
 
 
 def _flag(field_name: str) -> str:
@@ -69,6 +88,8 @@ def sumo_binary(name: str) -> Path:
 
 def _plain_xml(params: NetParams) -> tuple[str, str]:
     a = math.radians(params.angle_deg)
+    equal = params.priority == "equal"
+    merge_priority = MAIN_EDGE_PRIORITY if equal else MERGE_EDGE_PRIORITY
     nodes = [
         ("main_start", -params.main_length_m, 0.0, "priority"),
         (
@@ -77,7 +98,7 @@ def _plain_xml(params: NetParams) -> tuple[str, str]:
             -params.merge_length_m * math.sin(a),
             "priority",
         ),
-        (MERGE_JUNCTION, 0.0, 0.0, "priority"),
+        (MERGE_JUNCTION, 0.0, 0.0, "zipper" if equal else "priority"),
         ("out_end", params.out_length_m, 0.0, "priority"),
     ]
     node_xml = (
@@ -100,7 +121,7 @@ def _plain_xml(params: NetParams) -> tuple[str, str]:
             MERGE_JUNCTION,
             params.merge_length_m,
             params.merge_speed_mps,
-            MERGE_EDGE_PRIORITY,
+            merge_priority,
         ),
         (OUT_EDGE, MERGE_JUNCTION, "out_end", params.out_length_m, params.out_speed_mps, MAIN_EDGE_PRIORITY),
     ]
@@ -183,8 +204,9 @@ class MergeNet:
     junction_id: str
 
 
-def read_merge_net(path: str | Path) -> MergeNet:
-    """Read and validate a merge network; every problem is one InputError naming the file."""
+def load_sumo_net(path: str | Path) -> Any:
+    """A SUMO network file read by sumolib (junction-internal lanes included); every problem with the
+    file is one InputError naming it."""
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: net file not found")
@@ -205,9 +227,15 @@ def read_merge_net(path: str | Path) -> MergeNet:
     import sumolib
 
     try:
-        net = sumolib.net.readNet(str(p), withInternal=True)
+        return sumolib.net.readNet(str(p), withInternal=True)
     except Exception as err:  # sumolib raises many types on broken nets
         raise InputError(f"{p}: sumolib cannot read the network ({err})") from None
+
+
+def read_merge_net(path: str | Path) -> MergeNet:
+    """Read and validate a merge network; every problem is one InputError naming the file."""
+    p = Path(path)
+    net = load_sumo_net(p)
     junctions = [
         n for n in net.getNodes() if len([e for e in n.getIncoming() if e.getFunction() != "internal"]) >= 2
     ]
@@ -241,10 +269,11 @@ def read_merge_net(path: str | Path) -> MergeNet:
             raise InputError(
                 f"{p}: no connection from {edge.getID()!r} to {out_edge.getID()!r}: route not drivable"
             )
-    # Main = the road with right of way: higher SUMO priority, then the higher speed limit.
-    main_edge, merge_edge = sorted(incoming, key=lambda e: (e.getPriority(), e.getSpeed()), reverse=True)
+    # Main = the road with right of way: higher SUMO priority, then the higher speed limit, then the
+    # straighter road (a zipper merge with equal limits).
+    main_edge, merge_edge = sorted(incoming, key=lambda e: road_rank(e, out_edge), reverse=True)
 
-    def info(edge: sumolib.net.edge.Edge) -> RoadInfo:
+    def info(edge: Any) -> RoadInfo:
         via_length = 0.0
         connections = edge.getConnections(out_edge) if edge is not out_edge else []
         if connections and connections[0].getViaLaneID():
@@ -256,6 +285,24 @@ def read_merge_net(path: str | Path) -> MergeNet:
     return MergeNet(p, info(main_edge), info(merge_edge), info(out_edge), junction.getID())
 
 
+def turn_deg(from_lane: Any, to_lane: Any) -> float:
+    """How far a car turns going from the end of ``from_lane`` onto ``to_lane``, degrees in [0, 180]."""
+    (ax, ay), (bx, by) = from_lane.getShape()[-2:]
+    (cx, cy), (dx, dy) = to_lane.getShape()[:2]
+    turn = math.degrees(math.atan2(dy - cy, dx - cx) - math.atan2(by - ay, bx - ax))
+    return abs((turn + 180.0) % 360.0 - 180.0)
+
+
+def road_rank(edge: Any, out_edge: Any) -> tuple[int, float, float]:
+    """Sort key of an incoming road at a merge, highest first for the main road: its SUMO priority,
+    its speed limit, then how straight it runs on into ``out_edge``."""
+    return (
+        int(edge.getPriority()),
+        float(edge.getSpeed()),
+        -turn_deg(edge.getLanes()[0], out_edge.getLanes()[0]),
+    )
+
+
 def describe(net: MergeNet) -> str:
     return (
         f"{net.path}: main {net.main.edge_id} {net.main.length_m:.1f} m @ {net.main.speed_limit_mps:g} m/s, "
@@ -264,4 +311,15 @@ def describe(net: MergeNet) -> str:
     )
 
 
-__all__ = ["MergeNet", "NetParams", "RoadInfo", "describe", "generate_net", "read_merge_net"]
+__all__ = [
+    "PRIORITIES",
+    "MergeNet",
+    "NetParams",
+    "RoadInfo",
+    "describe",
+    "generate_net",
+    "load_sumo_net",
+    "read_merge_net",
+    "road_rank",
+    "turn_deg",
+]
