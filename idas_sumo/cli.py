@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, NoReturn
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS
 from idas_sumo.errors import IdasError, InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
+from idas_sumo.nets_cli import add_nets_parser, run_nets
 from idas_sumo.resources import (
     DEFAULT_NET_NAME,
     DEFAULT_TRAIN_CONFIG,
@@ -207,6 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=defaults.priority,
         help="right of way: the main road's, or equal (a zipper junction) (default: %(default)s)",
     )
+    add_nets_parser(sub)
 
     train = sub.add_parser("train", help="train IDAS (robot world, intelligent world, or both)")
     train.add_argument(
@@ -607,7 +609,7 @@ def _in_main_thread() -> bool:
 
 
 def _run(argv: Sequence[str] | None, late: _LateSignals | None) -> int:
-    handlers = {"netgen": _netgen, "train": _train, "evaluate": _evaluate, "plot": _plot}
+    handlers = {"netgen": _netgen, "nets": run_nets, "train": _train, "evaluate": _evaluate, "plot": _plot}
     try:
         try:
             args = build_parser().parse_args(argv)
