@@ -8,6 +8,7 @@ copy and with several.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import zlib
@@ -164,12 +165,15 @@ def test_relations_never_cross_copies() -> None:
     road = [MAIN, MAIN, MERGE, OUT]
     dist = [100.0, 80.0, 90.0, -10.0]
     one = _snapshot(road, dist, None)
-    same, other = lane_relations(one.road, np.array([0]))
+    nb, same, other = lane_relations(one, np.array([0]))
+    assert nb.cols[0].tolist() == [0, 1, 2, 3]
     assert same[0].tolist() == [False, True, False, True]
     assert other[0].tolist() == [False, False, True, False]
     # The same cars, but the leader and the merge-road car drive in another copy of the merge.
     split = _snapshot(road, dist, [0, 1, 1, 0])
-    same, other = lane_relations(split.road, np.array([0]), split.copy)
+    nb, same, other = lane_relations(split, np.array([0]))
+    # Interleaved copies: every vehicle is a column, the other copy's masked out.
+    assert nb.cols[0].tolist() == [0, 1, 2, 3]
     assert same[0].tolist() == [False, False, False, True]
     assert other[0].tolist() == [False, False, False, False]
     assert leaders(one, np.array([0]))[0].tolist() == [1]
@@ -325,3 +329,49 @@ def test_rollouts_on_the_engine_match_the_single_episode_path(net_path: Path) ->
     stats = [g["stats"] for g in golden]
     assert any(s["timed_out"] for s in stats)
     assert any("finished" in s["end_reasons"].values() for s in stats)
+
+
+def test_copies_side_by_side_see_what_each_copy_alone_sees() -> None:
+    """Per-copy neighbourhoods (copies sorted, as the batch backend gives them) change no observation,
+    leader or other-road leader: each copy's rows equal those of that copy simulated alone."""
+    from idas_sumo.env.observation import build_observations
+    from idas_sumo.env.snapshot import other_road_leaders
+
+    rng = np.random.default_rng(7)
+    sizes = [3, 0, 6, 1, 5]
+    copy = np.repeat(np.arange(len(sizes)), sizes)
+    n = len(copy)
+    road = rng.integers(0, 3, n)
+    dist = np.where(road == OUT, -rng.uniform(0, 80, n), rng.uniform(0, 150, n)).round(1)
+    together = _snapshot(road.tolist(), dist.tolist(), copy.tolist())
+    together = dataclasses.replace(together, speed_mps=rng.uniform(0, 20, n))
+    egos = np.arange(n)
+    obs = build_observations(together, egos, np.zeros(n), np.zeros(n), np.zeros(n))
+    lead, gap = leaders(together, egos)
+    other, other_gap = other_road_leaders(together, egos, max_ahead_m=50.0)
+    start = 0
+    for size in sizes:
+        part = slice(start, start + size)
+        alone = dataclasses.replace(
+            together,
+            ids=together.ids[part],
+            road=together.road[part],
+            dist_to_merge_m=together.dist_to_merge_m[part],
+            speed_mps=together.speed_mps[part],
+            accel_mps2=together.accel_mps2[part],
+            length_m=together.length_m[part],
+            speed_limit_mps=together.speed_limit_mps[part],
+            copy=None,
+        )
+        own = np.arange(size)
+        np.testing.assert_array_equal(
+            obs[part], build_observations(alone, own, np.zeros(size), np.zeros(size), np.zeros(size))
+        )
+        alone_lead, alone_gap = leaders(alone, own)
+        np.testing.assert_array_equal(lead[part], np.where(alone_lead >= 0, alone_lead + start, -1))
+        np.testing.assert_array_equal(gap[part], alone_gap)
+        alone_other, alone_other_gap = other_road_leaders(alone, own, max_ahead_m=50.0)
+        np.testing.assert_array_equal(other[part], np.where(alone_other >= 0, alone_other + start, -1))
+        np.testing.assert_array_equal(other_gap[part], alone_other_gap)
+        start += size
+    assert np.count_nonzero(obs[:, 5:]) > 0 and np.any(lead >= 0) and np.any(other >= 0)

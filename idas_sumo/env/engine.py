@@ -400,6 +400,13 @@ class MergeEngine:
                     outcome=EpisodeOutcome(s),
                 )
             )
+        # b_prio by (slot, road): the outgoing road takes the higher of the two incoming priorities.
+        self._prio_by_road = np.array(
+            [
+                (float(s.main_prio), float(s.merge_prio), float(max(s.main_prio, s.merge_prio)))
+                for s in scenarios
+            ]
+        )
         self._batch = None
         self._backend.reset(scenarios, sumo_args)
         events = self._backend.step()  # insertion step: vehicles appear where the scenarios put them
@@ -584,32 +591,27 @@ class MergeEngine:
         copies: list[int] = []
         egos: list[int] = []
         prev: list[float] = []
-        b_prio: list[float] = []
         b_type: list[float] = []
         for k, slot in enumerate(self.slots):
-            if slot.over or not slot.active:
+            active = slot.active
+            if slot.over or not active:
                 continue
-            rows = self._rows[k]
-            s = slot.scenario
-            prio_by_road = (float(s.main_prio), float(s.merge_prio), float(max(s.main_prio, s.merge_prio)))
-            for a in slot.active:
-                r = rows[a]
-                ids.append(a)
-                copies.append(k)
-                egos.append(r)
-                prev.append(slot.accel[a])
-                b_prio.append(prio_by_road[int(self.snapshot.road[r])])
-                b_type.append(slot.spec[a].b_type)
+            ids += active
+            copies += [k] * len(active)
+            egos += map(self._rows[k].__getitem__, active)
+            prev += map(slot.accel.__getitem__, active)
+            b_type += [slot.spec[a].b_type for a in active]
         ego_arr = np.array(egos, dtype=np.int64)
+        copy_arr = np.array(copies, dtype=np.int64)
         prev_arr = np.array(prev, dtype=np.float64)
         batch = AgentBatch(
             ids=tuple(ids),
-            copy=np.array(copies, dtype=np.int64),
+            copy=copy_arr,
             egos=ego_arr,
             prev_accel=prev_arr,
             masks=self._masks(ego_arr, prev_arr),
             snapshot=self.snapshot,
-            b_prio=np.array(b_prio, dtype=np.float64),
+            b_prio=self._prio_by_road[copy_arr, self.snapshot.road[ego_arr]],
             b_type=np.array(b_type, dtype=np.float64),
             time_s=self._time_s,
         )
@@ -744,8 +746,9 @@ class MergeEngine:
             new_accel = next_acceleration(prev, applied)
             next_speed = np.maximum(before.speed_mps[batch.egos] + new_accel * STEP_LENGTH_S, 0.0)
             self.backend.set_speeds(batch.ids, next_speed, batch.copy)
-            for a, k, acc in zip(batch.ids, batch.copy.tolist(), new_accel.tolist(), strict=True):
-                self.slots[k].accel[a] = acc
+            accel = new_accel.tolist()
+            for k, lo, hi in _copy_runs(batch.copy):
+                self.slots[k].accel.update(zip(batch.ids[lo:hi], accel[lo:hi], strict=True))
         events = self.backend.step()
         self._time_s = events.time_s
         rows_before = self._rows
@@ -773,18 +776,22 @@ class MergeEngine:
         impeded_by = _impeding_vehicles(before, brakes)
 
         # End reasons: collided, removed, finished, else timeout (if time is up).
-        timed_out = self.timed_out()
-        reasons: list[str] = []
-        for a, k in zip(batch.ids, batch.copy.tolist(), strict=True):
-            r = self._rows[k].get(a)
-            if a in events.copies[k].collided:
-                reasons.append("collided")
-            elif r is None:
-                reasons.append("removed")
-            elif after.dist_to_merge_m[r] <= -FINISH_DISTANCE_PAST_MERGE_M:
-                reasons.append("finished")
-            else:
-                reasons.append("timeout" if timed_out else "")
+        copies = batch.copy.tolist()
+        new_row = np.array(
+            [self._rows[k].get(a, -1) for a, k in zip(batch.ids, copies, strict=True)], np.int64
+        )
+        present = new_row >= 0
+        collided = np.zeros(n, dtype=np.bool_)
+        if any(ev.collided for ev in events.copies):
+            collided[:] = [a in events.copies[k].collided for a, k in zip(batch.ids, copies, strict=True)]
+        finished = np.zeros(n, dtype=np.bool_)
+        finished[present] = after.dist_to_merge_m[new_row[present]] <= -FINISH_DISTANCE_PAST_MERGE_M
+        code = np.select(
+            [collided, ~present, finished],
+            [_REASON_CODE["collided"], _REASON_CODE["removed"], _REASON_CODE["finished"]],
+            default=_REASON_CODE["timeout" if self.timed_out() else ""],
+        )
+        reasons = [_REASON_BY_CODE[c] for c in code.tolist()]
 
         parts = np.zeros((n, len(REWARD_PART_NAMES)))
         if n:
@@ -792,33 +799,37 @@ class MergeEngine:
             culprits = np.bincount(impeded_by, minlength=len(before))
             parts[:, _PART["impede"]] = IMPEDE_PENALTY * culprits[batch.egos]
             sign = self.config.reward.collision_sign
-            for i, (a, k, reason) in enumerate(zip(batch.ids, batch.copy.tolist(), reasons, strict=True)):
-                slot = self.slots[k]
-                spec = slot.spec[a]
-                if reason == "collided":
-                    # The priority of the road the car came from: collisions happen on the junction or
-                    # after it, where the snapshot's road is the outgoing one (priority max of both).
-                    prio = float(slot.scenario.prio(spec.road))
-                    parts[i, _PART["collide"]] = float(collide_reward(prio, sign))
-                elif reason == "finished":
-                    parts[i, _PART["finish"]] = float(finish_reward(spec.b_type))
+            for i in np.flatnonzero(collided).tolist():
+                slot = self.slots[copies[i]]
+                # The priority of the road the car came from: collisions happen on the junction or
+                # after it, where the snapshot's road is the outgoing one (priority max of both).
+                prio = float(slot.scenario.prio(slot.spec[batch.ids[i]].road))
+                parts[i, _PART["collide"]] = float(collide_reward(prio, sign))
+            won = code == _REASON_CODE["finished"]
+            parts[won, _PART["finish"]] = finish_reward(batch.b_type[won])
         rewards = parts[:, _PART["finish"]] + parts[:, _PART["collide"]] + parts[:, _PART["impede"]]
         joint = np.bincount(batch.copy, weights=rewards, minlength=k_count) + flow
 
         # Book-keeping per slot: outcome, ended agents, new arrivals, episode over.
-        for i, (a, k, reason) in enumerate(zip(batch.ids, batch.copy.tolist(), reasons, strict=True)):
+        reward_list = rewards.tolist()
+        impeded = parts[:, _PART["impede"]] < 0
+        for k, lo, hi in _copy_runs(batch.copy):
+            out = self.slots[k].outcome
+            returns = out.returns
+            for a, r in zip(batch.ids[lo:hi], reward_list[lo:hi], strict=True):
+                returns[a] = returns.get(a, 0.0) + r
+            out.impedes += int(np.count_nonzero(impeded[lo:hi]))
+        for i in np.flatnonzero(code).tolist():
+            a, k, reason = batch.ids[i], copies[i], reasons[i]
             slot = self.slots[k]
             out = slot.outcome
-            out.returns[a] = out.returns.get(a, 0.0) + float(rewards[i])
-            if parts[i, _PART["impede"]] < 0:
-                out.impedes += 1
-            if reason:
-                slot.done[a] = reason
-                out.end_reasons[a] = reason
-                slot.active.remove(a)
-                if reason == "finished":
-                    out.finish_times_s[a] = self._time_s
-                    self.backend.release(a, k)
+            slot.done[a] = reason
+            out.end_reasons[a] = reason
+            slot.active.remove(a)
+            if reason == "finished":
+                out.finish_times_s[a] = self._time_s
+                self.backend.release(a, k)
+        agents_per_copy = np.bincount(batch.copy, minlength=k_count).tolist()
         collisions: list[list[tuple[str, str]]] = []
         for k, slot in enumerate(self.slots):
             ev = events.copies[k]
@@ -832,7 +843,7 @@ class MergeEngine:
                 out.hard_brakes += int(hard_brakes[k])
                 out.hard_brakes_merge_zone += int(zone_brakes[k])
                 out.decision_steps += 1
-                out.agent_steps += int(np.count_nonzero(batch.copy == k))
+                out.agent_steps += agents_per_copy[k]
             self._admit(k, ev)
             self._settle(k)
         return StepResult(
@@ -861,6 +872,20 @@ class MergeEngine:
             self._backend.close()
             self._backend = None
         self._closed = True
+
+
+_REASON_BY_CODE: tuple[str, ...] = ("", *END_REASONS)
+_REASON_CODE = {reason: code for code, reason in enumerate(_REASON_BY_CODE)}
+
+
+def _copy_runs(copy: IntArray) -> list[tuple[int, int, int]]:
+    """(copy, lo, hi) for each run of equal entries in ``copy`` (a batch comes copy by copy)."""
+    if len(copy) == 0:
+        return []
+    starts = np.flatnonzero(np.diff(copy)) + 1
+    lo = [0, *starts.tolist()]
+    hi = [*starts.tolist(), len(copy)]
+    return list(zip(copy[lo].tolist(), lo, hi, strict=True))
 
 
 def _checked_actions(batch: AgentBatch, actions: npt.ArrayLike) -> IntArray:
@@ -900,13 +925,14 @@ def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArra
     copy): their rows in ``before`` (one per brake that has one)."""
     if len(brake_rows) == 0:
         return np.zeros(0, dtype=np.int64)
-    same, other = lane_relations(before.road, brake_rows, before.copy)
-    ahead = before.dist_to_merge_m[brake_rows][:, None] - before.dist_to_merge_m[None, :]
+    nb, same, other = lane_relations(before, brake_rows)
+    ahead = before.dist_to_merge_m[brake_rows][:, None] - before.dist_to_merge_m[nb.cols]
     candidates = (same | other) & (ahead >= 0.0) & (ahead <= VISIBILITY_M)
     distance = np.where(candidates, ahead, np.inf)
-    nearest = np.argmin(distance, axis=1)
-    found = np.isfinite(distance[np.arange(len(brake_rows)), nearest])
-    return np.asarray(nearest[found], dtype=np.int64)
+    rows = np.arange(len(brake_rows))
+    col = np.argmin(distance, axis=1)
+    found = np.isfinite(distance[rows, col])
+    return np.asarray(nb.cols[rows, col][found], dtype=np.int64)
 
 
 def geometric_collisions(

@@ -54,47 +54,90 @@ class TrafficSnapshot:
     def __contains__(self, vehicle_id: str) -> bool:
         return vehicle_id in self._lookup
 
+    @functools.cached_property
+    def copy_bounds(self) -> IntArray | None:
+        """Where each copy's vehicles start (K + 1 entries), if they come copy by copy; else None."""
+        return None if self.copy is None else _copy_bounds(self.copy)
 
-def same_copy(copy: IntArray | None, egos: IntArray) -> BoolArray | None:
-    """(n_egos, n_vehicles): True where the vehicle drives in the ego's copy (None: one copy, all True)."""
-    if copy is None:
+
+@dataclass(frozen=True)
+class Neighbourhood:
+    """Each ego's candidate neighbours as matrix columns: the vehicles of its own copy, in snapshot order.
+
+    Every (ego, vehicle) relation is a (n_egos, m) matrix over these columns. With K copies side by side
+    m is the largest copy's vehicle count, not every vehicle in the simulation: 16 copies of 8 cars give
+    128 x 8 matrices instead of 128 x 128 (the cross-copy 15/16 could never relate). Column order is
+    snapshot order, so ties (argmin picks the first) break exactly as over all vehicles.
+    """
+
+    cols: IntArray
+    """(n_egos, m) vehicle indices; padding columns repeat the ego's own index (a valid, harmless gather)."""
+    valid: BoolArray
+    """(n_egos, m): a vehicle of the ego's copy other than the ego itself."""
+
+
+def _copy_bounds(copy: IntArray) -> IntArray | None:
+    """Start of each copy's vehicles in snapshot order (K + 1 entries), or None if copies interleave."""
+    if len(copy) and np.any(copy[1:] < copy[:-1]):
         return None
-    return np.asarray(copy[egos][:, None] == copy[None, :])
+    n_copies = int(copy.max()) + 1 if len(copy) else 0
+    return np.searchsorted(copy, np.arange(n_copies + 1)).astype(np.int64)
 
 
-def lane_relations(
-    road: IntArray, egos: IntArray, copy: IntArray | None = None
-) -> tuple[BoolArray, BoolArray]:
-    """(same_lane, other_lane): bool (n_egos, n_vehicles) matrices; a vehicle is never its own neighbour,
-    nor a neighbour of a vehicle in another copy (``copy``: each vehicle's copy, None: one copy)."""
+def neighbourhood(snapshot: TrafficSnapshot, egos: IntArray) -> Neighbourhood:
+    """The columns every relation matrix of these egos is built over (see ``Neighbourhood``)."""
+    n_egos, n = len(egos), len(snapshot)
+    own = egos[:, None]
+    bounds = None if snapshot.copy is None else snapshot.copy_bounds
+    if snapshot.copy is None or bounds is None:
+        cols = np.broadcast_to(np.arange(n, dtype=np.int64)[None, :], (n_egos, n))
+        valid = cols != own
+        if snapshot.copy is not None:  # interleaved copies: every vehicle a column, other copies masked
+            valid &= snapshot.copy[cols] == snapshot.copy[egos][:, None]
+        return Neighbourhood(cols=cols, valid=valid)
+    ego_copy = snapshot.copy[egos]
+    first = bounds[ego_copy]
+    size = bounds[ego_copy + 1] - first
+    width = int(size.max()) if n_egos else 0
+    j = np.arange(width, dtype=np.int64)[None, :]
+    inside = j < size[:, None]
+    cols = np.where(inside, first[:, None] + j, own)
+    return Neighbourhood(cols=cols, valid=inside & (cols != own))
+
+
+def lane_relations(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[Neighbourhood, BoolArray, BoolArray]:
+    """(neighbourhood, same_lane, other_lane): the bool matrices over the neighbourhood's columns; a
+    vehicle is never its own neighbour, nor a neighbour of a vehicle in another copy."""
+    nb = neighbourhood(snapshot, egos)
+    road = snapshot.road
     ego_road = road[egos][:, None]
-    other_road = road[None, :]
+    other_road = road[nb.cols]
     incoming_ego = ego_road != OUT
     same = np.where(incoming_ego, (other_road == ego_road) | (other_road == OUT), other_road == OUT)
     other = np.where(incoming_ego, (other_road != ego_road) & (other_road != OUT), other_road != OUT)
-    self_mask = np.arange(road.shape[0])[None, :] == egos[:, None]
-    related = ~self_mask
-    in_copy = same_copy(copy, egos)
-    if in_copy is not None:
-        related &= in_copy
-    return same & related, other & related
+    return nb, same & nb.valid, other & nb.valid
 
 
 def leaders(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatArray]:
     """Nearest car ahead in each ego's current lane: (index or NO_LEADER, bumper gap in m or inf)."""
-    same, _ = lane_relations(snapshot.road, egos, snapshot.copy)
-    ahead_by = snapshot.dist_to_merge_m[egos][:, None] - snapshot.dist_to_merge_m[None, :]  # > 0: ahead
-    return _nearest_ahead(snapshot, np.where(same & (ahead_by > 0.0), ahead_by, np.inf))
+    nb, same, _ = lane_relations(snapshot, egos)
+    dist = snapshot.dist_to_merge_m
+    ahead_by = dist[egos][:, None] - dist[nb.cols]  # > 0: ahead
+    return _nearest_ahead(snapshot, nb, np.where(same & (ahead_by > 0.0), ahead_by, np.inf))
 
 
-def _nearest_ahead(snapshot: TrafficSnapshot, distance: FloatArray) -> tuple[IntArray, FloatArray]:
-    """Per ego row of ``distance`` (front to front, inf: not a candidate): (nearest index or NO_LEADER, gap)."""
+def _nearest_ahead(
+    snapshot: TrafficSnapshot, nb: Neighbourhood, distance: FloatArray
+) -> tuple[IntArray, FloatArray]:
+    """Per ego row of ``distance`` (front to front over the neighbourhood's columns, inf: not a
+    candidate): (nearest vehicle index or NO_LEADER, gap)."""
     rows = np.arange(distance.shape[0])
     if distance.shape[1] == 0:
         return np.full(rows.shape, NO_LEADER, dtype=np.int64), np.full(rows.shape, np.inf)
-    nearest = np.argmin(distance, axis=1)
-    has = np.isfinite(distance[rows, nearest])
-    gap = np.where(has, distance[rows, nearest] - snapshot.length_m[nearest], np.inf)
+    col = np.argmin(distance, axis=1)
+    nearest = nb.cols[rows, col]
+    has = np.isfinite(distance[rows, col])
+    gap = np.where(has, distance[rows, col] - snapshot.length_m[nearest], np.inf)
     return np.where(has, nearest, NO_LEADER).astype(np.int64), gap.astype(np.float64)
 
 
@@ -121,21 +164,22 @@ def other_road_leaders(
     with a merge-road ego counts as ahead (so two level cars never both see a free road). The gap is the
     projected distance minus the leader's length and may be <= 0: the cars already overlap in projection.
     """
+    nb = neighbourhood(snapshot, egos)
     road = snapshot.road
     dist = snapshot.dist_to_merge_m
     ego_road = road[egos][:, None]
     ego_dist = dist[egos][:, None]
+    cand_road = road[nb.cols]
+    cand_dist = dist[nb.cols]
     incoming_ego = ((ego_road == MAIN) | (ego_road == MERGE)) & (ego_dist >= 0.0) & (ego_dist <= zone_m)
     # Cars already past the merge point are real leaders (leaders()), so only the other incoming road counts.
-    other_incoming = ((road[None, :] == MAIN) | (road[None, :] == MERGE)) & (road[None, :] != ego_road)
-    ahead_by = ego_dist - dist[None, :]  # > 0: closer to the merge point than the ego
+    other_incoming = ((cand_road == MAIN) | (cand_road == MERGE)) & (cand_road != ego_road)
+    ahead_by = ego_dist - cand_dist  # > 0: closer to the merge point than the ego
     ahead = ahead_by > 0.0
     if level_counts_for_main:
-        ahead |= (ahead_by == 0.0) & (road[None, :] == MAIN)
-    candidates = incoming_ego & other_incoming & ahead & (ahead_by <= max_ahead_m) & (dist[None, :] <= zone_m)
+        ahead |= (ahead_by == 0.0) & (cand_road == MAIN)
+    candidates = incoming_ego & other_incoming & ahead & (ahead_by <= max_ahead_m) & (cand_dist <= zone_m)
+    candidates &= nb.valid
     if never_leading is not None:
-        candidates &= ~never_leading[None, :]
-    in_copy = same_copy(snapshot.copy, egos)
-    if in_copy is not None:
-        candidates &= in_copy
-    return _nearest_ahead(snapshot, np.where(candidates, ahead_by, np.inf))
+        candidates &= ~never_leading[nb.cols]
+    return _nearest_ahead(snapshot, nb, np.where(candidates, ahead_by, np.inf))
