@@ -1,4 +1,4 @@
-"""``idas-sumo``: netgen | train | evaluate | plot. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
+"""``idas-sumo``: netgen | train | evaluate | plot | sweep. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
 130 Ctrl-C, 143 SIGTERM (129 SIGHUP)."""
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
+from idas_sumo.distributed import check_ray_address
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS
 from idas_sumo.errors import IdasError, InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
@@ -132,6 +133,20 @@ def _out_path(text: str) -> Path:
     if not text.strip():
         raise argparse.ArgumentTypeError("expected a path, got an empty string")
     return Path(text)
+
+
+def _ray_address(text: str) -> str:
+    """``--ray-address``: auto, local or HOST:PORT (checked here; Ray itself is imported only later)."""
+    try:
+        return check_ray_address(text)
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err).removeprefix("--ray-address: ")) from None
+
+
+RAY_ADDRESS_HELP = (
+    "run the {what} as Ray actors: auto (the cluster `ray start` runs here), HOST:PORT (a head node), "
+    "or local (a Ray instance on this machine only); needs the ray extra; results do not depend on it"
+)
 
 
 def _input_file(text: str) -> Path:
@@ -274,6 +289,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--gui", action="store_true", help="show the rollouts in sumo-gui (slow; needs a display)"
     )
+    train.add_argument(
+        "--ray-address",
+        type=_ray_address,
+        metavar="ADDRESS",
+        help=RAY_ADDRESS_HELP.format(what="--workers rollout workers"),
+    )
 
     ev = sub.add_parser("evaluate", help="evaluate a method with the paper's protocol; write CSVs")
     ev.add_argument(
@@ -358,9 +379,58 @@ def build_parser() -> argparse.ArgumentParser:
         help="episodes run side by side in one SUMO run; results do not depend on it (default: %(default)s)",
     )
 
+    ev.add_argument(
+        "--ray-address",
+        type=_ray_address,
+        metavar="ADDRESS",
+        help=RAY_ADDRESS_HELP.format(what="--workers evaluation workers"),
+    )
+
+    _add_sweep_parser(sub)
+
     plot = sub.add_parser("plot", help="draw PNG plots from an evaluation output directory")
     plot.add_argument("dir", type=_out_path, help="directory written by `idas-sumo evaluate`")
     return parser
+
+
+def _add_sweep_parser(sub: Any) -> None:
+    sweep = sub.add_parser(
+        "sweep", help="train over seeds and config values (one run folder each); write one table"
+    )
+    sweep.add_argument("config", type=_input_file, help="training config TOML (validate_every > 0)")
+    sweep.add_argument("--seeds", required=True, help="seeds of the runs: 0-4, 0,3,7 or a mix")
+    sweep.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="sweep a config key over these values (nested keys with dots: learner.gamma); repeatable: "
+        "the runs are every combination",
+    )
+    sweep.add_argument(
+        "--net", type=_input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
+    )
+    sweep.add_argument(
+        "--out", type=_out_path, default=Path("runs/sweep"), help="sweep folder (default: %(default)s)"
+    )
+    sweep.add_argument(
+        "--ray-address",
+        type=_ray_address,
+        metavar="ADDRESS",
+        help="run the runs as Ray tasks on this cluster (auto, HOST:PORT, or local), not one after another",
+    )
+    sweep.add_argument(
+        "--evaluate", action="store_true", help="also evaluate each run's best checkpoint (paper suite)"
+    )
+    sweep.add_argument(
+        "--eval-seed", type=_seed, default=2019, help="scenario seed of --evaluate (default: %(default)s)"
+    )
+    sweep.add_argument(
+        "--eval-scenarios",
+        type=_scenario_count,
+        default=100,
+        help="scenarios of --evaluate (default: %(default)s)",
+    )
 
 
 def _netgen(args: argparse.Namespace) -> int:
@@ -392,6 +462,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, METHODS, check_method
     from idas_sumo.evaluation.runner import EvalRequest, default_others, run_evaluation
 
+    _require_ray_if_asked(args)
     check_method(args.baseline, "--baseline", also=("all",))
     methods = METHODS if args.baseline == "all" else (args.baseline,)
     if args.others is not None:
@@ -431,6 +502,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             scenario_files=tuple(args.scenario),
             copies=args.copies,
             workers=args.workers,
+            ray_address=args.ray_address,
         )
     )
     if args.others is None and others == "idm":
@@ -505,10 +577,39 @@ def summary_table(summary: pd.DataFrame, title: str, labels: dict[str, str]) -> 
     return Group(table, more)
 
 
+def _require_ray_if_asked(args: argparse.Namespace) -> None:
+    """``--ray-address`` without the ray extra: exit 2 naming it, before anything runs."""
+    if getattr(args, "ray_address", None) is not None:
+        from idas_sumo.distributed import require_ray
+
+        require_ray()
+
+
 def _train(args: argparse.Namespace) -> int:
     from idas_sumo.training.cli import train_from_args
 
+    _require_ray_if_asked(args)
     return train_from_args(args)
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from idas_sumo.training.sweep import EvalSpec, parse_seeds, parse_sets, run_sweep
+
+    _require_ray_if_asked(args)
+    seeds, sets = parse_seeds(args.seeds), parse_sets(args.set)
+    evaluate = EvalSpec(args.eval_seed, args.eval_scenarios) if args.evaluate else None
+    csv_path, png_path = run_sweep(
+        Path(args.config),
+        Path(args.net),
+        seeds,
+        sets,
+        args.out,
+        ray_address=args.ray_address,
+        evaluate=evaluate,
+        on_run=lambda row: print(f"run {row['run']}: best validation {row['best_joint_return']:.2f}"),
+    )
+    print(f"wrote {csv_path}, {png_path}")
+    return 0
 
 
 def _plot(args: argparse.Namespace) -> int:
@@ -609,7 +710,14 @@ def _in_main_thread() -> bool:
 
 
 def _run(argv: Sequence[str] | None, late: _LateSignals | None) -> int:
-    handlers = {"netgen": _netgen, "nets": run_nets, "train": _train, "evaluate": _evaluate, "plot": _plot}
+    handlers = {
+        "netgen": _netgen,
+        "nets": run_nets,
+        "train": _train,
+        "evaluate": _evaluate,
+        "plot": _plot,
+        "sweep": _sweep,
+    }
     try:
         try:
             args = build_parser().parse_args(argv)

@@ -87,6 +87,9 @@ class EvalRequest:
     safety_mask: SafetyMask | None = None
     """Which car the safety mask follows (``EnvConfig.safety_mask``); None: the ``config`` file's
     ``safety_mask``, else the default (own_lane, the paper's)."""
+    ray_address: str | None = None
+    """Run the ``workers`` on that Ray cluster (``evaluate --ray-address``, distributed/ray_pool.py)
+    instead of this machine's processes; the CSVs do not depend on it."""
 
 
 def default_others() -> str:
@@ -125,6 +128,8 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
     require_display(req.gui)
     if req.gui and req.workers > 1:
         raise InputError("--gui shows one simulation: use it without --workers")
+    if req.gui and req.ray_address is not None:
+        raise InputError("--gui shows the episodes here: use it without --ray-address")
     with output_directory(req.out, req.force, fresh=req.fresh_out) as out:
         tripinfo_dir = None
         if req.sumo_output:
@@ -143,7 +148,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         episodes, flows, trajectories = [], [], []
         description = f"evaluate ({req.suite}, others: {others_name})"
         with _progress(req.progress, len(jobs), description) as advance:
-            if req.workers > 1 and len(jobs) > 1:
+            if req.ray_address is not None or (req.workers > 1 and len(jobs) > 1):
                 results = _in_workers(req, jobs, others_name, eval_config, tripinfo_dir, advance)
             else:
                 results = _here(req, net, jobs, policies, others_policy, eval_config, tripinfo_dir, advance)
@@ -238,7 +243,8 @@ def _in_workers(
     tripinfo_dir: Path | None,
     advance: Callable[[], None],
 ) -> list[tuple[EvalJob, EpisodeResult]]:
-    """The jobs split over ``req.workers`` processes (evaluation/workers.py), back in job order."""
+    """The jobs split over ``req.workers`` processes, or Ray actors with ``req.ray_address``
+    (evaluation/workers.py), back in job order."""
     from idas_sumo.evaluation.workers import WorkerTask, run_in_workers, split_jobs
 
     shares = split_jobs(len(jobs), req.workers)
@@ -263,7 +269,7 @@ def _in_workers(
         for _ in shares[i]:
             advance()
 
-    per_task = run_in_workers(tasks, done)
+    per_task = run_in_workers(tasks, done, ray_address=req.ray_address)
     return [
         (job, result)
         for task, results in zip(tasks, per_task, strict=True)

@@ -2,22 +2,23 @@
 
 Each worker gets a contiguous share of the (method, case) jobs in their fixed order, and the results are
 put back in that order, so the CSVs do not depend on N (each job's numbers are those of its scenario
-alone). Workers are started and stopped by ``sim.processes.WorkerProcesses``, as ``train --workers`` starts
-its own (fresh interpreters calling back on an authenticated loopback socket: see there why); the task
-and its results travel over that connection.
+alone). The workers are a ``sim.processes.WorkerPool``, as ``train --workers`` has: processes started
+and stopped by ``sim.processes.WorkerProcesses`` (fresh interpreters calling back on an authenticated
+loopback socket: see there why), or with ``--ray-address`` Ray actors (distributed/ray_pool.py); the
+task and its results travel through the pool.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
 
 from idas_sumo.env.engine import SafetyMask
 from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob
-from idas_sumo.sim.processes import WorkerProcesses, wait_any
+from idas_sumo.sim.processes import ProcessPool, WorkerPool
 
 
 @dataclass(frozen=True)
@@ -67,58 +68,57 @@ def run_task(task: WorkerTask) -> Iterator[tuple[int, EpisodeResult]]:
         engine.close()
 
 
-def _serve(conn: Connection) -> None:
-    """A worker (``WorkerProcesses`` entry): get the task, run it, send its results (or its error)."""
-    import traceback
+class EvalServer:
+    """An evaluation worker (``sim.processes.Server``): runs one task and replies with its results (or
+    its error). Its engine lives only as long as the task (``run_task``)."""
 
-    task: WorkerTask = conn.recv()
-    outcome: tuple[str, object]
-    try:
-        results = [r for _, r in run_task(task)]
-        if not task.trajectories:
-            for r in results:
-                r.trajectory = r.trajectory.iloc[0:0]  # not written: do not ship it back
-        outcome = ("ok", results)
-    except IdasError as err:
-        outcome = ("error", err)
-    except Exception:
-        outcome = ("error", SimulationError(f"evaluation worker failed:\n{traceback.format_exc()}"))
-    conn.send(outcome)
+    def __init__(self, init: None) -> None:
+        pass
+
+    def handle(self, task: WorkerTask, shared: Any) -> tuple[str, object]:
+        import traceback
+
+        try:
+            results = [r for _, r in run_task(task)]
+            if not task.trajectories:
+                for r in results:
+                    r.trajectory = r.trajectory.iloc[0:0]  # not written: do not ship it back
+            return ("ok", results)
+        except IdasError as err:
+            return ("error", err)
+        except Exception:
+            return ("error", SimulationError(f"evaluation worker failed:\n{traceback.format_exc()}"))
+
+    def close(self) -> None:
+        pass
 
 
 def run_in_workers(
-    tasks: Sequence[WorkerTask], on_done: Callable[[int], None] | None = None
+    tasks: Sequence[WorkerTask],
+    on_done: Callable[[int], None] | None = None,
+    ray_address: str | None = None,
 ) -> list[list[EpisodeResult]]:
-    """Run each task in its own process, all at once; their results, task by task.
+    """Run each task in its own worker, all at once; their results, task by task. The workers are
+    processes here, or Ray actors with ``ray_address``.
 
     ``on_done(i)``: task i's results are in (for a progress bar).
     """
-    pool = WorkerProcesses(
-        "idas_sumo.evaluation.workers:_serve", len(tasks), "evaluation worker", capture_stderr=True
-    )
-    try:
-        for conn, task in zip(pool.conns, tasks, strict=True):
-            conn.send(task)
-        outcomes: dict[int, tuple[str, object]] = {}
-        index = {id(conn): i for i, conn in enumerate(pool.conns)}
+    factory, inits = "idas_sumo.evaluation.workers:EvalServer", [None] * len(tasks)
+    pool: WorkerPool
+    if ray_address is not None:
+        from idas_sumo.distributed.ray_pool import RayPool  # only here: ray is an optional extra
+
+        pool = RayPool(factory, inits, "evaluation worker", ray_address)
+    else:
+        pool = ProcessPool(factory, inits, "evaluation worker", capture_stderr=True)
+    outcomes: dict[int, tuple[str, object]] = {}
+    with pool:  # an error or a Ctrl-C here: leave no worker behind
+        pool.submit(dict(enumerate(tasks)))
         while len(outcomes) < len(tasks):
-            for conn in wait_any([c for i, c in enumerate(pool.conns) if i not in outcomes]):
-                i = index[id(conn)]
-                try:
-                    outcomes[i] = conn.recv()
-                except (EOFError, OSError):
-                    code = pool.procs[i].wait()
-                    tail = pool.stderr_tail(i)
-                    raise SimulationError(
-                        f"evaluation worker {i} exited with code {code} without results"
-                        + (f": {tail}" if tail else "")
-                    ) from None
+            for i in pool.finished([i for i in range(len(tasks)) if i not in outcomes]):
+                outcomes[i] = pool.result(i)
                 if on_done is not None:
                     on_done(i)
-    except BaseException:  # an error or a Ctrl-C here: leave no worker behind
-        pool.kill()
-        raise
-    pool.close()
     results: list[list[EpisodeResult]] = []
     for i in range(len(tasks)):
         status, value = outcomes[i]
@@ -130,4 +130,4 @@ def run_in_workers(
     return results
 
 
-__all__ = ["WorkerTask", "run_in_workers", "run_task", "split_jobs"]
+__all__ = ["EvalServer", "WorkerTask", "run_in_workers", "run_task", "split_jobs"]

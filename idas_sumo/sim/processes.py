@@ -27,15 +27,27 @@ import sys
 import tempfile
 import time
 import traceback
-from collections.abc import Sequence
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Collection, Mapping, Sequence
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Client, Connection, answer_challenge, deliver_challenge
 from pathlib import Path
-from typing import IO, Any
+from types import TracebackType
+from typing import IO, Any, Protocol
 
 from idas_sumo.errors import InputError, SimulationError
 
-__all__ = ["SEED_LIMIT", "WorkerProcesses", "derived_seed", "max_workers", "wait_any"]
+__all__ = [
+    "SEED_LIMIT",
+    "ProcessPool",
+    "Server",
+    "WorkerPool",
+    "WorkerProcesses",
+    "derived_seed",
+    "max_workers",
+    "serve",
+    "wait_any",
+]
 
 SEED_LIMIT = 2**31
 """Seeds lie in [0, SEED_LIMIT): SUMO's ``--seed`` is a C int. ``--seed`` is checked against it once,
@@ -230,3 +242,150 @@ def _child_main(entry: str, host: str, port: int) -> None:
     except Exception:
         traceback.print_exc()
         sys.exit(1)
+
+
+# --- the worker pool: what training and evaluation ask of their workers, whichever backend runs them ----
+
+
+class Server(Protocol):
+    """What a worker runs: built once from its start-up value, then asked requests until closed.
+
+    ``handle`` returns its reply (errors included, as values: an exception raised here means the
+    worker itself is broken). ``shared`` is the part of a request that every worker of a round gets
+    (the actor weights): a backend may send it once for all of them.
+    """
+
+    def handle(self, request: Any, shared: Any) -> Any: ...
+
+    def close(self) -> None: ...
+
+
+ServerFactory = Callable[[Any], Server]
+
+_CLOSE = ("close",)
+"""A process worker's last message: close the server and exit."""
+
+
+def load_factory(factory: str) -> ServerFactory:
+    """``"package.module:name"``: the callable that builds a worker's ``Server`` from its start-up value."""
+    module, _, name = factory.partition(":")
+    built: ServerFactory = getattr(importlib.import_module(module), name)
+    return built
+
+
+class WorkerPool(ABC):
+    """Workers 0..size-1, each holding the ``Server`` that ``factory`` built from its start-up value.
+
+    Two backends implement it: ``ProcessPool`` (processes on this machine) and
+    ``idas_sumo.distributed.ray_pool.RayPool`` (Ray actors, on a cluster). Training and evaluation
+    only see this interface, so the episodes and their order are the same on both.
+    """
+
+    what: str
+    """What the workers are, for messages ("rollout worker")."""
+
+    @property
+    @abstractmethod
+    def size(self) -> int: ...
+
+    @abstractmethod
+    def submit(self, requests: Mapping[int, Any], shared: Any = None) -> None:
+        """Ask worker i ``requests[i]`` (with ``shared``), without waiting for the replies."""
+
+    @abstractmethod
+    def finished(self, pending: Collection[int], timeout_s: float = _POLL_S) -> list[int]:
+        """The workers among ``pending`` whose reply is in, after at most ``timeout_s`` (a short
+        slice, so the caller sees a signal at once)."""
+
+    @abstractmethod
+    def result(self, i: int) -> Any:
+        """Worker i's reply to its last request (waits for it); a ``SimulationError`` if it died."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Close every server (its SUMO) and stop the workers."""
+
+    @abstractmethod
+    def kill(self) -> None:
+        """Stop every worker now (after an error or an interruption)."""
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        # After an error or an interruption the workers may be mid-request: stop them now, not after it.
+        if exc_type is None:
+            self.close()
+        else:
+            self.kill()
+
+
+class ProcessPool(WorkerPool):
+    """One ``WorkerProcesses`` worker per start-up value, each running ``serve``."""
+
+    def __init__(self, factory: str, inits: Sequence[Any], what: str, capture_stderr: bool = False) -> None:
+        self.what = what
+        self._procs = WorkerProcesses("idas_sumo.sim.processes:serve", len(inits), what, capture_stderr)
+        try:
+            for conn, init in zip(self._procs.conns, inits, strict=True):
+                conn.send((factory, init))
+        except BaseException:
+            self._procs.kill()
+            raise
+
+    @property
+    def size(self) -> int:
+        return len(self._procs.conns)
+
+    def submit(self, requests: Mapping[int, Any], shared: Any = None) -> None:
+        for i, request in requests.items():
+            try:
+                self._procs.conns[i].send((request, shared))
+            except (BrokenPipeError, EOFError, OSError):
+                raise SimulationError(self._died(i)) from None
+
+    def finished(self, pending: Collection[int], timeout_s: float = _POLL_S) -> list[int]:
+        conns = self._procs.conns
+        ready = {id(c) for c in wait_any([conns[i] for i in pending], timeout_s)}
+        return [i for i in pending if id(conns[i]) in ready]
+
+    def result(self, i: int) -> Any:
+        try:
+            return self._procs.conns[i].recv()
+        except (EOFError, OSError):
+            raise SimulationError(self._died(i)) from None
+
+    def _died(self, i: int) -> str:
+        proc = self._procs.procs[i]
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=KILL_GRACE_S)
+        tail = self._procs.stderr_tail(i)
+        code = "" if proc.returncode is None else f" with code {proc.returncode}"
+        return f"{self.what} {i} exited{code} without results" + (f": {tail}" if tail else "")
+
+    def close(self) -> None:
+        self._procs.close(_CLOSE)
+
+    def kill(self) -> None:
+        self._procs.kill()
+
+
+def serve(conn: Connection) -> None:
+    """A ``ProcessPool`` worker (the ``WorkerProcesses`` entry): build the server from the first
+    message, then answer (request, shared) messages until ``_CLOSE``; the server is closed (its SUMO
+    and temporary folder go) however this ends."""
+    factory, init = conn.recv()
+    server = load_factory(factory)(init)
+    try:
+        while True:
+            message = conn.recv()
+            if message == _CLOSE:
+                break
+            request, shared = message
+            conn.send(server.handle(request, shared))
+    except (EOFError, BrokenPipeError):
+        pass  # the parent went away: nothing to answer
+    finally:
+        server.close()

@@ -83,6 +83,7 @@ def train_from_args(args: argparse.Namespace) -> int:
         progress=not getattr(args, "no_progress", False),
         gui=bool(getattr(args, "gui", False)),
         force=bool(getattr(args, "force", False)),
+        ray_address=getattr(args, "ray_address", None),
     )
     print(f"wrote {final}")
     for best in sorted(out.glob("*_best.pt")):

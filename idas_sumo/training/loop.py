@@ -64,6 +64,7 @@ def run_training(
     progress: bool = True,
     gui: bool = False,
     force: bool = False,
+    ray_address: str | None = None,
 ) -> Path:
     """Train as ``config`` says; write checkpoints and ``metrics.csv`` under ``out_dir``.
 
@@ -71,11 +72,13 @@ def run_training(
     ``out_dir`` from its ``checkpoint.pt`` with the saved config, taking only ``RESUME_FIELDS``
     (workers, copies, the stage budgets) from ``config``: a larger budget extends a finished run. Without
     ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which replaces the
-    files a run writes. ``gui`` shows the rollouts in sumo-gui (one worker only). Ctrl-C saves a
-    checkpoint of the completed rounds, then re-raises KeyboardInterrupt.
+    files a run writes. ``gui`` shows the rollouts in sumo-gui (one worker only). ``ray_address``: the
+    rollout workers are ``config.workers`` Ray actors on that cluster (distributed/ray_pool.py; the
+    learner stays here); the run is the same as with local workers. Ctrl-C saves a checkpoint of the
+    completed rounds, then re-raises KeyboardInterrupt.
     """
     net_path, out_dir = Path(net_path), Path(out_dir)
-    _check_request(net_path, config, out_dir, resume=resume, gui=gui, force=force)
+    _check_request(net_path, config, out_dir, resume=resume, gui=gui, force=force, ray_address=ray_address)
     resumed = _read_resume_point(out_dir) if resume else None
     if resumed is not None:
         config = _resumed_config(resumed.config, config)
@@ -103,7 +106,9 @@ def run_training(
     final = run.latest
     learner: Learner | None = None
     with (
-        make_workers(net_path, env_config, config.seed, config.workers, config.copies, gui=gui) as workers,
+        make_workers(
+            net_path, env_config, config.seed, config.workers, config.copies, gui=gui, ray_address=ray_address
+        ) as workers,
         MetricsSink(out_dir, keep_below) as sink,
         (
             _validation_sink(out_dir, keep_below) if config.validate_every else contextlib.nullcontext()
@@ -136,13 +141,22 @@ def run_training(
 
 
 def _check_request(
-    net_path: Path, config: TrainConfig, out_dir: Path, *, resume: bool, gui: bool, force: bool
+    net_path: Path,
+    config: TrainConfig,
+    out_dir: Path,
+    *,
+    resume: bool,
+    gui: bool,
+    force: bool,
+    ray_address: str | None,
 ) -> None:
     """Refuse a request that cannot run, before anything is read or written."""
     if not net_path.is_file():
         raise InputError(f"{net_path}: network file not found")
     if gui and config.workers > 1:
         raise InputError("--gui needs --workers 1")
+    if gui and ray_address is not None:
+        raise InputError("--gui shows the rollouts here: use it without --ray-address")
     require_display(gui)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a directory")

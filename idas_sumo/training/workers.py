@@ -1,13 +1,14 @@
 """Rollout workers: where episodes are collected. The loop only sees ``RolloutWorkers.run``.
 
-``InProcessWorkers`` runs the episodes in the training process. ``ProcessWorkers`` starts W
-processes (fresh interpreters: libsumo allows one SUMO per process, and a forked SUMO is not safe), each with its
-own episode engine (env/engine.py: ``copies`` episodes side by side in one SUMO run, one actor
-forward per step for all of them); every round they get the current actor weights and a share of the
-episodes.
-Each episode carries its own action-sampling seed, so the data do not depend on the worker count or
-on which worker ran which episode. A Ray or other cluster backend would be one more implementation of
-``RolloutWorkers``.
+``InProcessWorkers`` runs the episodes in the training process. ``PoolWorkers`` drives W workers of a
+``sim.processes.WorkerPool``: processes on this machine (``ProcessPool``, started by
+``sim.processes.WorkerProcesses``: fresh interpreters, since libsumo allows one SUMO per process and
+a forked SUMO is not safe) or Ray actors (``--ray-address``, distributed/ray_pool.py). Each worker
+is a ``RolloutServer`` with its own episode engine (env/engine.py: ``copies`` episodes side by side
+in one SUMO run, one actor forward per step for all of them); every round they get the current actor
+weights and a share of the episodes.
+Each episode carries its own action-sampling seed, so the data do not depend on the worker count, on
+which worker ran which episode, or on the backend.
 """
 
 from __future__ import annotations
@@ -17,9 +18,9 @@ import logging
 import traceback
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,9 +29,16 @@ from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.agents.rollout import EpisodeData, RolloutTask, collect_episodes
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.errors import IdasError, SimulationError
-from idas_sumo.sim.processes import WorkerProcesses, derived_seed
+from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed
 
-__all__ = ["EpisodeTask", "InProcessWorkers", "ProcessWorkers", "RolloutWorkers", "make_workers"]
+__all__ = [
+    "EpisodeTask",
+    "InProcessWorkers",
+    "PoolWorkers",
+    "RolloutServer",
+    "RolloutWorkers",
+    "make_workers",
+]
 
 log = logging.getLogger(__name__)
 
@@ -140,69 +148,47 @@ def _unpack(p: _PackedEpisode) -> EpisodeData:
     )
 
 
-def _serve(conn: Connection) -> None:
-    """A worker process (``WorkerProcesses`` entry): owns one SUMO; gets its start-up values, then
-    answers ('run', weights, tasks) until ('close',)."""
-    net_path, env_config, seed, copies = conn.recv()
-    torch.set_num_threads(1)
-    engine: MergeEngine | None = None
-    try:
-        engine = MergeEngine(net_path, copies=copies, seed=seed, config=env_config)
-        learner = Learner(LearnerConfig(), seed=0)
-        while True:
-            msg = conn.recv()
-            if msg[0] == "close":
-                break
-            _, weights, tasks = msg
-            try:
-                learner.actor.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()})
-                conn.send(("ok", [_pack(e) for e in _run_tasks(engine, learner, tasks)]))
-            except IdasError as err:
-                conn.send(("error", type(err).__name__, str(err)))
-            except Exception:
-                conn.send(("error", "Exception", traceback.format_exc()))
-    except (EOFError, BrokenPipeError):
-        pass
-    finally:
-        if engine is not None:
-            engine.close()
+class RolloutServer:
+    """A rollout worker (``sim.processes.Server``): owns one SUMO; answers a share of a round's tasks,
+    with the round's actor weights, by its packed episodes."""
 
+    def __init__(self, init: tuple[str, EnvConfig, int, int]) -> None:
+        net_path, env_config, seed, copies = init
+        torch.set_num_threads(1)
+        self.engine = MergeEngine(Path(net_path), copies=copies, seed=seed, config=env_config)
+        self.learner = Learner(LearnerConfig(), seed=0)
 
-class ProcessWorkers(RolloutWorkers):
-    """W worker processes, one SUMO each; a round splits the tasks into W contiguous shares.
-
-    Workers are started and stopped by ``sim.processes.WorkerProcesses`` (fresh interpreters calling
-    back on an authenticated loopback socket, see there why), as ``evaluate --workers`` starts its own.
-    """
-
-    def __init__(self, net_path: Path, env_config: EnvConfig, seed: int, workers: int, copies: int) -> None:
-        self._pool = WorkerProcesses("idas_sumo.training.workers:_serve", workers, "rollout worker")
+    def handle(self, tasks: list[EpisodeTask], weights: ActorWeights) -> tuple[Any, ...]:
         try:
-            for w, conn in enumerate(self._pool.conns):
-                conn.send((str(net_path), env_config, derived_seed(seed, 1 + w), copies))
-        except BaseException:
-            self._pool.kill()
-            raise
+            self.learner.actor.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()})
+            return ("ok", [_pack(e) for e in _run_tasks(self.engine, self.learner, tasks)])
+        except IdasError as err:
+            return ("error", type(err).__name__, str(err))
+        except Exception:
+            return ("error", "Exception", traceback.format_exc())
+
+    def close(self) -> None:
+        self.engine.close()
+
+
+class PoolWorkers(RolloutWorkers):
+    """The workers of ``pool``, one SUMO each; a round splits the tasks into W contiguous shares and
+    puts the episodes back in task order."""
+
+    def __init__(self, pool: WorkerPool) -> None:
+        self._pool = pool
 
     def run(self, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]:
-        weights = actor_weights(learner)
-        conns = self._pool.conns
-        shares = [list(s) for s in np.array_split(np.arange(len(tasks)), len(conns))]
-        busy = []
-        for conn, idx in zip(conns, shares, strict=True):
-            if idx:
-                try:
-                    conn.send(("run", weights, [tasks[i] for i in idx]))
-                except (BrokenPipeError, EOFError, OSError):
-                    raise SimulationError("a rollout worker died (see its error above)") from None
-                busy.append(conn)
+        shares = [list(s) for s in np.array_split(np.arange(len(tasks)), self._pool.size)]
+        requests = {w: [tasks[i] for i in idx] for w, idx in enumerate(shares) if idx}
+        self._pool.submit(requests, shared=actor_weights(learner))
         results: list[EpisodeData] = []
         errors: list[str] = []
-        for conn in busy:  # in order, so results follow the task order
+        for w in requests:  # in order, so results follow the task order
             try:
-                reply = conn.recv()
-            except (EOFError, OSError):
-                errors.append("a rollout worker died")
+                reply = self._pool.result(w)
+            except SimulationError as err:
+                errors.append(str(err))
                 continue
             if reply[0] == "ok":
                 results.extend(_unpack(p) for p in reply[1])
@@ -213,7 +199,7 @@ class ProcessWorkers(RolloutWorkers):
         return results
 
     def close(self) -> None:
-        self._pool.close(("close",))
+        self._pool.close()
 
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
@@ -226,9 +212,25 @@ class ProcessWorkers(RolloutWorkers):
 
 
 def make_workers(
-    net_path: Path, env_config: EnvConfig, seed: int, workers: int, copies: int, gui: bool = False
+    net_path: Path,
+    env_config: EnvConfig,
+    seed: int,
+    workers: int,
+    copies: int,
+    gui: bool = False,
+    ray_address: str | None = None,
 ) -> RolloutWorkers:
-    """``workers`` processes (1: this one), each running ``copies`` episodes side by side."""
-    if workers <= 1:
+    """``workers`` processes (1: this one), each running ``copies`` episodes side by side; with
+    ``ray_address`` (distributed/ray_pool.py), ``workers`` Ray actors instead, even for 1."""
+    if workers <= 1 and ray_address is None:
         return InProcessWorkers(net_path, env_config, seed, copies, gui=gui)
-    return ProcessWorkers(net_path, env_config, seed, workers, copies)
+    factory = "idas_sumo.training.workers:RolloutServer"
+    inits = [(str(net_path), env_config, derived_seed(seed, 1 + w), copies) for w in range(workers)]
+    pool: WorkerPool
+    if ray_address is not None:
+        from idas_sumo.distributed.ray_pool import RayPool  # only here: ray is an optional extra
+
+        pool = RayPool(factory, inits, "rollout worker", ray_address)
+    else:
+        pool = ProcessPool(factory, inits, "rollout worker")
+    return PoolWorkers(pool)
