@@ -11,7 +11,7 @@
 - ``straight``: one road made of two edges (no junction with two incoming roads).
 
 Nothing is downloaded; ``build_sample_net(name, out)`` writes ``out`` atomically and keeps the plain
-XML beside it.
+XML beside it; ``build_plain_net`` builds any net from plain XML the same way.
 """
 
 from __future__ import annotations
@@ -134,15 +134,22 @@ def build_sample_net(name: str, out: str | Path) -> Path:
     beside it."""
     if name not in SAMPLE_NETS:
         raise InputError(f"sample net {name!r}: not one of {', '.join(SAMPLE_NETS)}")
+    return build_plain_net(*SAMPLE_NETS[name](), out)
+
+
+def build_plain_net(nodes_xml: str, edges_xml: str, connections_xml: str, out: str | Path) -> Path:
+    """A net from plain XML (nodes, edges, connections: "" for netconvert's own) into ``out``,
+    written atomically, the plain XML kept beside it (``<stem>.nod.xml`` ...)."""
     path = Path(out)
     if path.is_dir():
         raise InputError(f"--out {path}: is a directory, expected a .net.xml file name")
     path.parent.mkdir(parents=True, exist_ok=True)
     stem = path.name.removesuffix(".net.xml")
     cmd = [str(sumo_binary("netconvert"))]
-    for text, suffix, flag in zip(
-        SAMPLE_NETS[name](), ("nod", "edg", "con"), ("-n", "-e", "-x"), strict=True
-    ):
+    plain_files = zip(
+        (nodes_xml, edges_xml, connections_xml), ("nod", "edg", "con"), ("-n", "-e", "-x"), strict=True
+    )
+    for text, suffix, flag in plain_files:
         if not text:
             continue
         plain = path.with_name(f"{stem}.{suffix}.xml")
@@ -153,8 +160,8 @@ def build_sample_net(name: str, out: str | Path) -> Path:
         cmd += ["-o", str(tmp), "--no-turnarounds", "true", "--no-warnings", "true"]
         result = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if result.returncode != 0:
-            raise SimulationError(f"netconvert failed on sample net {name!r}: {result.stderr.strip()[-300:]}")
+            raise SimulationError(f"netconvert failed on {path}: {result.stderr.strip()[-300:]}")
     return path
 
 
-__all__ = ["HIGHWAY_SPEED_MPS", "RAMP_SPEED_MPS", "SAMPLE_NETS", "build_sample_net"]
+__all__ = ["HIGHWAY_SPEED_MPS", "RAMP_SPEED_MPS", "SAMPLE_NETS", "build_plain_net", "build_sample_net"]
