@@ -1,4 +1,4 @@
-"""``idas-sumo``: netgen | train | evaluate | plot | sweep. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
+"""``idas-sumo``: netgen | train | evaluate | plot | replay | sweep. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
 130 Ctrl-C, 143 SIGTERM (129 SIGHUP)."""
 
 from __future__ import annotations
@@ -378,7 +378,6 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_EVAL_COPIES,
         help="episodes run side by side in one SUMO run; results do not depend on it (default: %(default)s)",
     )
-
     ev.add_argument(
         "--ray-address",
         type=_ray_address,
@@ -388,8 +387,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     _add_sweep_parser(sub)
 
-    plot = sub.add_parser("plot", help="draw PNG plots from an evaluation output directory")
-    plot.add_argument("dir", type=_out_path, help="directory written by `idas-sumo evaluate`")
+    plot = sub.add_parser("plot", help="draw PNG plots from an evaluation or a training run directory")
+    plot.add_argument("dir", type=_out_path, help="directory written by `idas-sumo evaluate` or `train`")
+
+    rep = sub.add_parser("replay", help="run one evaluated episode again: in sumo-gui or as an animation")
+    rep.add_argument("dir", type=_out_path, help="directory written by `idas-sumo evaluate`")
+    rep.add_argument(
+        "--scenario", required=True, help="scenario name as in episodes.csv (paper-037, s1) or its index (37)"
+    )
+    rep.add_argument("--method", help="which evaluated method's episode (default: the only one)")
+    view = rep.add_mutually_exclusive_group()
+    view.add_argument("--gui", action="store_true", help="show it in sumo-gui (needs a display)")
+    view.add_argument("--out", type=_out_path, help="write an animation: .gif, or .mp4 (needs ffmpeg)")
+    rep.add_argument(
+        "--policy", type=_input_file, help="the evaluated checkpoint, if it moved (its SHA-256 must match)"
+    )
     return parser
 
 
@@ -612,6 +624,12 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay(args: argparse.Namespace) -> int:
+    from idas_sumo.evaluation.replay import replay_from_args
+
+    return replay_from_args(args)
+
+
 def _plot(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.plots import plot_directory
 
@@ -716,6 +734,7 @@ def _run(argv: Sequence[str] | None, late: _LateSignals | None) -> int:
         "train": _train,
         "evaluate": _evaluate,
         "plot": _plot,
+        "replay": _replay,
         "sweep": _sweep,
     }
     try:

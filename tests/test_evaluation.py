@@ -132,8 +132,13 @@ def test_one_row_per_scenario_and_method(request: pytest.FixtureRequest, fixture
 @pytest.mark.sumo
 def test_no_temporary_files_are_left_behind(run_dir: Path) -> None:
     assert sorted(p.name for p in run_dir.iterdir()) == sorted(
-        [*CSV_NAMES, "trajectories.csv", "settings.json"]
+        [*CSV_NAMES, "trajectories.csv", "settings.json", "replay"]
     )
+    assert sorted(p.name for p in (run_dir / "replay").iterdir()) == [
+        "net.net.xml",
+        "run.json",
+        "scenarios.jsonl",
+    ]
 
 
 # --- determinism ------------------------------------------------------------------------------------

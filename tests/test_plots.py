@@ -73,11 +73,14 @@ def test_driver_type_sweep_plot(tmp_path: Path, net_path: Path) -> None:
 
 
 @pytest.mark.sumo
-def test_paper_suite_without_trajectories_plots_only_the_summary(tmp_path: Path, net_path: Path) -> None:
+def test_paper_suite_without_trajectories_plots_the_summary_and_the_flow(
+    tmp_path: Path, net_path: Path
+) -> None:
     out = tmp_path / "paper"
     evaluate(out, net_path, "--baseline", "idm", "--scenarios", "3", "--plots")
-    assert sorted(p.name for p in out.glob("*.png")) == ["summary.png"]
+    assert sorted(p.name for p in out.glob("*.png")) == ["flow.png", "summary.png"]
     assert_png(out / "summary.png")
+    assert_png(out / "flow.png")
 
 
 def _assert_one_line_exit_2(result: subprocess.CompletedProcess[str], needle: str) -> None:

@@ -1,5 +1,6 @@
 """PNG plots of an evaluation directory, after the paper's Fig. 4 (bars), Fig. 5 (position-time and
-velocity profiles, merging zone shaded) and Fig. 6 (driver-type sweep)."""
+velocity profiles, merging zone shaded) and Fig. 6 (driver-type sweep), and of its flow.csv (ours);
+a training run directory gets its learning curves (training/plots.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pandas as pd
 
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.errors import InputError
-from idas_sumo.evaluation.metrics import BASE_EPISODE_COLUMNS, TRAJECTORY_COLUMNS
+from idas_sumo.evaluation.metrics import BASE_EPISODE_COLUMNS, FLOW_COLUMNS, TRAJECTORY_COLUMNS
 from idas_sumo.evaluation.policies import METHOD_LABELS
 from idas_sumo.evaluation.sweep import is_sweep_scenario, spearman_test
 from idas_sumo.io_utils import atomic_open
@@ -35,7 +36,7 @@ def _label(method: object) -> str:
     return METHOD_LABELS.get(str(method), str(method))
 
 
-def _save(fig: object, path: Path) -> Path:
+def save_png(fig: object, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     with atomic_open(path, "wb") as f:
@@ -50,12 +51,22 @@ def plot_directory(directory: Path) -> list[Path]:
 
     matplotlib.use("Agg")
     if not directory.is_dir():
-        raise InputError(f"{directory}: not a directory written by `idas-sumo evaluate`")
+        raise InputError(f"{directory}: not a directory written by `idas-sumo evaluate` or `train`")
     if not (directory / "episodes.csv").exists():
-        raise InputError(f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first)")
+        from idas_sumo.training.plots import is_training_run, plot_training_run
+
+        if is_training_run(directory):
+            return plot_training_run(directory)
+        raise InputError(
+            f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first) "
+            "and no metrics.csv (not a training run either)"
+        )
     # The columns of every episodes.csv ever written: older directories plot too.
     episodes = _read(directory / "episodes.csv", BASE_EPISODE_COLUMNS)
     written = [summary_bars(episodes, directory / "summary.png")]
+    if (directory / "flow.csv").exists():
+        flow = _read(directory / "flow.csv", FLOW_COLUMNS)
+        written.append(flow_plots(flow, episodes, directory / "flow.png"))
     names = episodes["scenario"].astype(str)
     if names.isin(["s1", "s2", "s3", "s4"]).any():
         written.append(representative_bars(episodes, directory / "representative.png"))
@@ -85,7 +96,49 @@ def summary_bars(episodes: pd.DataFrame, path: Path) -> Path:
     ax.set_ylim(0, 105)
     ax.set_title(f"Overall performance ({len(episodes) // max(len(methods), 1)} scenarios per method)")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: no bar is ever hidden
-    return _save(fig, path)
+    return save_png(fig, path)
+
+
+def flow_plots(flow: pd.DataFrame, episodes: pd.DataFrame, path: Path) -> Path:
+    """Per method, over its scenarios: throughput past the merge point, mean speed of every car, and
+    hard brakes in the merging zone (from episodes.csv: flow.csv counts every hard brake)."""
+    import matplotlib.pyplot as plt
+
+    zone = episodes[["scenario", "method", "hard_brakes_merge_zone"]].astype({"scenario": str, "method": str})
+    flow = flow.astype({"scenario": str, "method": str}).merge(zone, on=["scenario", "method"], how="left")
+    methods = list(dict.fromkeys(flow["method"]))
+    panels = (
+        ("throughput_veh_per_h", "Throughput past the merge point", "vehicles per hour"),
+        ("mean_speed_mps", "Mean speed of every car", "speed, m/s"),
+        (
+            "hard_brakes_merge_zone",
+            f"Hard brakes within {MERGE_ZONE_RADIUS_M:.0f} m of the merge point",
+            "per episode",
+        ),
+    )
+    fig, axes = plt.subplots(1, 3, figsize=(min(16.0, 6.0 + 1.9 * len(methods)), 4.6), layout="constrained")
+    for ax, (column, title, unit) in zip(axes, panels, strict=True):
+        data = [flow.loc[flow["method"] == m, column].dropna().to_numpy(dtype=float) for m in methods]
+        x = np.arange(1, len(methods) + 1)
+        ax.boxplot(
+            data,
+            positions=x,
+            widths=0.55,
+            patch_artist=True,
+            boxprops={"facecolor": ZONE_COLOR, "alpha": 0.7},
+            medianprops={"color": "black"},
+            flierprops={"marker": ".", "markersize": 4},
+        )
+        means = [float(d.mean()) if len(d) else np.nan for d in data]
+        ax.plot(x, means, "D", color="#d62728", markersize=6, label="mean", zorder=3)
+        ax.set_xticks(x, [_label(m) for m in methods])
+        ax.set_title(title, fontsize=10)
+        ax.set_ylabel(unit)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize=8, loc="best")
+    scenarios = len(flow) // max(len(methods), 1)
+    fig.suptitle(f"Traffic flow per method ({scenarios} scenarios each; boxes: quartiles, whiskers: 1.5 IQR)")
+    return save_png(fig, path)
 
 
 def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
@@ -126,7 +179,7 @@ def representative_bars(episodes: pd.DataFrame, path: Path) -> Path:
     handles = [Patch(color=f"C{k}", label=_label(m)) for k, m in enumerate(methods)]
     fig.legend(handles=handles, loc="outside lower center", ncol=len(methods), fontsize=8)
     fig.suptitle("Representative scenarios (grey ×: failure)")
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def profiles(traj: pd.DataFrame, path: Path) -> Path:
@@ -153,7 +206,7 @@ def profiles(traj: pd.DataFrame, path: Path) -> Path:
             vel_ax.set_xlabel("time, s")
             pos_ax.legend(fontsize=7)
     fig.suptitle("Representative scenarios: position-time (merging zone shaded) and velocity profiles")
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) -> Path:
@@ -210,4 +263,4 @@ def driver_type_sweep(episodes: pd.DataFrame, traj: pd.DataFrame, path: Path) ->
     right.set_ylabel("merge car speed, m/s")
     right.set_title(f"{_label(first_method)}: velocity by driver type ({first_start})")
     right.legend(fontsize=7, ncol=3, title="$b_{type}$")
-    return _save(fig, path)
+    return save_png(fig, path)

@@ -20,10 +20,12 @@ from idas_sumo.env.engine import (
     DEFAULT_MAX_EPISODE_S,
     DEFAULT_SAFETY_MASK,
     AgentBatch,
+    EpisodeObserver,
     EpisodeOutcome,
     MergeEngine,
     Policy,
     SafetyMask,
+    StepResult,
     iter_episodes,
 )
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
@@ -164,8 +166,10 @@ class _Recorder:
     """The engine observer of an evaluation: every vehicle's row at each step a job's agents decide,
     and at its end; the job's ``EpisodeResult`` once it is over."""
 
-    def __init__(self, jobs: Sequence[EvalJob]) -> None:
+    def __init__(self, jobs: Sequence[EvalJob], also: EpisodeObserver | None = None) -> None:
         self.jobs = jobs
+        self.also = also
+        """A further observer, called after this one (a replay's marks, evaluation/replay.py)."""
         self.rows: dict[int, list[tuple[object, ...]]] = {}
         self.results: dict[int, EpisodeResult] = {}
 
@@ -181,13 +185,25 @@ class _Recorder:
             masks[a] = "".join(map(str, batch.masks[i].tolist()))
         for k, (acts, masks) in per_copy.items():
             self._record(engine, k, jobs[k], acts, masks)
+        if self.also is not None:
+            self.also.decided(engine, jobs, batch, actions)
 
-    def stepped(self, *args: object) -> None:
-        pass
+    def stepped(
+        self,
+        engine: MergeEngine,
+        jobs: Sequence[int],
+        batch: AgentBatch,
+        actions: np.ndarray,
+        result: StepResult,
+    ) -> None:
+        if self.also is not None:
+            self.also.stepped(engine, jobs, batch, actions, result)
 
     def ended(self, engine: MergeEngine, slot: int, job: int, outcome: EpisodeOutcome) -> None:
         self._record(engine, slot, job, {}, {})
         self.results[job] = _result(engine, self.jobs[job], outcome, self.rows.pop(job))
+        if self.also is not None:
+            self.also.ended(engine, slot, job, outcome)
 
     def _record(
         self, engine: MergeEngine, k: int, job: int, actions: dict[str, int], masks: dict[str, str]
@@ -270,8 +286,13 @@ def run_jobs(
     methods: dict[str, Policy],
     others_policy: Policy,
     tripinfo_dir: Path | None = None,
+    observer: EpisodeObserver | None = None,
+    sumo_options: Sequence[str] = (),
 ) -> Iterator[tuple[EvalJob, EpisodeResult]]:
-    """Run ``jobs`` on the engine, ``engine.copies`` at a time; yield their results in job order."""
+    """Run ``jobs`` on the engine, ``engine.copies`` at a time; yield their results in job order.
+
+    ``observer`` sees every step too; ``sumo_options`` go to every SUMO run (an engine with one copy,
+    like ``tripinfo_dir``): a replay's sumo-gui settings."""
     names = list(methods)
     policies = [*methods.values(), others_policy]
     others = len(names)
@@ -282,19 +303,22 @@ def run_jobs(
         return method_index[j] if agent in method_sets[j] else others
 
     sumo_args = None
-    if tripinfo_dir is not None:
+    if tripinfo_dir is not None or sumo_options:
         directory = tripinfo_dir
 
         def sumo_args(j: int) -> tuple[str, ...]:
+            if directory is None:
+                return tuple(sumo_options)
             job = jobs[j]
             return (
+                *sumo_options,
                 "--tripinfo-output",
                 str(directory / f"{job.method}-{job.case.scenario.name}.tripinfo.xml"),
                 # The episode ends before every car has left the net; report those cars too.
                 "--tripinfo-output.write-unfinished",
             )
 
-    recorder = _Recorder(jobs)
+    recorder = _Recorder(jobs, observer)
     for j, _ in iter_episodes(
         engine, [job.case.scenario for job in jobs], assign, policies, recorder, sumo_args
     ):

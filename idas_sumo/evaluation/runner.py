@@ -33,6 +33,7 @@ from idas_sumo.evaluation.protocol import (
     run_jobs,
     suite_cases,
 )
+from idas_sumo.evaluation.replay import write_replay_data
 from idas_sumo.evaluation.sweep import (
     DRIVER_TYPE_COLUMNS,
     TREND_COLUMNS,
@@ -184,6 +185,12 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
             columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
             write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
             written.append("trajectories.csv")
+        # What `idas-sumo replay` needs to run any of these episodes again (evaluation/replay.py).
+        written.append(
+            write_replay_data(
+                out, req.net, cases, req.methods, req.policy, others_name, req.seed, eval_config
+            )
+        )
     return EvalOutput(out, summary, tuple(verdicts), tuple(written))
 
 

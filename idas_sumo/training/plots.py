@@ -1,0 +1,174 @@
+"""Learning curves of a training run directory (``idas-sumo plot RUN_DIR``): from ``metrics.csv`` (one
+row per training episode) and ``validation.csv`` (one row per validation), stage boundaries marked."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from idas_sumo.env.rewards import FLOW_PENALTY_PER_HARD_BRAKE
+from idas_sumo.errors import InputError
+from idas_sumo.training.metrics import METRICS_NAME
+from idas_sumo.training.validation import VALIDATION_COLUMNS
+
+VALIDATION_NAME = "validation.csv"
+LEARNING_CURVES_NAME = "learning_curves.png"
+METRICS_NEEDED: tuple[str, ...] = (
+    "stage",
+    "global_episode",
+    "return_mean",
+    "flow",
+    "success",
+    "perfect",
+    "collisions",
+)
+"""The metrics.csv columns the curves read."""
+CURVE_POINTS = 60
+"""About this many rolling windows per stage: a window of len(stage) / CURVE_POINTS episodes smooths
+the episode-to-episode noise (one episode's success is 0 or 1) without hiding a collapse."""
+SUCCESS_COLOUR, PERFECT_COLOUR, COLLISION_COLOUR, LINE_COLOUR = "#2ca02c", "#1f77b4", "#d62728", "0.2"
+"""One colour per quantity in every panel (stages are told apart by the dashed boundary)."""
+
+
+def is_training_run(directory: Path) -> bool:
+    """A directory written by ``idas-sumo train`` (it has metrics.csv or validation.csv)."""
+    return (directory / METRICS_NAME).is_file() or (directory / VALIDATION_NAME).is_file()
+
+
+def _read(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
+    try:
+        frame = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
+        raise InputError(f"{path}: cannot read CSV ({err})") from None
+    missing = [c for c in columns if c not in frame.columns]
+    if missing:
+        raise InputError(f"{path}: not written by `idas-sumo train` (missing columns: {', '.join(missing)})")
+    return frame
+
+
+def _rolling(values: pd.Series, window: int) -> pd.Series:
+    return values.rolling(window, min_periods=max(1, window // 2)).mean()
+
+
+def plot_training_run(directory: Path) -> list[Path]:
+    """Draw the learning curves of a training run into ``directory``; returns the PNG paths."""
+    metrics_path, validation_path = directory / METRICS_NAME, directory / VALIDATION_NAME
+    metrics = _read(metrics_path, METRICS_NEEDED) if metrics_path.is_file() else None
+    validation = _read(validation_path, VALIDATION_COLUMNS) if validation_path.is_file() else None
+    if (metrics is None or metrics.empty) and (validation is None or validation.empty):
+        raise InputError(f"{directory}: its {METRICS_NAME} and {VALIDATION_NAME} hold no rows yet")
+    return [learning_curves(metrics, validation, directory / LEARNING_CURVES_NAME, directory.name)]
+
+
+def learning_curves(
+    metrics: pd.DataFrame | None, validation: pd.DataFrame | None, path: Path, title: str
+) -> Path:
+    """Six panels over the run's global episode: return; success, perfect and collision rates; hard
+    brakes in the merging zone (rolling means within each stage); validation's joint return (the
+    stage's best weights starred) and its success and perfect rates; the actor's entropy. A dashed
+    line and the stage's name where a stage begins."""
+    import matplotlib.pyplot as plt
+
+    from idas_sumo.evaluation.plots import save_png
+
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7.5), layout="constrained")
+    (ret_ax, rate_ax, brake_ax), (vret_ax, vrate_ax, ent_ax) = axes
+    starts: dict[str, int] = {}
+    windows: dict[str, int] = {}
+    if metrics is not None and len(metrics):
+        metrics = metrics.sort_values("global_episode", kind="stable")
+        for stage in dict.fromkeys(metrics["stage"].astype(str)):
+            rows = metrics[metrics["stage"].astype(str) == stage]
+            starts[stage] = int(rows["global_episode"].iloc[0])
+            window = windows[stage] = max(1, len(rows) // CURVE_POINTS)
+            first = len(starts) == 1  # one legend entry per quantity, not per stage
+            x = rows["global_episode"]
+            ret_ax.plot(x, _rolling(rows["return_mean"], window), color=LINE_COLOUR)
+            for column, colour, name in (
+                ("success", SUCCESS_COLOUR, "success"),
+                ("perfect", PERFECT_COLOUR, "perfect success"),
+            ):
+                rate_ax.plot(
+                    x, 100 * _rolling(rows[column], window), color=colour, label=name if first else None
+                )
+            crashed = (rows["collisions"] > 0).astype(float)
+            rate_ax.plot(
+                x,
+                100 * _rolling(crashed, window),
+                color=COLLISION_COLOUR,
+                label="collision" if first else None,
+            )
+            zone_brakes = rows["flow"] / FLOW_PENALTY_PER_HARD_BRAKE  # r_flow is -1 per merge-zone brake
+            brake_ax.plot(x, _rolling(zone_brakes, window), color=LINE_COLOUR)
+            if "entropy" in rows.columns:
+                ent_ax.plot(x, rows["entropy"], color=LINE_COLOUR, lw=0.8)
+    smoothing = ", ".join(f"{stage} {w}" for stage, w in windows.items())
+    ret_ax.set_title("Training: mean return per agent", fontsize=10)
+    ret_ax.set_ylabel("return (rolling mean)")
+    rate_ax.set_title("Training: episodes with success, perfect success, a collision", fontsize=10)
+    rate_ax.set_ylabel("episodes, % (rolling mean)")
+    rate_ax.set_ylim(-3, 103)
+    brake_ax.set_title("Training: hard brakes in the merging zone", fontsize=10)
+    brake_ax.set_ylabel("per episode (rolling mean)")
+    ent_ax.set_title("Actor entropy (one value per update)", fontsize=10)
+    ent_ax.set_ylabel("entropy, nats")
+
+    if validation is not None and len(validation):
+        for stage in dict.fromkeys(validation["stage"].astype(str)):
+            rows = validation[validation["stage"].astype(str) == stage]
+            starts.setdefault(stage, int(rows["global_episode"].iloc[0]))
+            first = stage == validation["stage"].astype(str).iloc[0]
+            x = rows["global_episode"]
+            vret_ax.plot(x, rows["joint_return"], marker="o", ms=3, color=LINE_COLOUR)
+            for column, colour, marker, name in (
+                ("success_rate", SUCCESS_COLOUR, "o", "success"),
+                ("perfect_rate", PERFECT_COLOUR, "s", "perfect success"),
+            ):
+                vrate_ax.plot(
+                    x, 100 * rows[column], marker=marker, ms=3, color=colour, label=name if first else None
+                )
+            best = rows[rows["best"] == 1]
+            if len(best):  # the stage's last new best is its <stage>_best.pt
+                b = best.iloc[-1]
+                vret_ax.plot(
+                    b["global_episode"],
+                    b["joint_return"],
+                    marker="*",
+                    ms=15,
+                    color="gold",
+                    mec="black",
+                    ls="",
+                    label="best weights (<stage>_best.pt)"
+                    if not vret_ax.get_legend_handles_labels()[0]
+                    else None,
+                )
+        vret_ax.set_title("Validation: joint return on held-out scenarios", fontsize=10)
+    else:
+        vret_ax.set_title("Validation: none in this run", fontsize=10)
+    vret_ax.set_ylabel("mean joint return per episode")
+    vrate_ax.set_title("Validation: success and perfect success", fontsize=10)
+    vrate_ax.set_ylabel("held-out scenarios, %")
+    vrate_ax.set_ylim(-3, 103)
+
+    ordered = sorted(starts.items(), key=lambda kv: kv[1])
+    for ax in axes.flat:
+        ax.set_xlabel("training episode (all stages)")
+        ax.grid(alpha=0.25)
+        for k, (stage, start) in enumerate(ordered):
+            if k:
+                ax.axvline(start, color="0.45", ls="--", lw=0.9)
+            ax.annotate(
+                stage,
+                (start, 1.0),
+                xycoords=("data", "axes fraction"),
+                xytext=(3, -11),
+                textcoords="offset points",
+                fontsize=8,
+                color="0.4",
+            )
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8, loc="lower left" if ax is not vret_ax else "lower right")
+    suffix = f" (rolling means over {smoothing} episodes)" if smoothing else ""
+    fig.suptitle(f"Learning curves: {title}{suffix}; dashed: a new stage begins")
+    return save_png(fig, path)
