@@ -127,6 +127,26 @@ def test_a_lane_the_road_loses_is_no_merge(tmp_path: Path) -> None:
     assert detect_merges(path) == ()
 
 
+def test_a_bike_lane_joining_is_no_merge(tmp_path: Path) -> None:
+    """A bike path that becomes a road's bike lane, which ends: only lanes cars may use count."""
+    nodes = (
+        '<nodes><node id="a" x="-300" y="0"/><node id="p" x="-300" y="-60"/><node id="g" x="0" y="0"/>'
+        '<node id="b" x="200" y="0"/><node id="c" x="500" y="0"/></nodes>'
+    )
+    edges = (
+        '<edges><edge id="road" from="a" to="g" numLanes="1" speed="15"/>'
+        '<edge id="bikepath" from="p" to="g" numLanes="1" speed="5" allow="bicycle"/>'
+        '<edge id="shared" from="g" to="b" numLanes="2" speed="15"><lane index="0" allow="bicycle"/></edge>'
+        '<edge id="onward" from="b" to="c" numLanes="1" speed="15"/></edges>'
+    )
+    connections = (
+        '<connections><connection from="bikepath" to="shared" fromLane="0" toLane="0"/>'
+        '<connection from="road" to="shared" fromLane="0" toLane="1"/></connections>'
+    )
+    path = build_plain_net(nodes, edges, connections, tmp_path / "bike.net.xml")
+    assert detect_merges(path) == ()
+
+
 def test_a_signalled_merge_is_no_merge(tmp_path: Path) -> None:
     generated = generate_net(tmp_path / "t.net.xml")
     nodes = (

@@ -43,6 +43,8 @@ MAX_LISTED = 12
 
 MergeKind = Literal["junction", "lane_drop"]
 Side = Literal["main", "merge"]
+VEHICLE_CLASS = "passenger"
+"""The SUMO vehicle class whose lanes count (the package's cars are passenger cars)."""
 _TURNAROUND = "t"
 _STRAIGHT = "s"
 
@@ -296,6 +298,11 @@ def _route_lane(lane: Any, start_to_merge_m: float) -> RouteLane:
 # -- finding merges ---------------------------------------------------------------------------------
 
 
+def _drivable(lane: Any) -> bool:
+    """A lane cars may use (an OSM import's sidewalks and bike lanes end everywhere: no merges)."""
+    return bool(lane.allows(VEHICLE_CLASS))
+
+
 def _signalled(node: Any) -> bool:
     kind = str(node.getType())
     return kind.startswith("traffic_light") or kind.startswith("rail_")
@@ -312,12 +319,22 @@ def _candidates(node: Any) -> list[tuple[Any, Any, Any, bool]]:
     become one at ``node``."""
     found = []
     outgoing = sorted(
-        (lane for edge in node.getOutgoing() if edge.getFunction() != "internal" for lane in edge.getLanes()),
+        (
+            lane
+            for edge in node.getOutgoing()
+            if edge.getFunction() != "internal"
+            for lane in edge.getLanes()
+            if _drivable(lane)
+        ),
         key=lambda lane: (lane.getEdge().getID(), lane.getIndex()),
     )
     for into in outgoing:
         sources = sorted(
-            (c.getFromLane() for c in _normal_incoming(into) if c.getFrom().getToNode() is node),
+            (
+                c.getFromLane()
+                for c in _normal_incoming(into)
+                if c.getFrom().getToNode() is node and _drivable(c.getFromLane())
+            ),
             key=lambda lane: lane.getID(),
         )
         if len(sources) == 2:
@@ -325,8 +342,9 @@ def _candidates(node: Any) -> list[tuple[Any, Any, Any, bool]]:
     for edge in sorted(node.getIncoming(), key=lambda e: e.getID()):
         if edge.getFunction() == "internal":
             continue
-        going_on = [lane for lane in edge.getLanes() if _normal_outgoing(lane)]
-        for lane in edge.getLanes():
+        drivable = [lane for lane in edge.getLanes() if _drivable(lane)]
+        going_on = [lane for lane in drivable if _normal_outgoing(lane)]
+        for lane in drivable:
             if _normal_outgoing(lane) or not going_on:
                 continue  # a lane that goes on, or the end of the network
             # The ending lane's cars change into the nearest lane that goes on (the right one first).
