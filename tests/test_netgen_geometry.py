@@ -133,5 +133,15 @@ def test_cache_builds_once_and_reuses(tmp_path: Path) -> None:
     assert again == first and again.stat().st_mtime_ns == stamp - 10**9
     other = cached_net(NetParams(angle_deg=50.0), tmp_path)
     assert other != first and other.parent == first.parent
-    # Only the nets remain in the cache folder: no plain XML, no build folders or temp files.
-    assert sorted(p.name for p in first.parent.iterdir()) == sorted([first.name, other.name])
+    # Only the nets and their digests remain: no plain XML, no build folders or temp files.
+    names = [first.name, other.name]
+    assert sorted(p.name for p in first.parent.iterdir()) == sorted([*names, *(n + ".sha256" for n in names)])
+
+
+def test_a_damaged_cached_net_is_built_again(tmp_path: Path) -> None:
+    params = NetParams(angle_deg=35.0)
+    path = cached_net(params, tmp_path)
+    whole = path.read_bytes()
+    path.write_bytes(whole[: len(whole) // 2])  # a disk that filled up, an editor
+    assert cached_net(params, tmp_path) == path
+    assert read_merge_net(path).merge.length_m == params.merge_length_m

@@ -7,9 +7,11 @@ SUMO may build a different net from the same plain XML) and ``CACHE_FORMAT``. Ne
 folder of the multi-copy net cache (``IDAS_SUMO_CACHE``, see sim/multinet.py).
 
 Concurrent workers asking for one key are safe: each builds in a private temp folder inside the cache
-and renames the finished net into place (``generate_net`` writes atomically), so a reader never sees a
-half-written file and the last rename wins with identical content. A net is read back and checked
-(``read_merge_net``) before it is renamed into the cache.
+and renames the finished net, then its digest, into place, so a reader never sees a half-written file.
+A net is read back and checked (``read_merge_net``) before it enters the cache, and a cached net is
+used only if it still has the SHA-256 written beside it when it was built (netconvert stamps the build
+time into the file, so two racing builds can leave one's net beside the other's digest: the next call
+then builds it again).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import time
 from pathlib import Path
 
 from idas_sumo.errors import SimulationError
-from idas_sumo.io_utils import remove_stale_temps
+from idas_sumo.io_utils import file_digest, remove_stale_temps
 from idas_sumo.sim.multinet import STALE_TEMP_S, default_cache_dir
 from idas_sumo.sim.netgen import NetParams, generate_net, read_merge_net, sumo_binary
 
@@ -34,6 +36,8 @@ CACHE_FORMAT = 1
 """Bump when ``generate_net`` changes the nets it writes: older cached nets are then not reused."""
 GEN_SUBDIR = "gen"
 """The generated nets' folder inside the net cache."""
+DIGEST_SUFFIX = ".sha256"
+"""Beside each cached net: the SHA-256 of the file as built and checked."""
 BUILD_DIR_PREFIX = ".build-"
 """A private build folder inside the cache (removed after the build; a killed build's is stale)."""
 
@@ -60,7 +64,10 @@ def cached_net(params: NetParams, cache_dir: str | Path | None = None) -> Path:
     """The generated merge net for ``params``: from the cache, or built, checked and cached now."""
     folder = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) / GEN_SUBDIR
     path = folder / f"merge-{params_key(params)[:32]}.net.xml"
-    if path.is_file():
+    digest = path.with_name(path.name + DIGEST_SUFFIX)
+    # Used only with the digest written when it was built: a truncated or edited cache file would
+    # otherwise fail later as if the net were bad, or run with other roads.
+    if path.is_file() and digest.is_file() and digest.read_text().strip() == file_digest(path):
         return path
     folder.mkdir(parents=True, exist_ok=True)
     _remove_stale_builds(folder)
@@ -68,7 +75,10 @@ def cached_net(params: NetParams, cache_dir: str | Path | None = None) -> Path:
     try:
         built = generate_net(build / path.name, params)
         read_merge_net(built)  # a net that does not read back as a merge never enters the cache
+        built_digest = build / digest.name
+        built_digest.write_text(file_digest(built) + "\n")
         os.replace(built, path)
+        os.replace(built_digest, digest)
     finally:
         shutil.rmtree(build, ignore_errors=True)
     return path
