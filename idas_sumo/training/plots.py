@@ -72,7 +72,7 @@ def learning_curves(
 
     from idas_sumo.evaluation.plots import save_png
 
-    fig, axes = plt.subplots(2, 3, figsize=(15, 7.5), layout="constrained")
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7.5), layout="constrained", sharex=True)
     (ret_ax, rate_ax, brake_ax), (vret_ax, vrate_ax, ent_ax) = axes
     starts: dict[str, int] = {}
     windows: dict[str, int] = {}
@@ -85,12 +85,17 @@ def learning_curves(
             first = len(starts) == 1  # one legend entry per quantity, not per stage
             x = rows["global_episode"]
             ret_ax.plot(x, _rolling(rows["return_mean"], window), color=LINE_COLOUR)
-            for column, colour, name in (
-                ("success", SUCCESS_COLOUR, "success"),
-                ("perfect", PERFECT_COLOUR, "perfect success"),
+            # Success drawn wider beneath perfect success: where they are equal, both stay visible.
+            for column, colour, width, name in (
+                ("success", SUCCESS_COLOUR, 3.0, "success"),
+                ("perfect", PERFECT_COLOUR, 1.3, "perfect success"),
             ):
                 rate_ax.plot(
-                    x, 100 * _rolling(rows[column], window), color=colour, label=name if first else None
+                    x,
+                    100 * _rolling(rows[column], window),
+                    color=colour,
+                    lw=width,
+                    label=name if first else None,
                 )
             crashed = (rows["collisions"] > 0).astype(float)
             rate_ax.plot(
@@ -121,12 +126,18 @@ def learning_curves(
             first = stage == validation["stage"].astype(str).iloc[0]
             x = rows["global_episode"]
             vret_ax.plot(x, rows["joint_return"], marker="o", ms=3, color=LINE_COLOUR)
-            for column, colour, marker, name in (
-                ("success_rate", SUCCESS_COLOUR, "o", "success"),
-                ("perfect_rate", PERFECT_COLOUR, "s", "perfect success"),
+            for column, colour, width, marker, name in (
+                ("success_rate", SUCCESS_COLOUR, 3.0, "o", "success"),
+                ("perfect_rate", PERFECT_COLOUR, 1.3, "s", "perfect success"),
             ):
                 vrate_ax.plot(
-                    x, 100 * rows[column], marker=marker, ms=3, color=colour, label=name if first else None
+                    x,
+                    100 * rows[column],
+                    marker=marker,
+                    ms=2 * width + 1,
+                    lw=width,
+                    color=colour,
+                    label=name if first else None,
                 )
             best = rows[rows["best"] == 1]
             if len(best):  # the stage's last new best is its <stage>_best.pt
@@ -153,7 +164,6 @@ def learning_curves(
 
     ordered = sorted(starts.items(), key=lambda kv: kv[1])
     for ax in axes.flat:
-        ax.set_xlabel("training episode (all stages)")
         ax.grid(alpha=0.25)
         for k, (stage, start) in enumerate(ordered):
             if k:
@@ -166,9 +176,12 @@ def learning_curves(
                 textcoords="offset points",
                 fontsize=8,
                 color="0.4",
+                annotation_clip=True,
             )
         if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8, loc="lower left" if ax is not vret_ax else "lower right")
+            ax.legend(fontsize=8, loc="best")
+    for ax in axes[1]:
+        ax.set_xlabel("training episode (all stages)")
     suffix = f" (rolling means over {smoothing} episodes)" if smoothing else ""
     fig.suptitle(f"Learning curves: {title}{suffix}; dashed: a new stage begins")
     return save_png(fig, path)
