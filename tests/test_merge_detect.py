@@ -114,6 +114,61 @@ def test_onramp_acceleration_lane_is_detected(sample_nets: dict[str, Path]) -> N
     )
 
 
+_RAMP_NODES = (
+    '<nodes><node id="a" x="-500" y="0"/><node id="r" x="-400" y="-100"/><node id="g" x="0" y="0"/>'
+    '<node id="m" x="100" y="0"/><node id="d" x="250" y="0"/><node id="e" x="600" y="0"/></nodes>'
+)
+_RAMP_EDGES = (
+    '<edge id="hw" from="a" to="g" numLanes="2" speed="33" priority="3"/>'
+    '<edge id="ramp" from="r" to="g" numLanes="1" speed="22" priority="1"/>'
+)
+
+
+def test_an_acceleration_lane_over_two_edges(tmp_path: Path) -> None:
+    edges = (
+        f"<edges>{_RAMP_EDGES}"
+        '<edge id="acc1" from="g" to="m" numLanes="3" speed="33" priority="3"/>'
+        '<edge id="acc2" from="m" to="d" numLanes="3" speed="33" priority="3"/>'
+        '<edge id="out" from="d" to="e" numLanes="2" speed="33" priority="3"/></edges>'
+    )
+    connections = (
+        '<connections><connection from="ramp" to="acc1" fromLane="0" toLane="0"/>'
+        '<connection from="hw" to="acc1" fromLane="0" toLane="1"/>'
+        '<connection from="hw" to="acc1" fromLane="1" toLane="2"/></connections>'
+    )
+    site = choose_merge(build_plain_net(_RAMP_NODES, edges, connections, tmp_path / "acc2.net.xml"))
+    assert (site.junction_id, site.kind) == ("d", "lane_drop")
+    assert site.main.edge_ids == ("hw", "acc1", "acc2") and [x.lane_index for x in site.main.edges] == [
+        0,
+        1,
+        1,
+    ]
+    assert site.merge.edge_ids == ("ramp", "acc1", "acc2") and [x.lane_index for x in site.merge.edges] == [
+        0,
+        0,
+        0,
+    ]
+    assert (site.main.road.edge_id, site.merge.road.edge_id) == ("hw", "ramp")
+    _check_distances(site)
+
+
+def test_a_ramp_joining_a_two_lane_road_without_acceleration_lane(tmp_path: Path) -> None:
+    """2 + 1 lanes into 2: netconvert joins the ramp's lane and the highway's right lane into one."""
+    nodes = _RAMP_NODES.replace('<node id="m" x="100" y="0"/><node id="d" x="250" y="0"/>', "")
+    edges = (
+        f'<edges>{_RAMP_EDGES}<edge id="out" from="g" to="e" numLanes="2" speed="33" priority="3"/></edges>'
+    )
+    site = choose_merge(build_plain_net(nodes, edges, "", tmp_path / "direct.net.xml"))
+    assert (site.junction_id, site.kind) == ("g", "junction")
+    assert (site.main.edge_ids, site.merge.edge_ids) == (("hw",), ("ramp",))
+    assert [(x.edge_id, x.lane_index) for x in (*site.main.edges, *site.merge.edges)] == [
+        ("hw", 0),
+        ("ramp", 0),
+    ]
+    assert [(x.edge_id, x.lane_index) for x in site.out if not x.internal] == [("out", 0)]
+    assert site.main.through != site.merge.through  # each road crosses the junction on its own lane
+
+
 def test_a_lane_the_road_loses_is_no_merge(tmp_path: Path) -> None:
     """Three lanes narrowing to two, with no ramp: both lanes come from the same road."""
     nodes = (
