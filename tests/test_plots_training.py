@@ -46,7 +46,7 @@ def synthetic_run(directory: Path, robot: int = 200, intelligent: int = 100) -> 
     rows = []
     for g in range(robot + intelligent):
         stage, episode = ("robot", g) if g < robot else ("intelligent", g - robot)
-        row = dict.fromkeys(METRIC_COLUMNS, 0)
+        row: dict[str, Any] = dict.fromkeys(METRIC_COLUMNS, 0)
         row.update(
             stage=stage,
             episode=episode,
