@@ -17,6 +17,7 @@ import errno
 import math
 import os
 import subprocess
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -136,9 +137,10 @@ def _plain_xml(params: NetParams) -> tuple[str, str]:
     return node_xml, edge_xml
 
 
-def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
-    """Write the merge network to ``out_path`` (atomically) and keep its plain XML beside it."""
-    out = Path(out_path)
+def write_plain_xml(out: Path, plain: Sequence[tuple[str, str]]) -> list[Path]:
+    """Check that the net ``out`` can be written there, then write each (kind, text) of ``plain`` beside
+    it as ``<stem>.<kind>.xml`` (atomically); the files written. A place that cannot hold files is an
+    InputError naming ``--out``; a full disk is an OSError (exit 1)."""
     if out.is_dir():
         raise InputError(f"--out {out}: is a directory, expected a .net.xml file name")
     try:
@@ -147,18 +149,26 @@ def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
         raise InputError(f"--out {out}: cannot create directory {out.parent} ({err.strerror})") from None
     if not os.access(out.parent, os.W_OK):
         raise InputError(f"--out {out}: directory {out.parent} is not writable")
-    node_xml, edge_xml = _plain_xml(params)
     stem = out.name.removesuffix(".net.xml")
-    nod = out.with_name(f"{stem}.nod.xml")
-    edg = out.with_name(f"{stem}.edg.xml")
-    for plain, text in ((nod, node_xml), (edg, edge_xml)):
+    written = []
+    for kind, text in plain:
+        path = out.with_name(f"{stem}.{kind}.xml")
         try:
-            with atomic_open(plain) as f:
+            with atomic_open(path) as f:
                 f.write(text)
         except OSError as err:
             if err.errno not in _BAD_PLACE_ERRNOS:
                 raise  # a full disk or an I/O error: a runtime failure (exit 1), named by the CLI
-            raise InputError(f"--out {out}: cannot write {plain} ({err.strerror})") from None
+            raise InputError(f"--out {out}: cannot write {path} ({err.strerror})") from None
+        written.append(path)
+    return written
+
+
+def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
+    """Write the merge network to ``out_path`` (atomically) and keep its plain XML beside it."""
+    out = Path(out_path)
+    node_xml, edge_xml = _plain_xml(params)
+    nod, edg = write_plain_xml(out, [("nod", node_xml), ("edg", edge_xml)])
     with atomic_path(out) as tmp:
         cmd = [
             str(sumo_binary("netconvert")),
@@ -322,4 +332,5 @@ __all__ = [
     "read_merge_net",
     "road_rank",
     "turn_deg",
+    "write_plain_xml",
 ]

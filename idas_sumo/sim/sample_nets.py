@@ -21,8 +21,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from idas_sumo.errors import InputError, SimulationError
-from idas_sumo.io_utils import atomic_open, atomic_path
-from idas_sumo.sim.netgen import sumo_binary
+from idas_sumo.io_utils import atomic_path
+from idas_sumo.sim.netgen import sumo_binary, write_plain_xml
 
 HIGHWAY_SPEED_MPS = 33.0
 """The on-ramp net's highway limit (about 120 km/h)."""
@@ -137,24 +137,21 @@ def build_sample_net(name: str, out: str | Path) -> Path:
     return build_plain_net(*SAMPLE_NETS[name](), out)
 
 
+def _plain_kinds(nodes_xml: str, edges_xml: str, connections_xml: str) -> list[tuple[str, str, str]]:
+    """(netconvert flag, file kind, text) of each plain XML file."""
+    return [("-n", "nod", nodes_xml), ("-e", "edg", edges_xml), ("-x", "con", connections_xml)]
+
+
 def build_plain_net(nodes_xml: str, edges_xml: str, connections_xml: str, out: str | Path) -> Path:
     """A net from plain XML (nodes, edges, connections: "" for netconvert's own) into ``out``,
     written atomically, the plain XML kept beside it (``<stem>.nod.xml`` ...)."""
     path = Path(out)
-    if path.is_dir():
-        raise InputError(f"--out {path}: is a directory, expected a .net.xml file name")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    stem = path.name.removesuffix(".net.xml")
+    given = [
+        (flag, kind, text) for flag, kind, text in _plain_kinds(nodes_xml, edges_xml, connections_xml) if text
+    ]
+    files = write_plain_xml(path, [(kind, text) for _, kind, text in given])
     cmd = [str(sumo_binary("netconvert"))]
-    plain_files = zip(
-        (nodes_xml, edges_xml, connections_xml), ("nod", "edg", "con"), ("-n", "-e", "-x"), strict=True
-    )
-    for text, suffix, flag in plain_files:
-        if not text:
-            continue
-        plain = path.with_name(f"{stem}.{suffix}.xml")
-        with atomic_open(plain) as f:
-            f.write(text)
+    for (flag, _, _), plain in zip(given, files, strict=True):
         cmd += [flag, str(plain)]
     with atomic_path(path) as tmp:
         cmd += ["-o", str(tmp), "--no-turnarounds", "true", "--no-warnings", "true"]
