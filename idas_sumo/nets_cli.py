@@ -48,10 +48,7 @@ def run_nets(args: argparse.Namespace) -> int:
     from idas_sumo.sim.merge_detect import choose_merge, describe_site, detect_merges
 
     if args.junction is None:
-        sites = detect_merges(args.net)
-        if not sites:
-            choose_merge(args.net)  # raises the error that lists what the net has
-        for site in sites:
+        for site in detect_merges(args.net, none_is_error=True):
             print(describe_site(site))
         return 0
     site = choose_merge(args.net, args.junction)

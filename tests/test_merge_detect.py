@@ -169,6 +169,30 @@ def test_a_ramp_joining_a_two_lane_road_without_acceleration_lane(tmp_path: Path
     assert site.main.through != site.merge.through  # each road crosses the junction on its own lane
 
 
+def test_netconverts_guessed_acceleration_lane(tmp_path: Path) -> None:
+    """An OSM import's on-ramps: ``netconvert --ramps.guess`` splits the highway after the ramp and adds
+    the acceleration lane itself, under edge and junction names of its own."""
+    import subprocess
+
+    from idas_sumo.sim.netgen import sumo_binary
+
+    nodes = tmp_path / "g.nod.xml"
+    edges = tmp_path / "g.edg.xml"
+    nodes.write_text(_RAMP_NODES.replace('<node id="m" x="100" y="0"/><node id="d" x="250" y="0"/>', ""))
+    edges.write_text(f'<edges>{_RAMP_EDGES}<edge id="out" from="g" to="e" numLanes="2" speed="33"/></edges>')
+    net = tmp_path / "guessed.net.xml"
+    netconvert = [str(sumo_binary("netconvert")), "-n", str(nodes), "-e", str(edges), "-o", str(net)]
+    subprocess.run(
+        [*netconvert, "--ramps.guess", "true", "--no-warnings", "true"], check=True, capture_output=True
+    )
+    site = choose_merge(net)
+    assert site.kind == "lane_drop" and site.merge.ending
+    assert site.main.edge_ids[0] == "hw" and site.merge.edge_ids[0] == "ramp"
+    assert site.main.edge_ids[1:] == site.merge.edge_ids[1:]  # the added acceleration edge, shared
+    assert (site.main.edges[-1].lane_index, site.merge.edges[-1].lane_index) == (1, 0)
+    _check_distances(site)
+
+
 def test_a_lane_the_road_loses_is_no_merge(tmp_path: Path) -> None:
     """Three lanes narrowing to two, with no ramp: both lanes come from the same road."""
     nodes = (

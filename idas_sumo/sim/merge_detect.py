@@ -443,10 +443,16 @@ def _site(
 
 
 def detect_merges(
-    path: str | Path, upstream_m: float = DEFAULT_UPSTREAM_M, downstream_m: float = DEFAULT_DOWNSTREAM_M
+    path: str | Path,
+    upstream_m: float = DEFAULT_UPSTREAM_M,
+    downstream_m: float = DEFAULT_DOWNSTREAM_M,
+    *,
+    none_is_error: bool = False,
 ) -> tuple[MergeSite, ...]:
     """Every merge in the net at ``path``, one per junction, sorted by junction id. Signalled
-    junctions are left out: a signal, not the cars, decides who goes there."""
+    junctions are left out: a signal, not the cars, decides who goes there. ``none_is_error``: a net
+    without a merge is an InputError saying what the net has (the net is read once: a city takes
+    seconds)."""
     p = Path(path)
     net = load_sumo_net(p)
     sites = []
@@ -458,6 +464,11 @@ def detect_merges(
             if site is not None:
                 sites.append(site)
                 break  # one merge per junction: the first outgoing lane's
+    if none_is_error and not sites:
+        raise InputError(
+            f"{p}: no merge (two roads' lanes becoming one at an unsignalled junction, or an on-ramp's "
+            f"acceleration lane) in the network: {_net_summary(net)}"
+        )
     return tuple(sites)
 
 
@@ -491,7 +502,10 @@ def describe_site(site: MergeSite) -> str:
 
 def describe_net(path: str | Path) -> str:
     """What a net without a merge has: its roads and the junctions where several roads meet."""
-    net = load_sumo_net(path)
+    return _net_summary(load_sumo_net(path))
+
+
+def _net_summary(net: Any) -> str:
     edges = [e for e in net.getEdges() if e.getFunction() != "internal"]
     meeting = []
     for node in sorted(net.getNodes(), key=lambda n: n.getID()):
@@ -516,12 +530,7 @@ def choose_merge(
 ) -> MergeSite:
     """The merge at ``junction``, or the net's only merge; an InputError listing what was found when
     there is none, several and no ``junction``, or no merge at ``junction``."""
-    sites = detect_merges(path, upstream_m, downstream_m)
-    if not sites:
-        raise InputError(
-            f"{path}: no merge (two roads' lanes becoming one at an unsignalled junction, or an on-ramp's "
-            f"acceleration lane) in the network: {describe_net(path)}"
-        )
+    sites = detect_merges(path, upstream_m, downstream_m, none_is_error=True)
     found = "; ".join(describe_site(s) for s in sites)
     if junction is None:
         if len(sites) == 1:
