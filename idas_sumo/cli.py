@@ -1,4 +1,4 @@
-"""``idas-sumo``: netgen | train | evaluate | plot | replay | sweep. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
+"""``idas-sumo``: netgen | nets | train | evaluate | plot | replay | sweep. Exit codes: 0 ok, 1 runtime failure, 2 bad input,
 130 Ctrl-C, 143 SIGTERM (129 SIGHUP)."""
 
 from __future__ import annotations
