@@ -23,7 +23,6 @@ from idas_sumo.distributed import check_ray_address
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS
 from idas_sumo.errors import IdasError, InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
-from idas_sumo.nets_cli import add_nets_parser, run_nets
 from idas_sumo.resources import (
     DEFAULT_NET_NAME,
     DEFAULT_TRAIN_CONFIG,
@@ -32,6 +31,7 @@ from idas_sumo.resources import (
 )
 from idas_sumo.sim.multinet import MAX_COPIES
 from idas_sumo.sim.netgen import PRIORITIES, NetParams
+from idas_sumo.sim.nets_cli import add_nets_parser, run_nets
 from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 
 if TYPE_CHECKING:
