@@ -114,6 +114,41 @@ def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
     assert enc(torch.zeros(0, OBS_DIM)).shape == (0, enc(edge).shape[1])  # no agents acting this step
 
 
+def test_frozen_conv_operands_follow_every_weight_change() -> None:
+    """With autograd off the encoder reuses its Toeplitz operands; an optimizer step or a
+    load_state_dict (both change the weights in place) must be seen by the very next forward."""
+    torch.manual_seed(0)
+    actor, other = Actor(), Actor()
+    obs = torch.zeros(6, OBS_DIM)
+    obs[:, N_SCALARS + 180 : N_SCALARS + 200] = 1.0
+    obs[:, :N_SCALARS] = torch.rand(6, N_SCALARS)
+
+    def fresh(net: Actor) -> torch.Tensor:
+        with torch.enable_grad():  # autograd on: operands built from the weights as they are
+            return net(obs).detach()
+
+    with torch.inference_mode():
+        before = actor(obs)
+        assert torch.equal(actor(obs), before)  # reused operands give the same numbers
+    assert torch.equal(before, fresh(actor))
+    opt = torch.optim.SGD(actor.parameters(), lr=0.1)
+    for param in actor.parameters():  # a step with no grad-enabled forward in between
+        param.grad = torch.full_like(param, 0.01)
+    with torch.no_grad():
+        actor(obs)  # operands frozen again
+    opt.step()
+    with torch.no_grad():
+        stepped = actor(obs)
+    assert not torch.equal(stepped, before)
+    assert torch.equal(stepped, fresh(actor))
+    with torch.inference_mode():
+        actor(obs)
+    actor.load_state_dict(other.state_dict())
+    with torch.inference_mode():
+        loaded = actor(obs)
+    assert torch.equal(loaded, fresh(other))
+
+
 def test_masked_probabilities_are_exactly_zero() -> None:
     torch.manual_seed(0)
     mask = torch.tensor([[0, 0, 0, 0, 0, 1, 0], [1, 0, 0, 0, 0, 1, 1]], dtype=torch.int8)

@@ -8,6 +8,7 @@ centralised critic is two FC layers of 128 units (Fig. 3).
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -110,6 +111,16 @@ def _feature_order() -> torch.Tensor:
     return (out_row * CONV_OUT_CELLS + block * BLOCK_CELLS + cell).flatten()
 
 
+@dataclass(frozen=True)
+class _ConvOperands:
+    toeplitz: torch.Tensor
+    """(4·82, 4·53): ``_toeplitz`` of the conv weight."""
+    bias: torch.Tensor
+    """The conv bias per output column of one block."""
+    joint_conv_weight: torch.Tensor
+    """The first joint layer's weight for the conv features, transposed, rows in block order."""
+
+
 class GridEncoder(nn.Module):
     """Observation (B, OBS_DIM) -> features (B, JOINT_HIDDEN).
 
@@ -134,6 +145,7 @@ class GridEncoder(nn.Module):
         self.joint = _mlp([SCALAR_HIDDEN + CONV_FEATURES, JOINT_HIDDEN, JOINT_HIDDEN, JOINT_HIDDEN])
         self._feature_order: torch.Tensor
         self.register_buffer("_feature_order", _feature_order() + SCALAR_HIDDEN, persistent=False)
+        self._frozen: tuple[tuple[object, ...], _ConvOperands] | None = None
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if obs.shape[-1] != OBS_DIM:
@@ -148,27 +160,47 @@ class GridEncoder(nn.Module):
         out: torch.Tensor = self.joint(torch.cat([self.scalars(obs[:, :N_SCALARS]), conv], dim=1))
         return out
 
-    def _conv_blocks(self, obs: torch.Tensor) -> torch.Tensor:
+    def _operands(self) -> _ConvOperands:
+        """The Toeplitz matrix, its bias and the first joint layer's conv columns, built from the weights.
+
+        With autograd off (a rollout or an evaluation acts thousands of times between two weight changes)
+        they are built once and reused while the weights stay the same tensors at the same version:
+        an optimizer step or ``load_state_dict`` changes them in place, which bumps the version.
+        """
+        first = self.joint[0]
+        assert isinstance(first, nn.Linear) and self.conv.bias is not None  # built with a bias
+        key: tuple[object, ...] = ()
+        if not torch.is_grad_enabled():
+            params = (self.conv.weight, self.conv.bias, first.weight)
+            key = (torch.is_inference_mode_enabled(), *((p.data_ptr(), p._version) for p in params))
+            if self._frozen is not None and self._frozen[0] == key:
+                return self._frozen[1]
+        operands = _ConvOperands(
+            toeplitz=_toeplitz(self.conv.weight),
+            bias=self.conv.bias.repeat_interleave(CONV_OUT_LANES * BLOCK_CELLS),  # (filter, row, cell)
+            joint_conv_weight=first.weight.index_select(1, self._feature_order).t(),
+        )
+        self._frozen = (key, operands) if key else None
+        return operands
+
+    def _conv_blocks(self, obs: torch.Tensor, operands: _ConvOperands) -> torch.Tensor:
         """ReLU(conv) (B, CONV_FEATURES) in block order (block, filter, row, cell)."""
         b = obs.shape[0]
-        toeplitz = _toeplitz(self.conv.weight)
-        assert self.conv.bias is not None  # the Conv2d is built with a bias
-        bias = self.conv.bias.repeat_interleave(CONV_OUT_LANES * BLOCK_CELLS)  # (filter, row, cell)
         # layout.py orders the grid lane-major, [cl occ, cl rel, ol occ, ol rel]: (lane, channel) rows.
         rows = obs[:, N_SCALARS:].reshape(b, _ROWS_IN, GRID_CELLS)
         windows = (
             rows.unfold(2, _BLOCK_IN, BLOCK_CELLS).transpose(1, 2).reshape(b * _BLOCKS, _ROWS_IN * _BLOCK_IN)
         )
-        return torch.relu(torch.addmm(bias, windows, toeplitz)).reshape(b, CONV_FEATURES)
+        return torch.relu(torch.addmm(operands.bias, windows, operands.toeplitz)).reshape(b, CONV_FEATURES)
 
     def _joint_input_layer(self, obs: torch.Tensor) -> torch.Tensor:
         """The first joint layer on cat(scalar features, conv features), without building the cat."""
         first = self.joint[0]
         assert isinstance(first, nn.Linear)
+        operands = self._operands()
         w_scalars = first.weight[:, :SCALAR_HIDDEN]
-        w_conv = first.weight.index_select(1, self._feature_order)
         out = torch.addmm(first.bias, self.scalars(obs[:, :N_SCALARS]), w_scalars.t())
-        return out.addmm_(self._conv_blocks(obs), w_conv.t())
+        return out.addmm_(self._conv_blocks(obs, operands), operands.joint_conv_weight)
 
 
 # Ours: the initial policy's prior over actions. With uniform logits a fresh policy hard-brakes on one
