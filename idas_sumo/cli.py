@@ -632,11 +632,14 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _plot(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.plots import plot_directory
+    from idas_sumo.training.plots import is_training_run, plot_training_run
 
     for csv in sorted(Path(args.dir).glob("*.csv")) if Path(args.dir).is_dir() else []:
         if csv.exists() and not csv.is_file():  # reading a FIFO blocks until written to
             raise InputError(f"{csv}: not a regular file (a FIFO, device or socket), expected a CSV file")
-    for png in plot_directory(args.dir):
+    # An evaluation has episodes.csv; a training run, metrics.csv or validation.csv.
+    training = not (args.dir / "episodes.csv").exists() and is_training_run(args.dir)
+    for png in plot_training_run(args.dir) if training else plot_directory(args.dir):
         print(f"wrote {png}")
     return 0
 

@@ -184,3 +184,13 @@ def file_digest(path: Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
+    """A matplotlib figure as a PNG, written atomically, then closed (every plot of the package)."""
+    import matplotlib.pyplot as plt
+
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -92,7 +92,7 @@ def test_plot_on_a_training_run_writes_learning_curves(
 def test_learning_curves_mark_the_stage_boundary_and_label_every_panel(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import idas_sumo.evaluation.plots as plots
+    import idas_sumo.training.plots as plots
 
     figures = []
 

@@ -1,6 +1,6 @@
 """PNG plots of an evaluation directory, after the paper's Fig. 4 (bars), Fig. 5 (position-time and
-velocity profiles, merging zone shaded) and Fig. 6 (driver-type sweep), and of its flow.csv (ours);
-a training run directory gets its learning curves (training/plots.py)."""
+velocity profiles, merging zone shaded) and Fig. 6 (driver-type sweep), and of its flow.csv (ours).
+A training run directory's learning curves are training/plots.py's (``idas-sumo plot`` picks by the files)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from idas_sumo.errors import InputError
 from idas_sumo.evaluation.metrics import BASE_EPISODE_COLUMNS, FLOW_COLUMNS, TRAJECTORY_COLUMNS
 from idas_sumo.evaluation.policies import METHOD_LABELS
 from idas_sumo.evaluation.sweep import is_sweep_scenario, spearman_test
-from idas_sumo.io_utils import atomic_open
+from idas_sumo.io_utils import save_png
 
 ZONE_COLOR = "#9ecae1"
 
@@ -36,15 +36,6 @@ def _label(method: object) -> str:
     return METHOD_LABELS.get(str(method), str(method))
 
 
-def save_png(fig: object, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    with atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=120, bbox_inches="tight")  # type: ignore[attr-defined]
-    plt.close(fig)  # type: ignore[arg-type]
-    return path
-
-
 def plot_directory(directory: Path) -> list[Path]:
     """Draw every plot the CSVs in ``directory`` support; returns the PNG paths."""
     import matplotlib
@@ -53,10 +44,6 @@ def plot_directory(directory: Path) -> list[Path]:
     if not directory.is_dir():
         raise InputError(f"{directory}: not a directory written by `idas-sumo evaluate` or `train`")
     if not (directory / "episodes.csv").exists():
-        from idas_sumo.training.plots import is_training_run, plot_training_run
-
-        if is_training_run(directory):
-            return plot_training_run(directory)
         raise InputError(
             f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first) "
             "and no metrics.csv (not a training run either)"

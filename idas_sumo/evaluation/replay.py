@@ -51,7 +51,7 @@ from idas_sumo.evaluation.protocol import (
     eval_jobs,
     run_jobs,
 )
-from idas_sumo.io_utils import atomic_open, file_digest, write_csv_atomic
+from idas_sumo.io_utils import TEMP_SUFFIX, atomic_open, file_digest, write_csv_atomic
 from idas_sumo.resources import POLICY_DIR
 from idas_sumo.sim.backend import STEP_LENGTH_S, require_display
 from idas_sumo.sim.netgen import MergeNet, NetParams, read_merge_net
@@ -576,13 +576,14 @@ def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP
         writer = animation.PillowWriter(fps=FRAMES_PER_S)
     else:
         writer = animation.FFMpegWriter(fps=FRAMES_PER_S)
-    # Written beside the target and renamed: an interrupted run leaves no half animation.
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    # Written into a ``*.tmp`` folder beside the target and renamed: an interrupted run leaves no half
+    # animation. A folder, not io_utils' temp file, since the writers pick the format by the file's suffix.
+    folder = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMP_SUFFIX))
     try:
-        anim.save(str(tmp), writer=writer, dpi=dpi)
-        tmp.replace(path)
+        anim.save(str(folder / path.name), writer=writer, dpi=dpi)
+        (folder / path.name).replace(path)
     finally:
-        tmp.unlink(missing_ok=True)
+        shutil.rmtree(folder, ignore_errors=True)
         plt.close(fig)
     return path
 

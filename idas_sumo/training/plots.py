@@ -9,6 +9,7 @@ import pandas as pd
 
 from idas_sumo.env.rewards import FLOW_PENALTY_PER_HARD_BRAKE
 from idas_sumo.errors import InputError
+from idas_sumo.io_utils import save_png
 from idas_sumo.training.metrics import METRICS_NAME
 from idas_sumo.training.validation import VALIDATION_COLUMNS
 
@@ -53,6 +54,9 @@ def _rolling(values: pd.Series, window: int) -> pd.Series:
 
 def plot_training_run(directory: Path) -> list[Path]:
     """Draw the learning curves of a training run into ``directory``; returns the PNG paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
     metrics_path, validation_path = directory / METRICS_NAME, directory / VALIDATION_NAME
     metrics = _read(metrics_path, METRICS_NEEDED) if metrics_path.is_file() else None
     validation = _read(validation_path, VALIDATION_COLUMNS) if validation_path.is_file() else None
@@ -69,8 +73,6 @@ def learning_curves(
     stage's best weights starred) and its success and perfect rates; the actor's entropy. A dashed
     line and the stage's name where a stage begins."""
     import matplotlib.pyplot as plt
-
-    from idas_sumo.evaluation.plots import save_png
 
     fig, axes = plt.subplots(2, 3, figsize=(15, 7.5), layout="constrained", sharex=True)
     (ret_ax, rate_ax, brake_ax), (vret_ax, vrate_ax, ent_ax) = axes
