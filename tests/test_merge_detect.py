@@ -346,6 +346,8 @@ def test_routes_refuse_a_start_off_the_approach(sample_nets: dict[str, Path]) ->
     inside_gore = site.merge.edges[-1].length_m + 1.0  # on the gore's junction lane, between two edges
     with pytest.raises(InputError, match="between two of its edges"):
         route_xml(site, [SiteVehicle("gore", "merge", inside_gore)])
+    with pytest.raises(InputError, match="lane 3 of edge 'hw_in', which has 2 lanes"):
+        route_xml(site, [SiteVehicle("wide", "main", site.main.length_m - 1.0, lane_index=3)])
     with pytest.raises(InputError, match="used twice"):
         route_xml(site, [SiteVehicle("a", "main", 50.0), SiteVehicle("a", "merge", 60.0)])
 
@@ -367,10 +369,11 @@ def test_cars_on_both_approaches_reach_the_outgoing_road(
         for side in ("main", "merge")
         for d in (far, 60.0)
     ]
+    vehicles.append(SiteVehicle("left", "main", far - 30.0, speed_mps=10.0, lane_index=1))  # not merging
     routes = write_routes(site, vehicles, tmp_path / "site.rou.xml")
     out_edges = {x.edge_id for x in site.out if not x.internal}
     reached: set[str] = set()
-    start_edge: dict[str, str] = {}
+    start_lane: dict[str, str] = {}
     libsumo.start(
         [
             str(sumo_binary("sumo")),
@@ -388,16 +391,17 @@ def test_cars_on_both_approaches_reach_the_outgoing_road(
         for _ in range(120):  # 120 s: the farthest car drives ~650 m
             libsumo.simulationStep()
             for vid in libsumo.vehicle.getIDList():
-                start_edge.setdefault(vid, libsumo.vehicle.getRoadID(vid))
+                start_lane.setdefault(vid, libsumo.vehicle.getLaneID(vid))
                 if libsumo.vehicle.getRoadID(vid) in out_edges:
                     reached.add(vid)
     finally:
         libsumo.close()
-    assert start_edge == {
-        "main_" + f"{far:.0f}": "hw_in",
-        "main_60": "accel",
-        "merge_" + f"{far:.0f}": "ramp",
-        "merge_60": "accel",
+    assert start_lane == {
+        "main_" + f"{far:.0f}": "hw_in_0",
+        "main_60": "accel_1",
+        "merge_" + f"{far:.0f}": "ramp_0",
+        "merge_60": "accel_0",
+        "left": "hw_in_1",
     }
     assert reached == {v.id for v in vehicles}
 

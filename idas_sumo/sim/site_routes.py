@@ -3,7 +3,8 @@ to the merge point.
 
 A car on the ``main`` or ``merge`` approach ``d`` metres before the merge point departs on the ordinary
 lane of its approach that holds that point (``Approach.lane_at``), on the approach's lane of that edge
-(``departLane``: on a two-lane highway the lane that merges, not its neighbour), and drives the
+(``departLane``: on a two-lane highway the lane that merges, unless the car asks for its neighbour),
+and drives the
 approach's remaining edges, then the outgoing ones. Each car carries its own route, so cars starting on
 different edges of one approach need no route ids.
 """
@@ -37,6 +38,9 @@ class SiteVehicle:
     depart_s: float = 0.0
     speed_mps: float = 0.0
     vtype: str = SITE_VTYPE
+    lane_index: int | None = None
+    """Its lane on the edge it departs from: None for the approach's lane (the one that merges), or
+    another lane of that edge (a car on the highway's left lane, driven by SUMO)."""
 
 
 def route_xml(
@@ -56,11 +60,16 @@ def route_xml(
             lane, pos = site.approach(vehicle.side).lane_at(vehicle.dist_to_merge_m)
         except InputError as err:
             raise InputError(f"vehicle {vehicle.id!r}: {err}") from None
+        depart_lane = lane.lane_index if vehicle.lane_index is None else vehicle.lane_index
+        if not 0 <= depart_lane < lane.lane_count:
+            raise InputError(
+                f"vehicle {vehicle.id!r}: lane {depart_lane} of edge {lane.edge_id!r}, which has {lane.lane_count} lanes"
+            )
         edges = site.route_edge_ids(vehicle.side)
         onward = edges[edges.index(lane.edge_id) :]
         lines += [
             f'  <vehicle id={quoteattr(vehicle.id)} type={quoteattr(vehicle.vtype)} depart="{vehicle.depart_s:.2f}" '
-            f'departLane="{lane.lane_index}" departPos="{pos:.3f}" departSpeed="{vehicle.speed_mps:.3f}">',
+            f'departLane="{depart_lane}" departPos="{pos:.3f}" departSpeed="{vehicle.speed_mps:.3f}">',
             f'    <route edges="{" ".join(onward)}"/>',
             "  </vehicle>",
         ]
