@@ -424,3 +424,28 @@ def test_a_multi_copy_net_holds_each_copy_of_the_site(sample_nets: dict[str, Pat
     assert found == tuple(source.with_prefix(copy_prefix(k, 3), copies) for k in range(3))
     assert [s.junction_id for s in found] == ["c0_drop", "c1_drop", "c2_drop"]
     assert found[1].distance_table("merge")["c1_ramp"] == source.distance_table("merge")["ramp"]
+
+
+def test_many_merges_are_named_and_a_few_described(tmp_path: Path) -> None:
+    """Six side roads joining one road: the message names all six, describes four."""
+    n = 6
+    nodes = "".join(
+        f'<node id="j{k}" x="{300 * (k + 1)}" y="0"/><node id="s{k}" x="{300 * (k + 1) - 150}" y="-150"/>'
+        for k in range(n)
+    )
+    edges = "".join(
+        f'<edge id="in{k}" from="{"a" if k == 0 else f"j{k - 1}"}" to="j{k}" numLanes="1" speed="15" priority="2"/>'
+        f'<edge id="side{k}" from="s{k}" to="j{k}" numLanes="1" speed="15" priority="1"/>'
+        for k in range(n)
+    )
+    path = build_plain_net(
+        f'<nodes><node id="a" x="0" y="0"/>{nodes}<node id="z" x="{300 * (n + 1)}" y="0"/></nodes>',
+        f'<edges>{edges}<edge id="last" from="j{n - 1}" to="z" numLanes="1" speed="15" priority="2"/></edges>',
+        "",
+        tmp_path / "six.net.xml",
+    )
+    with pytest.raises(InputError) as info:
+        choose_merge(path)
+    message = str(info.value)
+    assert f"6 merges ({', '.join(f'j{k}' for k in range(n))})" in message
+    assert message.count("(junction): main") == 4 and "and 2 more (idas-sumo nets inspect" in message

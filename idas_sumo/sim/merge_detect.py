@@ -41,6 +41,8 @@ MAX_TRACE_M = 10_000.0
 """How far back a lane drop's two lanes are followed to find the two roads they come from."""
 MAX_LISTED = 12
 """Junctions named in the message for a net without a merge (a city has thousands)."""
+MAX_DESCRIBED = 4
+"""Merges described in full in the message that asks for ``--junction``."""
 
 MergeKind = Literal["junction", "lane_drop"]
 Side = Literal["main", "merge"]
@@ -531,7 +533,13 @@ def choose_merge(
     """The merge at ``junction``, or the net's only merge; an InputError listing what was found when
     there is none, several and no ``junction``, or no merge at ``junction``."""
     sites = detect_merges(path, upstream_m, downstream_m, none_is_error=True)
-    found = "; ".join(describe_site(s) for s in sites)
+    # A city has dozens of on-ramps: name them all, describe the first few (nets inspect lists all).
+    more = (
+        f"; and {len(sites) - MAX_DESCRIBED} more (idas-sumo nets inspect {path})"
+        if len(sites) > MAX_DESCRIBED
+        else ""
+    )
+    found = "; ".join(describe_site(s) for s in sites[:MAX_DESCRIBED]) + more
     if junction is None:
         if len(sites) == 1:
             return sites[0]
