@@ -449,3 +449,20 @@ def test_many_merges_are_named_and_a_few_described(tmp_path: Path) -> None:
     message = str(info.value)
     assert f"6 merges ({', '.join(f'j{k}' for k in range(n))})" in message
     assert message.count("(junction): main") == 4 and "and 2 more (idas-sumo nets inspect" in message
+
+
+def test_with_equal_priority_and_limits_the_straight_road_is_main(tmp_path: Path) -> None:
+    """A zipper merge whose side road's id sorts first: the straight road is still the main one."""
+    nodes = (
+        '<nodes><node id="s" x="-200" y="-120"/><node id="w" x="-250" y="0"/>'
+        '<node id="m" x="0" y="0" type="zipper"/><node id="e" x="200" y="0"/></nodes>'
+    )
+    edges = (
+        '<edges><edge id="a_side" from="s" to="m" numLanes="1" speed="15" priority="1"/>'
+        '<edge id="b_straight" from="w" to="m" numLanes="1" speed="15" priority="1"/>'
+        '<edge id="c_out" from="m" to="e" numLanes="1" speed="15" priority="1"/></edges>'
+    )
+    path = build_plain_net(nodes, edges, "", tmp_path / "zip.net.xml")
+    site = choose_merge(path)
+    assert (site.main.edge_ids, site.merge.edge_ids) == (("b_straight",), ("a_side",))
+    assert site.as_merge_net() == read_merge_net(path)
