@@ -81,7 +81,8 @@ from idas_sumo.sim.backend import (
     slot_taken,
 )
 from idas_sumo.sim.batch import BatchBackend, BatchStates, BatchStepEvents
-from idas_sumo.sim.netgen import MergeNet, read_merge_net
+from idas_sumo.sim.merge_detect import MergeSite, as_site
+from idas_sumo.sim.netgen import MergeNet
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -327,17 +328,20 @@ class MergeEngine:
 
     def __init__(
         self,
-        net: MergeNet | str | Path,
+        net: MergeSite | MergeNet | str | Path,
         copies: int = 1,
         seed: int = 0,
         config: EnvConfig | None = None,
         gui: bool = False,
+        junction: str | None = None,
     ) -> None:
+        """``net``: the merge the episodes run on: a ``MergeSite``, a ``MergeNet`` or a net file with one
+        merge (or several and ``junction`` naming one: ``choose_merge``)."""
         if copies < 1:
             raise ValueError(f"copies must be at least 1, got {copies}")
         if gui and copies != 1:
             raise ValueError("sumo-gui shows one simulation: copies must be 1 with gui")
-        self.net = net if isinstance(net, MergeNet) else read_merge_net(net)
+        self.site = as_site(net, junction)
         self.config = config or EnvConfig()
         # libsumo holds one simulation per process: when it is taken (another environment is open), run
         # the episodes one at a time in a SUMO child process. Results do not depend on K.
@@ -348,23 +352,19 @@ class MergeEngine:
         self._gui = gui
         self._backend: BatchBackend | _SoloBackend | None = None
         self.speed_limits_mps: dict[Road, float] = {
-            "main": self.net.main.speed_limit_mps,
-            "merge": self.net.merge.speed_limit_mps,
+            "main": self.site.main.road.speed_limit_mps,
+            "merge": self.site.merge.road.speed_limit_mps,
         }
+        """Each approach's own road's limit (the scenarios' start speeds are fractions of it)."""
         self.road_lengths_m: dict[Road, float] = {
-            "main": self.net.main.length_m,
-            "merge": self.net.merge.length_m,
+            "main": self.site.main.length_m,
+            "merge": self.site.merge.length_m,
         }
-        self._edge_road = {
-            self.net.main.edge_id: MAIN,
-            self.net.merge.edge_id: MERGE,
-            self.net.out.edge_id: OUT,
-        }
-        self._road_length_by_code = np.array([self.net.main.length_m, self.net.merge.length_m])
-        self._via_length_by_code = np.array([self.net.main.via_length_m, self.net.merge.via_length_m])
-        self._limit_by_code = np.array(
-            [self.net.main.speed_limit_mps, self.net.merge.speed_limit_mps, self.net.out.speed_limit_mps]
-        )
+        """Each approach's length to the merge point (the scenarios' starts are measured from its start)."""
+        self.out_limit_mps = self.site.out[0].speed_limit_mps
+        """The limit after the merge point (the rule mask's exemption near the merge)."""
+        self._edge_code, self._start_by, self._incoming_by, self._limit_by = _route_tables(self.site)
+        self._via_length_by_code = np.array([self.site.main.via_length_m, self.site.merge.via_length_m])
         self.slots: list[_Slot] = []
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
@@ -377,8 +377,8 @@ class MergeEngine:
     # -- episodes ------------------------------------------------------------------------------
     def _make_backend(self) -> BatchBackend | _SoloBackend:
         if self.copies == 1:
-            return _SoloBackend(make_backend(self.net, seed=self._seed, gui=self._gui))
-        return BatchBackend(self.net, copies=self.copies, seed=self._seed)
+            return _SoloBackend(make_backend(self.site, seed=self._seed, gui=self._gui))
+        return BatchBackend(self.site, copies=self.copies, seed=self._seed)
 
     def reset(self, scenarios: Sequence[Scenario], sumo_args: Sequence[str] = ()) -> None:
         """Start one episode per scenario (at most ``copies``), scenario k in slot k."""
@@ -557,19 +557,19 @@ class MergeEngine:
             origin[lo:hi] = [slot.origin[v] for v in ids]
             controlled[lo:hi] = [spec[v].controlled for v in ids]
             self._rows.append(dict(zip(ids, range(lo, hi), strict=True)))
-        edge_road = np.fromiter((self._edge_road.get(e, -1) for e in states.edge), dtype=np.int64, count=n)
+        # Distances along each car's own route (engine docstring of ``_route_tables``): one code per edge,
+        # then a table lookup by (origin, edge).
+        unknown = self._start_by.shape[1] - 1
+        code = np.fromiter((self._edge_code.get(e, unknown) for e in states.edge), dtype=np.int64, count=n)
         pos = states.lane_pos_m
-        incoming = (edge_road == MAIN) | (edge_road == MERGE)
-        # Internal junction lanes (edge_road -1) lie past the merge point: they count as the outgoing road.
-        road = np.where(incoming, edge_road, OUT)
-        dist = np.where(
-            incoming,
-            self._road_length_by_code[np.where(incoming, edge_road, 0)] - pos,
-            np.where(edge_road == OUT, -(self._via_length_by_code[origin] + pos), -pos),
-        )
-        out_limit = self._limit_by_code[OUT]
-        own_limit = effective_speed_limit(self._limit_by_code[road], dist, out_limit)
-        limit = np.where(road == OUT, out_limit, own_limit)
+        incoming = self._incoming_by[origin, code]
+        road = np.where(incoming, origin, OUT)
+        # -(pos - start), not start - pos: bit for bit the T-junction's former formulas (L - pos on an
+        # incoming road, -(via + pos) on the outgoing one, -pos on a junction lane, -0.0 included).
+        dist = -(pos - self._start_by[origin, code])
+        lane_limit = self._limit_by[origin, code]
+        own_limit = effective_speed_limit(lane_limit, dist, self.out_limit_mps)
+        limit = np.where(incoming, own_limit, lane_limit)
         self._bounds = bounds
         self._controlled = controlled
         self._origin = origin
@@ -872,6 +872,39 @@ class MergeEngine:
             self._backend.close()
             self._backend = None
         self._closed = True
+
+
+def _route_tables(site: MergeSite) -> tuple[dict[str, int], FloatArray, npt.NDArray[np.bool_], FloatArray]:
+    """What ``_read_snapshot`` looks a car up in, by its origin (MAIN or MERGE) and the edge it is on.
+
+    (edge id -> code, start (2, E + 1), incoming (2, E + 1), limit (2, E + 1)): for every edge of either
+    approach's route (junction-internal ones included), the distance of its start to the merge point
+    along that origin's route (``MergeSite.distance_table``; a car at lane position ``pos`` is ``start -
+    pos`` before it), whether it lies before the merge point (the car is still on its own road, MAIN or
+    MERGE; after it the road is OUT), and its lane's speed limit (a junction lane
+    takes the limit of the lane it leads onto: SUMO sets its speed from its curvature, not a sign). On a
+    lane drop both approaches share the last edges and differ only by origin. The last column is for an
+    edge on no route (a car SUMO sent elsewhere): past the merge point at its start, the outgoing limit.
+    """
+    routes = (site.route("main"), site.route("merge"))
+    code: dict[str, int] = {}
+    for route in routes:
+        for lane in route:
+            code.setdefault(lane.edge_id, len(code))
+    unknown = len(code)
+    start = np.zeros((2, unknown + 1))
+    incoming = np.zeros((2, unknown + 1), dtype=np.bool_)
+    limit = np.full((2, unknown + 1), site.out[0].speed_limit_mps)
+    for origin, route in zip((MAIN, MERGE), routes, strict=True):
+        onward = site.out[0].speed_limit_mps
+        for lane in reversed(route):  # backwards: a junction lane takes the next ordinary lane's limit
+            if not lane.internal:
+                onward = lane.speed_limit_mps
+            c = code[lane.edge_id]
+            start[origin, c] = lane.start_to_merge_m
+            incoming[origin, c] = lane.start_to_merge_m > 0.0
+            limit[origin, c] = onward
+    return code, start, incoming, limit
 
 
 _REASON_BY_CODE: tuple[str, ...] = ("", *END_REASONS)

@@ -154,7 +154,7 @@ def eval_jobs(cases: Sequence[EvalCase], methods: Sequence[str]) -> list[EvalJob
 
 
 def _free_flow_times(engine: MergeEngine, vehicles: tuple[VehicleSpec, ...]) -> dict[str, float]:
-    out_limit = engine.net.out.speed_limit_mps
+    out_limit = engine.out_limit_mps
     times = {}
     for v in vehicles:
         to_merge = engine.road_lengths_m[v.road] - v.start_pos_m

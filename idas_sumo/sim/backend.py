@@ -21,11 +21,21 @@ from typing import Any, Protocol
 import numpy as np
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
+from idas_sumo.sim.merge_detect import MergeSite, Side, as_site
 from idas_sumo.sim.netgen import MergeNet
 
 STEP_LENGTH_S = 0.2  # SUMO's step, also the agents' decision period (5 Hz)
 CONTROLLED_SPEED_MODE = 32  # every check off, right of way inside the junction ignored too (bit 5 inverted)
 SUMO_DEFAULT_SPEED_MODE = 31
+LANE_KEEPING_MODE = 0b10_0000_0001
+"""SUMO lane-change mode of every car on a merge with multi-lane edges (set as it departs): strategic
+changes only (bits 0-1: those its route needs, unless they conflict with a TraCI command), respecting
+the other cars' gaps (bits 8-9 = 2); none to gain speed, keep right or make room. So no car leaves
+the lanes the engine measures (a highway car never moves to the left lane: SUMO's default mode sent a
+controlled highway car there at once, beside an on-ramp car), and the one change left is an on-ramp
+car's, from the acceleration lane onto the highway's lane before its lane ends (blocked until the
+end, SUMO stops it there and it changes when a gap comes). Not set on single-lane merges, where no
+car can change lanes (the generated T-junction runs as it always did)."""
 CONTROLLED_TYPE = "agent"
 ROBOT_TYPE = "robot"
 # Controlled cars must not be clipped by their vType: the paper's hard brake is -4 m/s².
@@ -149,26 +159,69 @@ def _sumo_message(err: BaseException, stderr_lines: Sequence[str]) -> str:
     return text or type(err).__name__
 
 
-def _route_xml(scenario: RouteScenario, net: MergeNet) -> str:
-    edge = {"main": net.main.edge_id, "merge": net.merge.edge_id}
-    lines = [
-        "<routes>",
+def has_lane_changes(site: MergeSite) -> bool:
+    """Whether a car on the routes through ``site`` could change lanes (an edge with several lanes):
+    then every car gets ``LANE_KEEPING_MODE``."""
+    sides: tuple[Side, ...] = ("main", "merge")
+    return any(lane.lane_count > 1 for side in sides for lane in site.route(side))
+
+
+def _vtype_lines() -> list[str]:
+    return [
         f'  <vType id="{CONTROLLED_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="2" '
         f'decel="{CONTROLLED_DECEL_MPS2}" emergencyDecel="9" maxSpeed="{CONTROLLED_MAX_SPEED_MPS}" sigma="0" '
-        'speedFactor="1" speedDev="0" color="1,0,0"/>',
+        f'speedFactor="1" speedDev="0" color="1,0,0"/>',
         f'  <vType id="{ROBOT_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="{ROBOT_ACCEL_MPS2}" '
         f'decel="{ROBOT_DECEL_MPS2}" emergencyDecel="9" sigma="0" tau="1.0" speedFactor="1" speedDev="0" '
         'color="0.6,0.6,0.6"/>',
-        f'  <route id="main_route" edges="{edge["main"]} {net.out.edge_id}"/>',
-        f'  <route id="merge_route" edges="{edge["merge"]} {net.out.edge_id}"/>',
     ]
-    for v in sorted(scenario.vehicles, key=lambda v: (v.depart_s, v.id)):
+
+
+def _route_lines(site: MergeSite, prefix: str = "") -> list[str]:
+    """One route per approach, ``{prefix}main_route`` and ``{prefix}merge_route``: the approach's edges,
+    then the road after the merge."""
+    sides: tuple[Side, ...] = ("main", "merge")
+    return [
+        f'  <route id="{prefix}{side}_route" edges="{" ".join(site.route_edge_ids(side))}"/>'
+        for side in sides
+    ]
+
+
+def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: str = "") -> list[str]:
+    """The vehicles sorted by (departure, id), ids prefixed. A car starts ``start_pos_m`` from the start
+    of its approach's first lane, on the approach's (controlled) lane of the edge holding that point:
+    ``departEdge`` (its index in the route) when that is not the first edge, ``departLane`` when the
+    edge has several lanes (SUMO's default is not the rightmost one). Both are left out otherwise: the
+    generated T-junction's route file is what it was before merge sites."""
+    lines = []
+    for v in sorted(vehicles, key=lambda v: (v.depart_s, v.id)):
         vtype = CONTROLLED_TYPE if v.controlled else ROBOT_TYPE
-        lines.append(
-            f'  <vehicle id="{v.id}" type="{vtype}" route="{v.road}_route" depart="{v.depart_s:.2f}" '
-            f'departPos="{v.start_pos_m:.3f}" departSpeed="{v.speed_mps:.3f}" insertionChecks="none"/>'
+        side: Side = "main" if v.road == "main" else "merge"
+        approach = site.approach(side)
+        first = approach.edges[0]
+        if v.start_pos_m < first.length_m:
+            lane, pos, edge_index = first, v.start_pos_m, 0  # the position as given, no round trip
+        else:
+            lane, pos = approach.lane_at(approach.length_m - v.start_pos_m)
+            edge_index = site.route_edge_ids(side).index(lane.edge_id)
+        where = (f' departEdge="{edge_index}"' if edge_index else "") + (
+            f' departLane="{lane.lane_index}"' if lane.lane_count > 1 else ""
         )
-    lines.append("</routes>")
+        lines.append(
+            f'  <vehicle id="{prefix}{v.id}" type="{vtype}" route="{prefix}{side}_route" depart="{v.depart_s:.2f}"'
+            f'{where} departPos="{pos:.3f}" departSpeed="{v.speed_mps:.3f}" insertionChecks="none"/>'
+        )
+    return lines
+
+
+def _route_xml(scenario: RouteScenario, site: MergeSite) -> str:
+    lines = [
+        "<routes>",
+        *_vtype_lines(),
+        *_route_lines(site),
+        *_vehicle_lines(scenario.vehicles, site),
+        "</routes>",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -201,9 +254,14 @@ class SumoBackend:
     """The one SUMO simulation of this process."""
 
     def __init__(
-        self, net: MergeNet, seed: int = 0, gui: bool = False, extra_args: Sequence[str] = ()
+        self,
+        net: MergeSite | MergeNet,
+        seed: int = 0,
+        gui: bool = False,
+        extra_args: Sequence[str] = (),
     ) -> None:
-        self.net = net
+        self.site = as_site(net)
+        """The merge the scenarios' cars drive through (a ``MergeNet`` is detected at its junction)."""
         self.seed = seed
         self.gui = gui
         self.extra_args = list(extra_args)
@@ -211,6 +269,7 @@ class SumoBackend:
         self._running = False
         self._controlled: set[str] = set()
         self._released: set[str] = set()
+        self._lane_keeping = has_lane_changes(self.site)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def _args(self, route_file: Path) -> list[str]:
@@ -218,7 +277,7 @@ class SumoBackend:
         return [
             binary,
             "--net-file",
-            str(self.net.path),
+            str(self.site.path),
             "--route-files",
             str(route_file),
             "--step-length",
@@ -257,7 +316,7 @@ class SumoBackend:
         if self._workdir is None:
             self._workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_"))
         route_file = self._workdir / "scenario.rou.xml"
-        route_file.write_text(_route_xml(scenario, self.net))
+        route_file.write_text(_route_xml(scenario, self.site))
         args = [*self._args(route_file), *extra_args]
         if self.gui:
             binary = "sumo-gui"
@@ -265,7 +324,7 @@ class SumoBackend:
 
             args[0] = str(sumo_binary(binary))
         try:
-            start_or_load(args, self._running, self.net.path)
+            start_or_load(args, self._running, self.site.path)
         except SumoRefusedInput:
             self._running = False
             hold_slot(None)
@@ -340,6 +399,8 @@ class SumoBackend:
         for vid in events.departed:
             if vid in self._controlled:
                 libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
+            if self._lane_keeping:
+                libsumo.vehicle.setLaneChangeMode(vid, LANE_KEEPING_MODE)
         events.time_s = float(libsumo.simulation.getTime())
         return events
 
@@ -477,16 +538,16 @@ def _stop_child(proc: Any, conn: Any) -> None:
 class SubprocessBackend:
     """The same interface as ``SumoBackend``, with SUMO in a child process (for a second simulation)."""
 
-    def __init__(self, net: MergeNet, seed: int = 0, gui: bool = False) -> None:
+    def __init__(self, net: MergeSite | MergeNet, seed: int = 0, gui: bool = False) -> None:
         import weakref
 
-        self.net = net
+        self.site = as_site(net)
         self._closed = False
         self._proc, self._conn = self._start_child()
         # Closes the child when this object is collected or the interpreter exits without close().
         self._finalizer = weakref.finalize(self, _stop_child, self._proc, self._conn)
         try:
-            self._call("open", net, seed, gui)
+            self._call("open", self.site, seed, gui)
         except BaseException:
             self.close()
             raise
@@ -606,7 +667,7 @@ class SubprocessBackend:
 Backend = SumoBackend | SubprocessBackend
 
 
-def make_backend(net: MergeNet, seed: int = 0, gui: bool = False) -> Backend:
+def make_backend(net: MergeSite | MergeNet, seed: int = 0, gui: bool = False) -> Backend:
     """In-process SUMO when this process has none open yet, else SUMO in a subprocess."""
     if slot_taken():
         return SubprocessBackend(net, seed=seed, gui=gui)

@@ -14,6 +14,7 @@ events and states come back with copy-local ids plus the copy index, and command
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -27,13 +28,18 @@ from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.sim import backend as _backend
 from idas_sumo.sim.backend import (
     CONTROLLED_SPEED_MODE,
+    LANE_KEEPING_MODE,
     SUMO_DEFAULT_SPEED_MODE,
     RouteScenario,
     StepEvents,
     SumoBackend,
     VehicleStates,
-    _route_xml,
+    _route_lines,
+    _vehicle_lines,
+    _vtype_lines,
+    has_lane_changes,
 )
+from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.multinet import MultiNet, multi_net
 from idas_sumo.sim.netgen import MergeNet
 
@@ -44,49 +50,25 @@ IntArray = npt.NDArray[np.int64]
 # -- the route file ---------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class _CopyVehicle:
-    """A scenario vehicle as copy k sees it: global id, road named after copy k's route."""
-
-    id: str
-    road: str
-    depart_s: float
-    start_pos_m: float
-    speed_mps: float
-    controlled: bool
-
-
-@dataclass(frozen=True)
-class _Vehicles:
-    vehicles: Sequence[_CopyVehicle]
-    controlled_ids: tuple[str, ...] = ()
-
-
 def batch_route_xml(scenarios: Sequence[RouteScenario], net: MultiNet) -> str:
     """One route file for all copies: ``SumoBackend``'s vTypes and vehicle lines, ids and routes per copy.
 
     Vehicles are sorted by departure (SUMO reads route files in time order); within one copy they keep
     ``SumoBackend``'s order (departure, then id), so each copy inserts its cars in the same order.
     """
-    vtypes = [ln for ln in _route_xml(_Vehicles(()), net.source).splitlines() if "<vType " in ln]
     routes: list[str] = []
     keyed: list[tuple[float, int, int, str]] = []
     for k, scenario in enumerate(scenarios):
         p = net.prefix(k)
-        copy = net.copy_net(k)
-        for road, edge in (("main", copy.main.edge_id), ("merge", copy.merge.edge_id)):
-            routes.append(f'  <route id="{p}{road}_route" edges="{edge} {copy.out.edge_id}"/>')
-        views = [
-            _CopyVehicle(p + v.id, p + v.road, v.depart_s, v.start_pos_m, v.speed_mps, v.controlled)
-            for v in scenario.vehicles
-        ]
-        # _route_xml writes the vehicles sorted by (depart, id): the same sort here pairs keys with lines.
-        order = sorted(views, key=lambda v: (v.depart_s, v.id))
-        lines = [ln for ln in _route_xml(_Vehicles(views), copy).splitlines() if "<vehicle " in ln]
+        site = net.copy_site(k)
+        routes += _route_lines(site, p)
+        # _vehicle_lines writes the vehicles sorted by (depart, id): the same sort here pairs keys with lines.
+        order = sorted(scenario.vehicles, key=lambda v: (v.depart_s, v.id))
+        lines = _vehicle_lines(scenario.vehicles, site, p)
         assert len(lines) == len(order), "one vehicle line per vehicle"
         keyed += [(v.depart_s, k, i, ln) for i, (v, ln) in enumerate(zip(order, lines, strict=True))]
     keyed.sort(key=lambda t: (t[0], t[1], t[2]))
-    return "\n".join(["<routes>", *vtypes, *routes, *(t[3] for t in keyed), "</routes>"]) + "\n"
+    return "\n".join(["<routes>", *_vtype_lines(), *routes, *(t[3] for t in keyed), "</routes>"]) + "\n"
 
 
 # -- results ----------------------------------------------------------------------------------------
@@ -140,25 +122,26 @@ class BatchBackend:
 
     def __init__(
         self,
-        net: MergeNet | MultiNet,
+        net: MergeSite | MergeNet | MultiNet,
         copies: int | None = None,
         seed: int = 0,
         extra_args: Sequence[str] = (),
         cache_dir: str | Path | None = None,
     ) -> None:
-        """``net``: a ``MultiNet``, or a ``MergeNet`` to copy ``copies`` times (built once, cached)."""
+        """``net``: a ``MultiNet``, or a merge site (or ``MergeNet``) to copy ``copies`` times (built
+        once, cached)."""
         if isinstance(net, MultiNet):
             if copies is not None and copies != net.copies:
                 raise InputError(f"copies: {copies} given with a {net.copies}-copy net")
             self.net = net
         else:
             if copies is None:
-                raise InputError("copies: needed to build a multi-copy net from a MergeNet")
+                raise InputError("copies: needed to build a multi-copy net from a merge site")
             self.net = multi_net(net, copies, cache_dir)
         self.copies = self.net.copies
         # SumoBackend's own option list, on the K-copy file: one home for SUMO's options.
         self._options = SumoBackend(
-            _replace_path(self.net.source, self.net.path), seed=seed, extra_args=extra_args
+            dataclasses.replace(self.net.site, path=self.net.path), seed=seed, extra_args=extra_args
         )
         self._prefixes = tuple(self.net.prefix(k) for k in range(self.copies))
         self._copy_range = np.arange(self.copies + 1, dtype=np.int64)
@@ -173,6 +156,7 @@ class BatchBackend:
         self._cleared: set[int] = set()
         """Copies emptied by ``clear_copy`` since the last reset."""
         self._active_copies = 0
+        self._lane_keeping = has_lane_changes(self.net.site)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def reset(self, scenarios: Sequence[RouteScenario], extra_args: Sequence[str] = ()) -> None:
@@ -262,6 +246,8 @@ class BatchBackend:
                 continue
             if vid in self._controlled:
                 libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
+            if self._lane_keeping:
+                libsumo.vehicle.setLaneChangeMode(vid, LANE_KEEPING_MODE)
             events[k].departed.append(local)
         collided_global: set[str] = set()
         for collision in simulation.getCollisions():
@@ -433,12 +419,6 @@ class BatchBackend:
         import libsumo
 
         return getattr(getattr(libsumo, domain), method)(*args)
-
-
-def _replace_path(net: MergeNet, path: Path) -> MergeNet:
-    import dataclasses
-
-    return dataclasses.replace(net, path=path)
 
 
 __all__ = ["BatchBackend", "BatchStates", "BatchStepEvents", "batch_route_xml"]

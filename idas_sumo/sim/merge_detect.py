@@ -551,12 +551,24 @@ def choose_merge(
     raise InputError(f"{flag} {junction}: no merge at that junction in {path}; its merges: {found}")
 
 
+def as_site(net: MergeSite | MergeNet | str | Path, junction: str | None = None) -> MergeSite:
+    """The merge site the engine and the backends run on: a ``MergeSite`` as is, a ``MergeNet`` (the
+    T-junction's adapter, ``read_merge_net``) as the site detected at its junction, a path as
+    ``choose_merge(path, junction)``."""
+    if isinstance(net, MergeSite):
+        return net
+    if isinstance(net, MergeNet):
+        return choose_merge(net.path, net.junction_id)
+    return choose_merge(net, junction)
+
+
 __all__ = [
     "DEFAULT_DOWNSTREAM_M",
     "DEFAULT_UPSTREAM_M",
     "Approach",
     "MergeSite",
     "RouteLane",
+    "as_site",
     "choose_merge",
     "describe_net",
     "describe_site",

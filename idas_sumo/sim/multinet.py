@@ -33,7 +33,8 @@ from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.io_utils import atomic_open, atomic_path, file_digest, remove_stale_temps
-from idas_sumo.sim.netgen import MergeNet, RoadInfo, read_merge_net, sumo_binary
+from idas_sumo.sim.merge_detect import MergeSite, as_site
+from idas_sumo.sim.netgen import MergeNet, sumo_binary
 
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
 CACHE_FORMAT = 1
@@ -260,31 +261,35 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
 
 @dataclass(frozen=True)
 class MultiNet:
-    """K copies of one validated merge network in one net file."""
+    """K copies of one merge site's network in one net file."""
 
     path: Path
     """The K-copy net file (in the cache)."""
-    source: MergeNet
-    """The one-copy merge network, as read from its own file: copy-local ids and lengths."""
+    site: MergeSite
+    """The merge as detected in the source net: copy-local ids and lengths."""
     copies: int
     edge_ids: tuple[str, ...]
-    """Copy-local ids of every edge of the source, junction-internal ones included: main, merge, out
-    first, then the others sorted (``BatchStates.edge_index`` indexes this)."""
+    """Copy-local ids of every edge of the source, junction-internal ones included: the ordinary edges
+    of the main approach, the merge approach and the road after the merge first, then the others
+    sorted (``BatchStates.edge_index`` indexes this)."""
 
     def prefix(self, k: int) -> str:
         if not 0 <= k < self.copies:
             raise IndexError(f"copy {k} of a {self.copies}-copy net")
         return copy_prefix(k, self.copies)
 
+    def copy_site(self, k: int) -> MergeSite:
+        """Copy ``k``'s merge site (global edge and junction ids; ``path`` the K-copy file)."""
+        return self.site.with_prefix(self.prefix(k), self.path)
+
+    @property
+    def source(self) -> MergeNet:
+        """The source as a ``MergeNet`` (only for a site of the T-junction's shape: ``as_merge_net``)."""
+        return self.site.as_merge_net()
+
     def copy_net(self, k: int) -> MergeNet:
-        """Copy ``k`` as a ``MergeNet`` (global edge and junction ids; ``path`` the K-copy file)."""
-        p = self.prefix(k)
-
-        def road(info: RoadInfo) -> RoadInfo:
-            return dataclasses.replace(info, edge_id=global_edge_id(p, info.edge_id))
-
-        s = self.source
-        return MergeNet(self.path, road(s.main), road(s.merge), road(s.out), p + s.junction_id)
+        """Copy ``k`` as a ``MergeNet`` (a site of the T-junction's shape only)."""
+        return self.copy_site(k).as_merge_net()
 
     def edge_table(self) -> dict[str, tuple[int, int]]:
         """Global edge id -> (copy, index into ``edge_ids``), for every edge of every copy."""
@@ -295,13 +300,20 @@ class MultiNet:
         }
 
 
-def multi_net(source: MergeNet | str | Path, copies: int, cache_dir: str | Path | None = None) -> MultiNet:
-    """K copies of a merge network (a ``MergeNet`` or its ``.net.xml``), built once and cached."""
-    merge = source if isinstance(source, MergeNet) else read_merge_net(source)
-    path = build_copies(merge.path, copies, cache_dir)
-    roads = (merge.main.edge_id, merge.merge.edge_id, merge.out.edge_id)
-    others = sorted(set(_edge_ids(merge.path)) - set(roads))
-    return MultiNet(path, merge, copies, (*roads, *others))
+def multi_net(
+    source: MergeSite | MergeNet | str | Path, copies: int, cache_dir: str | Path | None = None
+) -> MultiNet:
+    """K copies of a merge site's network (a ``MergeSite``, a ``MergeNet`` or a ``.net.xml`` with one
+    merge), built once and cached."""
+    site = as_site(source)
+    path = build_copies(site.path, copies, cache_dir)
+    roads = tuple(
+        dict.fromkeys(
+            (*site.main.edge_ids, *site.merge.edge_ids, *(r.edge_id for r in site.out if not r.internal))
+        )
+    )
+    others = sorted(set(_edge_ids(site.path)) - set(roads))
+    return MultiNet(path, site, copies, (*roads, *others))
 
 
 def _edge_ids(path: Path) -> list[str]:
