@@ -229,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--net", type=_input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
     )
+    train.add_argument("--junction", metavar="ID", help=JUNCTION_HELP)
     train.add_argument(
         "--config",
         type=_input_file,
@@ -303,6 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument(
         "--net", type=_input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
     )
+    ev.add_argument("--junction", metavar="ID", help=JUNCTION_HELP)
     ev.add_argument(
         "--suite",
         default="paper",
@@ -445,6 +447,12 @@ def _add_sweep_parser(sub: Any) -> None:
     )
 
 
+JUNCTION_HELP = (
+    "the merge to run on, by junction id, in a net with several (idas-sumo nets inspect lists them; "
+    "default: the net's only merge)"
+)
+
+
 def _netgen(args: argparse.Namespace) -> int:
     from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
     from idas_sumo.env.net_needs import check_road_lengths, road_needs
@@ -496,6 +504,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     result = run_evaluation(
         EvalRequest(
             net=Path(args.net),
+            junction=args.junction,
             methods=tuple(methods),
             suite=args.suite,
             scenarios=args.scenarios,
@@ -539,16 +548,16 @@ def _check_eval_net(args: argparse.Namespace) -> None:
     """Refuse a net whose roads are too short or too long for the scenarios evaluated (env/net_needs.py)."""
     from idas_sumo.env.net_needs import check_road_lengths, road_needs
     from idas_sumo.evaluation.protocol import EvalConfig, load_eval_config
-    from idas_sumo.sim.netgen import read_merge_net
+    from idas_sumo.sim.merge_detect import choose_merge
 
-    net = read_merge_net(args.net)
+    site = choose_merge(args.net, args.junction)
     config = load_eval_config(args.config) if args.config is not None else EvalConfig()
     # The paper suite draws starts over the traffic's start range; scenario files and the
     # representative suites place their cars themselves (checked against the roads when loaded).
     random_starts = args.suite == "paper" and not args.scenario
     start_range = config.traffic.start_range_m if random_starts else None
     source = f"{args.config}" if args.config is not None else "max_episode_s"
-    check_road_lengths(net, road_needs(start_range, config.max_episode_s, source))
+    check_road_lengths(site, road_needs(start_range, config.max_episode_s, source))
     # Cars placed by a file must start on the road (a car 1e308 m down a 250 m road once ran, exit 0).
     from idas_sumo.env.scenario import Road, check_against_net, load_scenario
     from idas_sumo.resources import SCENARIO_DIR
@@ -556,8 +565,11 @@ def _check_eval_net(args: argparse.Namespace) -> None:
     files = args.scenario or (
         [] if random_starts else sorted((SCENARIO_DIR / "representative").glob("*.toml"))
     )
-    speed_limits: dict[Road, float] = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
-    lengths: dict[Road, float] = {"main": net.main.length_m, "merge": net.merge.length_m}
+    speed_limits: dict[Road, float] = {
+        "main": site.main.road.speed_limit_mps,
+        "merge": site.merge.road.speed_limit_mps,
+    }
+    lengths: dict[Road, float] = {"main": site.main.length_m, "merge": site.merge.length_m}
     for path in files:
         check_against_net(load_scenario(path, speed_limits), speed_limits, lengths, str(path))
 

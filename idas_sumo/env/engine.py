@@ -104,6 +104,9 @@ class EnvConfig:
     front car in the agent's own lane; the car on the other road is the conflict the policy must
     learn) or 'merge_aware' (ours, an optional shield: the other road's car closer to the merge point
     counts too, main road first; see ``MergeEngine.front_cars``)."""
+    junction: str | None = None
+    """Which merge of a net with several the episodes run on (its junction id, ``choose_merge``); None:
+    the net's only one. Here, so that every engine of a run (workers, Ray actors) runs on the same."""
 
     def __post_init__(self) -> None:
         if not (self.max_episode_s > 0):
@@ -333,16 +336,15 @@ class MergeEngine:
         seed: int = 0,
         config: EnvConfig | None = None,
         gui: bool = False,
-        junction: str | None = None,
     ) -> None:
         """``net``: the merge the episodes run on: a ``MergeSite``, a ``MergeNet`` or a net file with one
-        merge (or several and ``junction`` naming one: ``choose_merge``)."""
+        merge (or several and ``config.junction`` naming one: ``choose_merge``)."""
         if copies < 1:
             raise ValueError(f"copies must be at least 1, got {copies}")
         if gui and copies != 1:
             raise ValueError("sumo-gui shows one simulation: copies must be 1 with gui")
-        self.site = as_site(net, junction)
         self.config = config or EnvConfig()
+        self.site = as_site(net, self.config.junction)
         # libsumo holds one simulation per process: when it is taken (another environment is open), run
         # the episodes one at a time in a SUMO child process. Results do not depend on K.
         if copies > 1 and slot_taken():

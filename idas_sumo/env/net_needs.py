@@ -1,7 +1,6 @@
 """What the scenarios need of a merge net's road lengths, and the check that refuses a net without it.
 
-``read_merge_net`` checks the net's shape (two one-lane roads into one junction, one out). A net of the
-right shape can still be useless: with 1 m roads every car starts past the merge and every scenario
+Merge detection (``sim/merge_detect.py``) finds where two roads join. A merge can still be useless: with 1 m roads every car starts past the merge and every scenario
 collides; with 100 km roads no car reaches the merge before the timeout. Either run would end with exit
 0 and a table of 0 % that means nothing, so ``train`` and ``evaluate`` refuse such a net up front.
 
@@ -24,13 +23,16 @@ The bounds come from what an episode uses:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
 
 from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
 from idas_sumo.env.layout import VISIBILITY_M
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.errors import InputError
 from idas_sumo.sim.backend import CONTROLLED_MAX_SPEED_MPS, VEHICLE_LENGTH_M
-from idas_sumo.sim.netgen import MergeNet, RoadInfo
+from idas_sumo.sim.merge_detect import MergeSite
+from idas_sumo.sim.netgen import MergeNet
 
 __all__ = ["RoadNeeds", "check_road_lengths", "road_needs"]
 
@@ -63,7 +65,7 @@ class RoadNeeds:
     def min_out_m(self) -> float:
         return max(FINISH_DISTANCE_PAST_MERGE_M + VEHICLE_LENGTH_M, VISIBILITY_M)
 
-    def max_incoming_m(self, road: RoadInfo, out: RoadInfo) -> float:
+    def max_incoming_m(self, road: _Road, out: _Road) -> float:
         """The longest ``road`` on which a car starting a car length in reaches the finish in time."""
         to_finish_s = FINISH_DISTANCE_PAST_MERGE_M / out.speed_limit_mps
         return VEHICLE_LENGTH_M + road.speed_limit_mps * max(self.episode_s - to_finish_s, 0.0)
@@ -76,9 +78,51 @@ def road_needs(start_range_m: float | None, max_episode_s: float, source: str = 
     return RoadNeeds(start_range_m, max_episode_s, source)
 
 
-def check_road_lengths(net: MergeNet, needs: RoadNeeds) -> None:
+@dataclass(frozen=True)
+class _Road:
+    """What the check needs of a road: its edges (for messages), length to the merge point (from it,
+    for the outgoing road) and speed limit."""
+
+    edge_id: str
+    length_m: float
+    speed_limit_mps: float
+
+
+@dataclass(frozen=True)
+class _Roads:
+    path: Path
+    main: _Road
+    merge: _Road
+    out: _Road
+
+
+def _roads(net: MergeSite | MergeNet) -> _Roads:
+    """A site's approaches (their length to the merge point, their own road's limit) and the road after
+    the merge (how far the shorter route goes on past the merge point, the first outgoing lane's
+    limit); a ``MergeNet``'s three edges as they are."""
+    if isinstance(net, MergeNet):
+        return _Roads(
+            net.path,
+            *(_Road(r.edge_id, r.length_m, r.speed_limit_mps) for r in (net.main, net.merge, net.out)),
+        )
+
+    def approach(side: Literal["main", "merge"]) -> _Road:
+        a = net.approach(side)
+        return _Road("+".join(a.edge_ids), a.length_m, a.road.speed_limit_mps)
+
+    past = min(
+        net.route(side)[-1].length_m - net.route(side)[-1].start_to_merge_m for side in ("main", "merge")
+    )
+    out_edges = "+".join(lane.edge_id for lane in net.out if not lane.internal)
+    return _Roads(
+        net.path, approach("main"), approach("merge"), _Road(out_edges, past, net.out[0].speed_limit_mps)
+    )
+
+
+def check_road_lengths(site: MergeSite | MergeNet, needs: RoadNeeds) -> None:
     """An InputError naming the net, the road, its length and the bounds with their reasons, for the
     first road that misses them; nothing for a usable net."""
+    net = _roads(site)
     for what, road in (("main", net.main), ("merge", net.merge), ("outgoing", net.out)):
         # Checked first: the bounds below divide by the limits. A car cannot drive a limit above its
         # own top speed: SUMO refused such a start ("departure speed too high") mid-run, exit 1.

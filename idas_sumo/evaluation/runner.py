@@ -43,7 +43,7 @@ from idas_sumo.evaluation.sweep import (
 )
 from idas_sumo.io_utils import atomic_open, output_directory, write_csv_atomic
 from idas_sumo.sim.backend import require_display
-from idas_sumo.sim.netgen import MergeNet, read_merge_net
+from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 
 log = logging.getLogger(__name__)
 SETTINGS_NAME = "settings.json"
@@ -88,6 +88,8 @@ class EvalRequest:
     safety_mask: SafetyMask | None = None
     """Which car the safety mask follows (``EnvConfig.safety_mask``); None: the ``config`` file's
     ``safety_mask``, else the default (own_lane, the paper's)."""
+    junction: str | None = None
+    """Which merge of ``net`` (``choose_merge``); None: its only one."""
     ray_address: str | None = None
     """Run the ``workers`` on that Ray cluster (``evaluate --ray-address``, distributed/ray_pool.py)
     instead of this machine's processes; the CSVs do not depend on it."""
@@ -115,7 +117,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
 
     An interrupted or failed run removes the output directories it made that are still empty.
     """
-    net = read_merge_net(req.net)
+    site = choose_merge(req.net, req.junction)
     eval_config = load_eval_config(req.config) if req.config is not None else EvalConfig()
     if req.safety_mask is not None:
         eval_config = replace(eval_config, safety_mask=req.safety_mask)
@@ -136,11 +138,11 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         if req.sumo_output:
             tripinfo_dir = out / "sumo"
             tripinfo_dir.mkdir(exist_ok=True)
-        speed_limits = {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps}
+        speed_limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
         if req.scenario_files:
             cases = file_cases(list(req.scenario_files), req.seed, speed_limits)
         else:
-            lengths = {"main": net.main.length_m, "merge": net.merge.length_m}
+            lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
             cases = suite_cases(
                 req.suite, req.scenarios or 0, req.seed, speed_limits, eval_config.traffic, lengths
             )
@@ -152,7 +154,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
             if req.ray_address is not None or (req.workers > 1 and len(jobs) > 1):
                 results = _in_workers(req, jobs, others_name, eval_config, tripinfo_dir, advance)
             else:
-                results = _here(req, net, jobs, policies, others_policy, eval_config, tripinfo_dir, advance)
+                results = _here(req, site, jobs, policies, others_policy, eval_config, tripinfo_dir, advance)
             for job, result in results:
                 episodes.append(result.episode)
                 flows.append(result.flow)
@@ -216,7 +218,7 @@ def _copies(req: EvalRequest) -> int:
 
 def _here(
     req: EvalRequest,
-    net: MergeNet,
+    site: MergeSite,
     jobs: list[EvalJob],
     policies: dict[str, Policy],
     others_policy: Policy,
@@ -226,10 +228,14 @@ def _here(
 ) -> list[tuple[EvalJob, EpisodeResult]]:
     """Every job in this process, on one engine."""
     engine = MergeEngine(
-        net,
+        site,
         copies=_copies(req),
         seed=req.seed,
-        config=EnvConfig(max_episode_s=eval_config.max_episode_s, safety_mask=eval_config.safety_mask),
+        config=EnvConfig(
+            max_episode_s=eval_config.max_episode_s,
+            safety_mask=eval_config.safety_mask,
+            junction=req.junction,
+        ),
         gui=req.gui,
     )
     results = []
@@ -268,6 +274,7 @@ def _in_workers(
             copies=_copies(req),
             tripinfo_dir=tripinfo_dir,
             trajectories=req.trajectories,
+            junction=req.junction,
         )
         for share in shares
     ]

@@ -36,6 +36,7 @@ class WorkerTask:
     copies: int
     tripinfo_dir: Path | None
     trajectories: bool
+    junction: str | None = None
 
 
 def split_jobs(n_jobs: int, workers: int) -> list[range]:
@@ -59,7 +60,9 @@ def run_task(task: WorkerTask) -> Iterator[tuple[int, EpisodeResult]]:
         task.net,
         copies=task.copies,
         seed=task.seed,
-        config=EnvConfig(max_episode_s=task.max_episode_s, safety_mask=task.safety_mask),
+        config=EnvConfig(
+            max_episode_s=task.max_episode_s, safety_mask=task.safety_mask, junction=task.junction
+        ),
     )
     try:
         for i, (_, result) in enumerate(run_jobs(engine, task.jobs, methods, others, task.tripinfo_dir)):

@@ -514,7 +514,10 @@ def _net_summary(net: Any) -> str:
         n_in = sum(1 for e in node.getIncoming() if e.getFunction() != "internal")
         n_out = sum(1 for e in node.getOutgoing() if e.getFunction() != "internal")
         if n_in >= 2:
-            meeting.append(f"{node.getID()} ({node.getType()}, {n_in} in, {n_out} out)")
+            # A signalled one is said to be left out: a net that is a merge but for its signal
+            # (a traffic_light T-junction) must not read as a net without any junction to use.
+            kind = f"a signal ({node.getType()}), left out" if _signalled(node) else str(node.getType())
+            meeting.append(f"{node.getID()} ({kind}, {n_in} in, {n_out} out)")
     listed = ", ".join(meeting[:MAX_LISTED]) + (
         f" and {len(meeting) - MAX_LISTED} more" if len(meeting) > MAX_LISTED else ""
     )

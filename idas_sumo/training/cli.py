@@ -9,7 +9,7 @@ from idas_sumo.env.net_needs import check_road_lengths, road_needs
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import remove_stale_temps
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG
-from idas_sumo.sim.netgen import read_merge_net
+from idas_sumo.sim.merge_detect import choose_merge
 from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
@@ -34,6 +34,7 @@ def config_from_args(args: argparse.Namespace, base: TrainConfig | None = None) 
         seed=getattr(args, "seed", None),
         copies=getattr(args, "copies", None),
         safety_mask=getattr(args, "safety_mask", None),
+        junction=getattr(args, "junction", None),
     )
 
 
@@ -52,7 +53,8 @@ def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> No
             f"(pass --workers {limit} or fewer)"
         )
     start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
-    check_road_lengths(read_merge_net(Path(args.net)), road_needs(start_range, config.max_episode_s, source))
+    site = choose_merge(Path(args.net), config.junction or None)
+    check_road_lengths(site, road_needs(start_range, config.max_episode_s, source))
 
 
 def train_from_args(args: argparse.Namespace) -> int:

@@ -117,6 +117,9 @@ class TrainConfig:
     safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
     """Which car the safety mask follows in training and validation (``EnvConfig.safety_mask``):
     'own_lane' (the paper) or 'merge_aware' (ours, a shield; the shipped policies were trained with it)."""
+    junction: str = ""
+    """Which merge of a net with several to train on (its junction id, ``idas-sumo nets inspect``);
+    "": the net's only merge (``EnvConfig.junction``)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -163,6 +166,7 @@ class TrainConfig:
         seed: int | None = None,
         copies: int | None = None,
         safety_mask: str | None = None,
+        junction: str | None = None,
     ) -> TrainConfig:
         """The command line's flags on top of the file: ``episodes`` sets every stage's count."""
         changes: dict[str, Any] = {}
@@ -178,6 +182,8 @@ class TrainConfig:
             changes["copies"] = copies
         if safety_mask is not None:
             changes["safety_mask"] = safety_mask
+        if junction is not None:
+            changes["junction"] = junction
         return dataclasses.replace(self, **changes)
 
     def as_dict(self) -> dict[str, Any]:

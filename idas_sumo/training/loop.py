@@ -32,7 +32,7 @@ from idas_sumo.env.scenario import Road, generate_scenario
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import ensure_writable_dir
 from idas_sumo.sim.backend import require_display
-from idas_sumo.sim.netgen import read_merge_net
+from idas_sumo.sim.merge_detect import choose_merge
 from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint, save_checkpoint
 from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig, ValidationCriterion
 from idas_sumo.training.curriculum import StagePlan, plan_stages
@@ -88,7 +88,7 @@ def run_training(
     ensure_writable_dir(out_dir)
 
     plans = plan_stages(config)
-    net = read_merge_net(net_path)
+    site = choose_merge(net_path, config.junction or None)
     if resumed is not None:
         state = _RunState.resume(resumed, plans, out_dir / CHECKPOINT_NAME)
         _drop_best_after(out_dir, state.global_episode)
@@ -97,9 +97,14 @@ def run_training(
         if force:
             _remove_run_outputs(out_dir)
 
-    run = _Run(config, out_dir, {"main": net.main.speed_limit_mps, "merge": net.merge.speed_limit_mps})
+    run = _Run(
+        config, out_dir, {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
+    )
     env_config = EnvConfig(
-        max_episode_s=config.max_episode_s, reward=config.reward, safety_mask=config.safety_mask
+        max_episode_s=config.max_episode_s,
+        reward=config.reward,
+        safety_mask=config.safety_mask,
+        junction=config.junction or None,
     )
     # On resume, the metrics rows past the checkpoint go (they are written again).
     keep_below = state.global_episode if resumed is not None else None
