@@ -250,3 +250,49 @@ def test_two_seed_sweep_on_ray_writes_its_table_and_resumes_locally(
     first = (out / "sweep.csv").read_bytes()
     assert run_cli(capsys, *args)[0] == 0
     assert (out / "sweep.csv").read_bytes() == first
+
+
+@pytest.fixture
+def sigterm_after_submit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM to this process half a second after the first ``RayPool.submit``: while the driver
+    waits on Ray for the replies (the actors are still starting their SUMO)."""
+    import os
+    import signal
+    import threading
+
+    from idas_sumo.distributed.ray_pool import RayPool
+
+    submit = RayPool.submit
+    sent: list[bool] = []
+
+    def submit_then_signal(self: RayPool, requests: Any, shared: Any = None) -> None:
+        submit(self, requests, shared)
+        if not sent:
+            sent.append(True)
+            threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
+
+    monkeypatch.setattr(RayPool, "submit", submit_then_signal)
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_sigterm_while_waiting_on_ray_is_143(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, tiny: Path, sigterm_after_submit: None, command: str
+) -> None:
+    """Ray turns what a signal handler raises inside ``ray.wait``/``ray.get`` into a plain
+    KeyboardInterrupt: SIGTERM was reported as Ctrl-C (exit 130) before the Ray pool raised the
+    handler's own exception again."""
+    out = tmp_path / "out"
+    args = {
+        "train": ["train", "--config", str(tiny), "--episodes", "100000"],
+        "evaluate": ["evaluate", "--baseline", "idm", "--scenarios", "40"],
+    }[command]
+    code, _, err = run_cli(capsys, *args, "--workers", "2", "--out", str(out), "--ray-address", "local")
+    assert code == 143, err
+    assert err.strip().splitlines()[-1].startswith("idas-sumo: terminated (SIGTERM)"), err
+    assert "Traceback" not in err
+    import ray
+
+    assert not ray.is_initialized()
+    if command == "train":
+        assert (out / "checkpoint.pt").is_file()

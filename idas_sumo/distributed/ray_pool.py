@@ -33,13 +33,44 @@ _POLL_S = 0.2
 """Waits on Ray are cut into slices this long, so a Ctrl-C or SIGTERM is handled at once."""
 
 
+_STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+_raised: list[BaseException] = []
+"""What this process's signal handlers raised last (see ``_remembering``)."""
+
+
 def _saved_signal_handlers() -> dict[int, Any]:
     """The handlers ``ray.init`` replaces (it installs its own SIGTERM handler in the driver): the
     CLI's own turn SIGTERM into a checkpoint and exit 143, so they are put back after it."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    names = ("SIGINT", "SIGTERM", "SIGHUP")
-    return {s: signal.getsignal(s) for s in (getattr(signal, n) for n in names if hasattr(signal, n))}
+    return {s: signal.getsignal(s) for s in _STOP_SIGNALS}
+
+
+def _remembering(handler: Callable[[int, Any], Any]) -> Callable[[int, Any], Any]:
+    """``handler``, remembering what it raises. Ray's blocking calls (``ray.wait``, ``ray.get``) turn
+    an exception raised by a signal handler into a plain KeyboardInterrupt; the CLI's SIGTERM handler
+    raises its own (exit 143, not 130), which ``_signals_kept`` raises again."""
+
+    def remember(signum: int, frame: Any) -> Any:
+        try:
+            return handler(signum, frame)
+        except BaseException as err:
+            _raised.append(err)
+            raise
+
+    return remember
+
+
+@contextlib.contextmanager
+def _signals_kept() -> Iterator[None]:
+    """Around a blocking Ray call: a signal's own exception, not the KeyboardInterrupt Ray made of it."""
+    _raised.clear()
+    try:
+        yield
+    except KeyboardInterrupt as err:
+        if _raised and _raised[-1] is not err:
+            raise _raised[-1] from None
+        raise
 
 
 @contextlib.contextmanager
@@ -70,12 +101,19 @@ def ray_session(address: str, num_cpus: int) -> Iterator[Any]:
         raise InputError(f"--ray-address {address}: cannot connect to a Ray cluster: {err}") from None
     finally:
         for signum, handler in handlers.items():
-            if handler is not None:
+            if callable(handler):
+                signal.signal(signum, _remembering(handler))
+            elif handler is not None:
                 signal.signal(signum, handler)
     try:
         yield ray
     finally:
-        ray.shutdown()
+        try:
+            ray.shutdown()
+        finally:
+            for signum, handler in handlers.items():
+                if handler is not None:
+                    signal.signal(signum, handler)
 
 
 def _reason(err: BaseException) -> str:
@@ -124,25 +162,23 @@ class RayPool(WorkerPool):
 
     def finished(self, pending: Collection[int], timeout_s: float = _POLL_S) -> list[int]:
         refs = {self._pending[i]: i for i in pending}
-        ready, _ = self._ray.wait(list(refs), num_returns=len(refs), timeout=timeout_s)
+        with _signals_kept():
+            ready, _ = self._ray.wait(list(refs), num_returns=len(refs), timeout=timeout_s)
         done = {refs[r] for r in ready}
         return [i for i in pending if i in done]
 
     def result(self, i: int) -> Any:
         ref = self._pending.pop(i)
-        while True:  # in slices: a Ctrl-C is seen at once
-            ready, _ = self._ray.wait([ref], timeout=_POLL_S)
-            if ready:
-                break
         try:
-            return self._ray.get(ref)
+            with _signals_kept():
+                return self._ray.get(ref)
         except self._ray.exceptions.RayError as err:
             raise SimulationError(f"{self.what} {i} (a Ray actor) failed: {_reason(err)}") from None
 
     def close(self) -> None:
         try:
             closing = [a.close.remote() for a in self._actors]
-            with contextlib.suppress(self._ray.exceptions.RayError):
+            with contextlib.suppress(self._ray.exceptions.RayError), _signals_kept():
                 self._ray.get(closing, timeout=CLOSE_TIMEOUT_S)
         finally:
             self.kill()
@@ -174,11 +210,13 @@ def map_tasks(
     try:
         pending = list(refs)
         while pending:
-            ready, pending = ray.wait(pending, num_returns=1, timeout=_POLL_S)
+            with _signals_kept():
+                ready, pending = ray.wait(pending, num_returns=1, timeout=_POLL_S)
             for ref in ready:
                 i = index[ref]
                 try:
-                    results[i] = ray.get(ref)
+                    with _signals_kept():
+                        results[i] = ray.get(ref)
                 except ray.exceptions.RayTaskError as err:
                     cause = getattr(err, "cause", None)
                     if isinstance(cause, IdasError):
