@@ -13,6 +13,10 @@ Start-up stays interruptible: the parent waits for call-backs in short slices, s
 is seen within a fraction of a second; on any failure or interruption every started worker is killed
 at once (not waited for, which with many workers once took minutes), and a worker whose parent is gone
 before it connected exits without a traceback.
+
+What the workers do is a ``Server`` (built from a start-up value, then asked requests); ``WorkerPool``
+is what training and evaluation see of them, implemented here by ``ProcessPool`` (these processes)
+and by ``distributed/ray_pool.py``'s ``RayPool`` (Ray actors), so both backends run the same code.
 """
 
 from __future__ import annotations
