@@ -83,7 +83,7 @@ class _Road:
     """What the check needs of a road: its edges (for messages), length to the merge point (from it,
     for the outgoing road) and speed limit."""
 
-    edge_id: str
+    edges: str
     length_m: float
     speed_limit_mps: float
 
@@ -128,7 +128,7 @@ def check_road_lengths(site: MergeSite | MergeNet, needs: RoadNeeds) -> None:
         # own top speed: SUMO refused such a start ("departure speed too high") mid-run, exit 1.
         if not 0.0 < road.speed_limit_mps <= CONTROLLED_MAX_SPEED_MPS:
             raise InputError(
-                f"{net.path}: the {what} road {road.edge_id!r} has a speed limit of {road.speed_limit_mps:g} m/s; "
+                f"{net.path}: the {what} road {road.edges!r} has a speed limit of {road.speed_limit_mps:g} m/s; "
                 f"the cars need one above 0 and at most {CONTROLLED_MAX_SPEED_MPS:g} m/s (their top speed)"
             )
     starts = (
@@ -147,14 +147,14 @@ def check_road_lengths(site: MergeSite | MergeNet, needs: RoadNeeds) -> None:
             )
         if not lo <= road.length_m <= hi:
             raise InputError(
-                f"{net.path}: the {what} road {road.edge_id!r} is {road.length_m:g} m long; the scenarios "
+                f"{net.path}: the {what} road {road.edges!r} is {road.length_m:g} m long; the scenarios "
                 f"need {lo:g} to {hi:.0f} m ({starts}the {VISIBILITY_M:g} m sensor range; "
                 f"from its start a car must reach the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m past the "
                 f"merge within {needs.episode_s:g} s at the speed limits)"
             )
     if net.out.length_m < needs.min_out_m:
         raise InputError(
-            f"{net.path}: the outgoing road {net.out.edge_id!r} is {net.out.length_m:g} m long; the "
+            f"{net.path}: the outgoing road {net.out.edges!r} is {net.out.length_m:g} m long; the "
             f"scenarios need at least {needs.min_out_m:g} m (the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m "
             f"past the merge plus a {VEHICLE_LENGTH_M:g} m car, and the {VISIBILITY_M:g} m sensor range ahead)"
         )

@@ -36,6 +36,13 @@ controlled highway car there at once, beside an on-ramp car), and the one change
 car's, from the acceleration lane onto the highway's lane before its lane ends (blocked until the
 end, SUMO stops it there and it changes when a gap comes). Not set on single-lane merges, where no
 car can change lanes (the generated T-junction runs as it always did)."""
+CONTROLLED_LC_ASSERTIVE = 20.0
+"""How much smaller than SUMO's safe gaps a controlled car accepts when it changes lanes (its vType's
+``lcAssertive``). An on-ramp car must leave its acceleration lane for the highway's lane; the gap it
+moves into is the policy's to make, by its speed, as at any merge. With SUMO's own safe gaps (sized by
+the braking of the car behind, 2 m/s² for a SUMO-driven car: about 150 m at 30 m/s) a controlled ramp
+car ran beside a gap of 60 m to the end of its lane, stopped there and changed only when the highway
+car had passed. Left out on single-lane merges."""
 CONTROLLED_TYPE = "agent"
 ROBOT_TYPE = "robot"
 # Controlled cars must not be clipped by their vType: the paper's hard brake is -4 m/s².
@@ -166,11 +173,14 @@ def has_lane_changes(site: MergeSite) -> bool:
     return any(lane.lane_count > 1 for side in sides for lane in site.route(side))
 
 
-def _vtype_lines() -> list[str]:
+def _vtype_lines(lane_changes: bool = False) -> list[str]:
+    """The two vTypes; with ``lane_changes`` (a multi-lane merge) the controlled cars' lane changes
+    take any gap that is free (``CONTROLLED_LC_ASSERTIVE``)."""
+    assertive = f' lcAssertive="{CONTROLLED_LC_ASSERTIVE:g}"' if lane_changes else ""
     return [
         f'  <vType id="{CONTROLLED_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="2" '
         f'decel="{CONTROLLED_DECEL_MPS2}" emergencyDecel="9" maxSpeed="{CONTROLLED_MAX_SPEED_MPS}" sigma="0" '
-        f'speedFactor="1" speedDev="0" color="1,0,0"/>',
+        f'speedFactor="1" speedDev="0"{assertive} color="1,0,0"/>',
         f'  <vType id="{ROBOT_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="{ROBOT_ACCEL_MPS2}" '
         f'decel="{ROBOT_DECEL_MPS2}" emergencyDecel="9" sigma="0" tau="1.0" speedFactor="1" speedDev="0" '
         'color="0.6,0.6,0.6"/>',
@@ -217,7 +227,7 @@ def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: st
 def _route_xml(scenario: RouteScenario, site: MergeSite) -> str:
     lines = [
         "<routes>",
-        *_vtype_lines(),
+        *_vtype_lines(has_lane_changes(site)),
         *_route_lines(site),
         *_vehicle_lines(scenario.vehicles, site),
         "</routes>",

@@ -68,7 +68,18 @@ def batch_route_xml(scenarios: Sequence[RouteScenario], net: MultiNet) -> str:
         assert len(lines) == len(order), "one vehicle line per vehicle"
         keyed += [(v.depart_s, k, i, ln) for i, (v, ln) in enumerate(zip(order, lines, strict=True))]
     keyed.sort(key=lambda t: (t[0], t[1], t[2]))
-    return "\n".join(["<routes>", *_vtype_lines(), *routes, *(t[3] for t in keyed), "</routes>"]) + "\n"
+    return (
+        "\n".join(
+            [
+                "<routes>",
+                *_vtype_lines(has_lane_changes(net.site)),
+                *routes,
+                *(t[3] for t in keyed),
+                "</routes>",
+            ]
+        )
+        + "\n"
+    )
 
 
 # -- results ----------------------------------------------------------------------------------------
@@ -93,7 +104,7 @@ class BatchStates:
     """Copy-local vehicle ids."""
     copy: IntArray
     edge: tuple[str, ...]
-    """Copy-local edge ids (``main``, ``:merge_point_0``, ...)."""
+    """Copy-local edge ids (junction-internal ones start with a colon)."""
     edge_index: IntArray
     """Index of ``edge`` in ``MultiNet.edge_ids`` (-1 for an edge not in the source net)."""
     lane_pos_m: FloatArray
