@@ -110,11 +110,7 @@ def test_no_car_leaves_the_lanes_the_engine_measures(nets: dict[str, Path]) -> N
     """SUMO's default lane-change mode sent a controlled highway car to the left lane at once (beside
     the ramp car): every car keeps its approach's lane, the ramp car's one change aside."""
     site = choose_merge(nets["onramp"])
-    allowed = {
-        lane.lane_id
-        for side in ("main", "merge")
-        for lane in site.route(side)  # type: ignore[arg-type]
-    }
+    allowed = {lane.lane_id for side in ("main", "merge") for lane in site.route(side)}
     _, trace = _run(nets["onramp"], _ramp_and_highway())
     assert trace.rows
     strays = sorted({(vid, lane) for _, vid, lane, *_ in trace.rows if lane not in allowed})
