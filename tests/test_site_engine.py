@@ -120,8 +120,10 @@ def test_no_car_leaves_the_lanes_the_engine_measures(nets: dict[str, Path]) -> N
 @pytest.mark.sumo
 def test_distances_run_smoothly_along_each_route(nets: dict[str, Path]) -> None:
     """Each car's distance to the merge point falls by about its speed times the step on every step,
-    across edges and junction lanes (a wrong table entry is a jump), and its road is its origin until
-    the merge point and OUT after it."""
+    across edges and junction lanes (a wrong table entry is a jump). Its road is its origin before the
+    merge point, OUT after it; a ramp car that changed onto the highway's lane is a MAIN car from then."""
+    site = choose_merge(nets["onramp"])
+    highway_lanes = {site.main.lanes[-1].lane_id}
     _, trace = _run(nets["onramp"], _ramp_and_highway())
     origin = {"h": MAIN, "h2": MAIN, "r": MERGE}
     for vid, road in origin.items():
@@ -136,10 +138,34 @@ def test_distances_run_smoothly_along_each_route(nets: dict[str, Path]) -> None:
         hi = np.maximum(speed[:-1], speed[1:]) * STEP_LENGTH_S + 0.05
         bad = np.flatnonzero((step < lo) | (step > hi))
         assert not len(bad), f"{vid}: jumps at {[(rows[i][2], rows[i + 1][2], step[i]) for i in bad]}"
-        assert ((roads == road) == (dist > 0)).all() or ((roads == road) == (dist >= 0)).all()
-        assert (roads[dist < 0] == OUT).all() and dist[0] > 0
+        expected = [
+            OUT if d < 0 else MAIN if road == MAIN or lane in highway_lanes else MERGE
+            for (_, _, lane, *_), d in zip(rows, dist, strict=True)
+        ]
+        assert roads.tolist() == expected, vid
+        assert dist[0] > 0
         if vid != "h2":  # the episode ends when the controlled cars are through, maybe before h2 is
             assert dist[-1] < 0
+    assert MAIN in [row[4] for row in trace.rows if row[1] == "r"], "the ramp car never counted as merged"
+
+
+@pytest.mark.sumo
+def test_highway_cars_see_a_ramp_car_that_changed_into_their_lane(nets: dict[str, Path]) -> None:
+    """The paper suite's first on-ramp scenario (seed 2019), IDM driving every car with the paper's
+    own-lane mask: while a ramp car that had changed lanes stayed a merge-road car, the highway car
+    behind it did not see it and ran into it (2 collisions); as a main-road car it is kept clear of."""
+    from idas_sumo.evaluation.protocol import EvalConfig, suite_cases
+
+    engine = MergeEngine(nets["onramp"], config=EnvConfig(max_episode_s=60.0))
+    try:
+        case = suite_cases(
+            "paper", 1, 2019, engine.speed_limits_mps, EvalConfig().traffic, engine.road_lengths_m
+        )[0]
+        (outcome,) = run_episodes(engine, [case.scenario], lambda job, agent: 0, [RuleBasedPolicy("idm")])
+    finally:
+        engine.close()
+    assert outcome.collisions == 0
+    assert set(outcome.end_reasons.values()) == {"finished"}
 
 
 @pytest.mark.sumo

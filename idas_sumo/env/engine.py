@@ -289,7 +289,15 @@ class _SoloBackend:
         n = len(s.ids)
         zeros = np.zeros(n, dtype=np.int64)
         return BatchStates(
-            s.ids, zeros, s.edge, zeros, s.lane_pos_m, s.speed_mps, s.accel_mps2, np.array([0, n])
+            s.ids,
+            zeros,
+            s.edge,
+            zeros,
+            s.lane_pos_m,
+            s.speed_mps,
+            s.accel_mps2,
+            np.array([0, n]),
+            s.lane_index,
         )
 
     def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: npt.ArrayLike, copy: npt.ArrayLike) -> None:
@@ -366,6 +374,11 @@ class MergeEngine:
         self.out_limit_mps = self.site.out[0].speed_limit_mps
         """The limit after the merge point (the rule mask's exemption near the merge)."""
         self._edge_code, self._start_by, self._incoming_by, self._limit_by = _route_tables(self.site)
+        # Per edge code: the main approach's lane on an edge both approaches share (a lane drop's
+        # acceleration edge), else -1. A merging car on that lane has changed onto the main road.
+        self._merged_lane = np.full(self._start_by.shape[1], -1, dtype=np.int64)
+        for edge_id, lane_index in self.site.shared_lanes.items():
+            self._merged_lane[self._edge_code[edge_id]] = lane_index
         self._via_length_by_code = np.array([self.site.main.via_length_m, self.site.merge.via_length_m])
         self.slots: list[_Slot] = []
         self.snapshot = _empty_snapshot()
@@ -563,6 +576,13 @@ class MergeEngine:
         # then a table lookup by (origin, edge).
         unknown = self._start_by.shape[1] - 1
         code = np.fromiter((self._edge_code.get(e, unknown) for e in states.edge), dtype=np.int64, count=n)
+        if states.lane_index is not None and n:
+            # On a lane drop a merging car that changed onto the main road's lane drives on as a main-road
+            # car: the cars behind it in that lane see it in their own lane (the paper's mask keeps its
+            # distance to it), and it sees theirs. Before, it stayed a merge-road car beside the lane it
+            # had joined, and highway cars ran into it (most of the on-ramp's collisions).
+            merged = (origin == MERGE) & (states.lane_index == self._merged_lane[code])
+            origin = np.where(merged, MAIN, origin)
         pos = states.lane_pos_m
         incoming = self._incoming_by[origin, code]
         road = np.where(incoming, origin, OUT)

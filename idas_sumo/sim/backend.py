@@ -258,6 +258,9 @@ class VehicleStates:
     lane_pos_m: np.ndarray
     speed_mps: np.ndarray
     accel_mps2: np.ndarray
+    lane_index: np.ndarray | None = None
+    """Each car's lane index on its edge, read only on a merge whose approaches share edges (a lane
+    drop: ``MergeSite.shared_lanes``); None elsewhere."""
 
 
 class SumoBackend:
@@ -280,6 +283,7 @@ class SumoBackend:
         self._controlled: set[str] = set()
         self._released: set[str] = set()
         self._lane_keeping = has_lane_changes(self.site)
+        self._read_lanes = bool(self.site.shared_lanes)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def _args(self, route_file: Path) -> list[str]:
@@ -429,7 +433,10 @@ class SumoBackend:
             lane_pos[i] = vehicle.getLanePosition(vid)
             speed[i] = vehicle.getSpeed(vid)
             accel[i] = vehicle.getAcceleration(vid)
-        return VehicleStates(ids, tuple(edges), lane_pos, speed, accel)
+        lane_index = None
+        if self._read_lanes:
+            lane_index = np.fromiter(map(vehicle.getLaneIndex, ids), np.int64, n)
+        return VehicleStates(ids, tuple(edges), lane_pos, speed, accel, lane_index)
 
     def raw_call(self, domain: str, method: str, *args: Any) -> Any:
         """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args)."""

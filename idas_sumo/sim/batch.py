@@ -112,6 +112,9 @@ class BatchStates:
     accel_mps2: FloatArray
     bounds: IntArray
     """Copy k's vehicles are rows ``bounds[k]:bounds[k + 1]`` (len = copies + 1)."""
+    lane_index: IntArray | None = None
+    """Each car's lane index on its edge, only on a merge whose approaches share edges
+    (``VehicleStates.lane_index``)."""
 
     def of_copy(self, k: int) -> VehicleStates:
         """Copy ``k``'s vehicles as ``SumoBackend.vehicle_states`` gives them for its scenario alone."""
@@ -122,6 +125,7 @@ class BatchStates:
             self.lane_pos_m[lo:hi],
             self.speed_mps[lo:hi],
             self.accel_mps2[lo:hi],
+            None if self.lane_index is None else self.lane_index[lo:hi],
         )
 
 
@@ -168,6 +172,7 @@ class BatchBackend:
         """Copies emptied by ``clear_copy`` since the last reset."""
         self._active_copies = 0
         self._lane_keeping = has_lane_changes(self.net.site)
+        self._read_lanes = bool(self.net.site.shared_lanes)
 
     # -- lifecycle -------------------------------------------------------------------------------
     def reset(self, scenarios: Sequence[RouteScenario], extra_args: Sequence[str] = ()) -> None:
@@ -309,6 +314,9 @@ class BatchBackend:
         lane_pos = np.fromiter(map(_libsumo.vehicle_getLanePosition, gids), np.float64, n)
         speed = np.fromiter(map(_libsumo.vehicle_getSpeed, gids), np.float64, n)
         accel = np.fromiter(map(_libsumo.vehicle_getAcceleration, gids), np.float64, n)
+        lane_index = (
+            np.fromiter(map(_libsumo.vehicle_getLaneIndex, gids), np.int64, n) if self._read_lanes else None
+        )
         if n == 0:
             empty = np.zeros(0, dtype=np.int64)
             return BatchStates(
@@ -337,8 +345,9 @@ class BatchBackend:
             )
             ids = tuple(ids[i] for i in order.tolist())
             edge = tuple(edge[i] for i in order.tolist())
+            lane_index = None if lane_index is None else lane_index[order]
         bounds = copy.searchsorted(self._copy_range)
-        return BatchStates(ids, copy, edge, edge_index, lane_pos, speed, accel, bounds)
+        return BatchStates(ids, copy, edge, edge_index, lane_pos, speed, accel, bounds, lane_index)
 
     def set_speeds(
         self,

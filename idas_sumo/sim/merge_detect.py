@@ -163,6 +163,14 @@ class MergeSite:
         )
         return (*approach.lanes, *approach.through, *past)
 
+    @property
+    def shared_lanes(self) -> dict[str, int]:
+        """Edge id -> the main approach's lane on it, for the ordinary edges both approaches drive
+        before the merge point (a lane drop's acceleration edges; none at a junction merge). A merging
+        car on that lane has changed onto the main road's lane."""
+        merge_edges = set(self.merge.edge_ids)
+        return {lane.edge_id: lane.lane_index for lane in self.main.edges if lane.edge_id in merge_edges}
+
     def route_edge_ids(self, side: Side) -> tuple[str, ...]:
         """The ordinary edges of ``side``'s route, as a SUMO route file lists them."""
         return tuple(r.edge_id for r in self.route(side) if not r.internal)
