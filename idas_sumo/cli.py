@@ -617,11 +617,18 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from idas_sumo.training.sweep import EvalSpec, parse_seeds, parse_sets, run_sweep
+    from functools import partial
+
+    from idas_sumo.evaluation.best_checkpoint import evaluate_checkpoint
+    from idas_sumo.training.sweep import parse_seeds, parse_sets, run_sweep
 
     _require_ray_if_asked(args)
     seeds, sets = parse_seeds(args.seeds), parse_sets(args.set)
-    evaluate = EvalSpec(args.eval_seed, args.eval_scenarios) if args.evaluate else None
+    evaluate = (
+        partial(evaluate_checkpoint, seed=args.eval_seed, scenarios=args.eval_scenarios)
+        if args.evaluate
+        else None
+    )
     csv_path, png_path = run_sweep(
         Path(args.config),
         Path(args.net),

@@ -1,6 +1,6 @@
 """The package's imports only point down the layers (no SUMO needed).
 
-    cli -> training, evaluation -> agents, baselines -> env -> physics -> sim
+    cli -> training, evaluation -> agents, baselines -> env -> physics, distributed -> sim
 
 A module may import its own package, any lower layer, and the shared leaves (the package root for
 ``__version__``, ``errors``, ``config``, ``io_utils``, ``resources``), which import only each other.
@@ -22,6 +22,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 LAYER: dict[str, int] = {
     "sim": 0,
     "physics": 1,
+    "distributed": 1,
     "env": 2,
     "agents": 3,
     "baselines": 3,

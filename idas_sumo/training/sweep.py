@@ -9,7 +9,9 @@ workers are processes on the node the task lands on).
 
 The table (``sweep.csv``, and ``sweep.png``) has one row per run: its seed and set values, the best
 validation of its last stage (``<stage>_best.pt``, so the config must validate: ``validate_every`` >
-0), and with ``--evaluate`` that checkpoint's evaluation on the paper suite with a declared seed.
+0), and with ``--evaluate`` that checkpoint's evaluation on the paper suite with a declared seed (the
+``evaluate`` function the command line passes in: evaluation/best_checkpoint.py, a module this layer
+does not import).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import re
 import tomllib
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 from idas_sumo.config import load_toml
 from idas_sumo.errors import InputError
@@ -31,6 +33,7 @@ from idas_sumo.training.config import TrainConfig, load_train_config, train_conf
 __all__ = [
     "SWEEP_CSV",
     "SWEEP_PNG",
+    "Evaluate",
     "SweepRun",
     "parse_seeds",
     "parse_sets",
@@ -56,12 +59,9 @@ class SweepRun:
     config: TrainConfig
 
 
-@dataclasses.dataclass(frozen=True)
-class EvalSpec:
-    """``--evaluate``: the paper suite, ``scenarios`` of them drawn with ``seed``, for each best checkpoint."""
-
-    seed: int
-    scenarios: int
+Evaluate: TypeAlias = Callable[[Path, Path, Path], dict[str, Any]]
+"""``evaluate(best checkpoint, net, output folder)``: columns for the run's row. It runs where the run
+ran (a Ray task on the cluster): a module-level function, or a ``functools.partial`` of one."""
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -126,7 +126,9 @@ def _slug(value: Any) -> str:
     return re.sub(r"[^A-Za-z0-9.+-]+", "_", str(value)).strip("_") or "_"
 
 
-def plan_sweep(config_path: Path, seeds: Sequence[int], sets: Sequence[tuple[str, list[Any]]]) -> list[SweepRun]:
+def plan_sweep(
+    config_path: Path, seeds: Sequence[int], sets: Sequence[tuple[str, list[Any]]]
+) -> list[SweepRun]:
     """Every run of the sweep, each config checked as the training TOML is (a bad key or value is an
     ``InputError`` naming it, with a did-you-mean for a misspelt key)."""
     load_train_config(config_path)  # the file's own mistakes are named as the file's
@@ -153,7 +155,7 @@ def plan_sweep(config_path: Path, seeds: Sequence[int], sets: Sequence[tuple[str
     return runs
 
 
-def _run_one(job: tuple[SweepRun, Path, Path, EvalSpec | None]) -> dict[str, Any]:
+def _run_one(job: tuple[SweepRun, Path, Path, Evaluate | None]) -> dict[str, Any]:
     """Train one run (resuming it when its folder holds a checkpoint), optionally evaluate its best
     checkpoint; its table row. What a Ray task runs, and the local loop too."""
     from idas_sumo.training.curriculum import plan_stages
@@ -170,7 +172,7 @@ def _run_one(job: tuple[SweepRun, Path, Path, EvalSpec | None]) -> dict[str, Any
 
 
 def _row(
-    run: SweepRun, run_dir: Path, stage: str, best: Path, net: Path, evaluate: EvalSpec | None
+    run: SweepRun, run_dir: Path, stage: str, best: Path, net: Path, evaluate: Evaluate | None
 ) -> dict[str, Any]:
     from idas_sumo.training.checkpoint import load_checkpoint
 
@@ -184,35 +186,9 @@ def _row(
         best_perfect_rate=score.perfect_rate if score else math.nan,
     )
     if evaluate is not None:
-        row.update(_evaluate(best, net, run_dir / EVAL_DIR, evaluate))
+        row.update(evaluate(best, net, run_dir / EVAL_DIR))
     row["run_dir"] = str(run_dir)
     return row
-
-
-def _evaluate(best: Path, net: Path, out: Path, spec: EvalSpec) -> dict[str, Any]:
-    """The best checkpoint on the paper suite (``idas`` with ``--policy``): its summary's percentages."""
-    from idas_sumo.evaluation.runner import EvalRequest, run_evaluation
-
-    result = run_evaluation(
-        EvalRequest(
-            net=net,
-            methods=("idas",),
-            seed=spec.seed,
-            scenarios=spec.scenarios,
-            policy=best,
-            out=out,
-            force=True,
-            progress=False,
-        )
-    )
-    summary = result.summary.iloc[0]
-    return {
-        "eval_seed": spec.seed,
-        "eval_scenarios": int(summary["scenarios"]),
-        "eval_success_pct": float(summary["success_pct"]),
-        "eval_perfect_pct": float(summary["perfect_pct"]),
-        "eval_collision_pct": float(summary["collision_pct"]),
-    }
 
 
 def run_sweep(
@@ -222,11 +198,12 @@ def run_sweep(
     sets: Sequence[tuple[str, list[Any]]],
     out: Path,
     ray_address: str | None = None,
-    evaluate: EvalSpec | None = None,
+    evaluate: Evaluate | None = None,
     on_run: Callable[[dict[str, Any]], None] | None = None,
 ) -> tuple[Path, Path]:
     """Run (or resume) every run of the sweep, then write its table; returns (sweep.csv, sweep.png).
-    ``on_run(row)`` as each run finishes."""
+    ``evaluate``: also evaluate each run's best checkpoint (see ``Evaluate``). ``on_run(row)`` as each
+    run finishes."""
     import pandas as pd
 
     from idas_sumo.io_utils import ensure_writable_dir, write_csv_atomic
@@ -273,6 +250,7 @@ def _plot(table: Any, path: Path) -> None:
     from idas_sumo.io_utils import atomic_open
 
     evaluated = "eval_success_pct" in table.columns
+    seed = f" (seed {int(table['eval_seed'].iloc[0])})" if "eval_seed" in table.columns else ""
     fig, axes = plt.subplots(
         1, 2 if evaluated else 1, figsize=(max(4.0, 0.6 * len(table)) * (2 if evaluated else 1), 4)
     )
@@ -281,7 +259,7 @@ def _plot(table: Any, path: Path) -> None:
     axes[0].set_ylabel("best validation joint return")
     if evaluated:
         axes[1].bar(table["run"], table["eval_success_pct"], color="tab:green")
-        axes[1].set_ylabel(f"evaluation success % (seed {int(table['eval_seed'].iloc[0])})")
+        axes[1].set_ylabel(f"evaluation success %{seed}")
     for ax in axes:
         ax.tick_params(axis="x", labelrotation=60, labelsize=7)
     fig.tight_layout()
