@@ -308,8 +308,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument(
         "--suite",
         default="paper",
-        choices=("paper", "representative", "driver-types"),
-        help="scenario suite (default: %(default)s)",
+        choices=("paper", "representative", "driver-types", "geometry"),
+        help="scenario suite (default: %(default)s); geometry: the paper suite on held-out generated "
+        "merges and the on-ramp sample net, one table each (--net is not used)",
     )
     ev.add_argument(
         "--scenarios",
@@ -493,7 +494,10 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"--policy only applies to the learned methods ({', '.join(LEARNED_METHODS)}); "
             f"--baseline {args.baseline} does not read it"
         )
-    _check_eval_net(args)
+    if args.suite == "geometry":
+        _check_geometry_args(args)
+    else:
+        _check_eval_net(args)
     out = args.out if args.out is not None else _default_out(args)
     if args.force and out.is_dir():
         from idas_sumo.io_utils import remove_stale_temps
@@ -501,31 +505,32 @@ def _evaluate(args: argparse.Namespace) -> int:
         # Writes killed before their rename (SIGKILL, power loss) leave their temp files behind.
         remove_stale_temps(out)
     others = args.others or default_others()
-    result = run_evaluation(
-        EvalRequest(
-            net=Path(args.net),
-            junction=args.junction,
-            methods=tuple(methods),
-            suite=args.suite,
-            scenarios=args.scenarios,
-            seed=args.seed,
-            others=others,
-            policy=args.policy,
-            out=out,
-            force=args.force,
-            fresh_out=args.out is None and not args.force,
-            trajectories=args.trajectories,
-            sumo_output=args.sumo_output,
-            progress=not args.no_progress and sys.stderr.isatty(),
-            gui=args.gui,
-            config=args.config,
-            safety_mask=args.safety_mask,
-            scenario_files=tuple(args.scenario),
-            copies=args.copies,
-            workers=args.workers,
-            ray_address=args.ray_address,
-        )
+    request = EvalRequest(
+        net=Path(args.net),
+        junction=args.junction,
+        methods=tuple(methods),
+        suite=args.suite,
+        scenarios=args.scenarios,
+        seed=args.seed,
+        others=others,
+        policy=args.policy,
+        out=out,
+        force=args.force,
+        fresh_out=args.out is None and not args.force,
+        trajectories=args.trajectories,
+        sumo_output=args.sumo_output,
+        progress=not args.no_progress and sys.stderr.isatty(),
+        gui=args.gui,
+        config=args.config,
+        safety_mask=args.safety_mask,
+        scenario_files=tuple(args.scenario),
+        copies=args.copies,
+        workers=args.workers,
+        ray_address=args.ray_address,
     )
+    if args.suite == "geometry":
+        return _evaluate_geometry(args, request, others)
+    result = run_evaluation(request)
     if args.others is None and others == "idm":
         # Only after the run: before it, a bad input must stay the one line on stderr.
         print("note: no shipped IDAS policy found; the other vehicles run IDM", file=sys.stderr)
@@ -541,6 +546,37 @@ def _evaluate(args: argparse.Namespace) -> int:
 
         for png in plot_directory(result.out):
             print(f"wrote {png}")
+    return 0
+
+
+def _check_geometry_args(args: argparse.Namespace) -> None:
+    """``--suite geometry`` brings its own nets and the paper suite's random scenarios."""
+    if Path(args.net) != resolve_user_path(DEFAULT_NET_NAME):
+        raise InputError(
+            "--suite geometry runs on its own nets (held-out merges, the on-ramp): leave out --net"
+        )
+    for flag, given in (("--junction", args.junction), ("--scenario", args.scenario), ("--gui", args.gui)):
+        if given:
+            raise InputError(f"--suite geometry runs the paper suite on each of its nets: leave out {flag}")
+
+
+def _evaluate_geometry(args: argparse.Namespace, request: Any, others: str) -> int:
+    """The paper suite on every geometry of ``evaluation/geometry.py``: one table each, then
+    ``geometry.csv``."""
+    from rich.console import Console
+
+    from idas_sumo.evaluation.geometry import run_geometry_suite
+    from idas_sumo.evaluation.policies import METHOD_LABELS
+
+    def check(net: Path) -> None:
+        _check_eval_net(argparse.Namespace(**{**vars(args), "net": net, "suite": "paper", "junction": None}))
+
+    def show(name: str, output: Any) -> None:
+        title = f"geometry {name}: paper suite, seed {args.seed}, others: {others}"
+        Console().print(summary_table(output.summary, title, METHOD_LABELS))
+
+    _, table = run_geometry_suite(request, check, show)
+    print(f"wrote {request.out}/: one folder per geometry, {table.name}")
     return 0
 
 
