@@ -296,3 +296,15 @@ def test_sigterm_while_waiting_on_ray_is_143(
     assert not ray.is_initialized()
     if command == "train":
         assert (out / "checkpoint.pt").is_file()
+
+
+def test_no_cluster_at_the_address_is_exit_2(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    out = tmp_path / "e"
+    args = ["evaluate", "--baseline", "idm", "--scenarios", "2", "--out", str(out), "--ray-address", "auto"]
+    code, _, err = run_cli(capsys, *args)
+    assert code == 2, err
+    one_error_line(err, "--ray-address auto", "cannot connect to a Ray cluster")
+    assert not out.exists()
