@@ -16,6 +16,7 @@ from idas_sumo.env.parallel import DEFAULT_NET
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, check_against_net, generate_scenario
 from idas_sumo.env.single import SingleEpisode
 from idas_sumo.errors import SimulationError
+from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
 
 
@@ -49,7 +50,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
 
     def __init__(
         self,
-        net: MergeNet | str | Path = DEFAULT_NET,
+        net: MergeSite | MergeNet | str | Path = DEFAULT_NET,
         scenario: Scenario | None = None,
         ego: str | None = None,
         others: Policy | None = None,

@@ -16,6 +16,7 @@ from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against
 from idas_sumo.env.single import SingleEpisode, StepOutcome
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.resources import DEFAULT_NET
+from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
 
 
@@ -51,7 +52,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
 
     def __init__(
         self,
-        net: MergeNet | str | Path = DEFAULT_NET,
+        net: MergeSite | MergeNet | str | Path = DEFAULT_NET,
         scenario: Scenario | None = None,
         traffic: TrafficConfig | None = None,
         config: EnvConfig | None = None,

@@ -20,6 +20,7 @@ from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.snapshot import ROAD_NAMES, TrafficSnapshot
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import Backend
+from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
 
 
@@ -46,7 +47,11 @@ class SingleEpisode:
     """A K = 1 ``MergeEngine`` (in-process libsumo, or a SUMO child process when libsumo is taken)."""
 
     def __init__(
-        self, net: MergeNet | str | Path, seed: int = 0, config: EnvConfig | None = None, gui: bool = False
+        self,
+        net: MergeSite | MergeNet | str | Path,
+        seed: int = 0,
+        config: EnvConfig | None = None,
+        gui: bool = False,
     ) -> None:
         self.engine = MergeEngine(net, copies=1, seed=seed, config=config, gui=gui)
         self.scenario: Scenario | None = None
