@@ -308,3 +308,15 @@ def test_no_cluster_at_the_address_is_exit_2(
     assert code == 2, err
     one_error_line(err, "--ray-address auto", "cannot connect to a Ray cluster")
     assert not out.exists()
+
+
+def test_more_workers_than_the_cluster_has_cpus_is_an_input_error() -> None:
+    """Actors that no node can place wait for ever: the pool refused nothing and the run hung."""
+    from idas_sumo.distributed.ray_pool import RayPool, ray_session
+    from idas_sumo.errors import InputError
+
+    with ray_session("local", num_cpus=1), pytest.raises(InputError, match="has 1 CPUs, fewer than the 2 "):
+        RayPool("idas_sumo.training.workers:RolloutServer", [None, None], "rollout worker", "local")
+    import ray
+
+    assert not ray.is_initialized()

@@ -143,6 +143,13 @@ class RayPool(WorkerPool):
         self._stack = contextlib.ExitStack()
         self._ray = self._stack.enter_context(ray_session(address, num_cpus=len(inits)))
         try:
+            # An actor that no node can place waits for ever: refuse what the cluster cannot hold.
+            cpus = int(self._ray.cluster_resources().get("CPU", 0))
+            if cpus < len(inits):
+                raise InputError(
+                    f"--ray-address {address}: the cluster has {cpus} CPUs, fewer than the {len(inits)} "
+                    f"{what}s (one CPU each); give --workers {max(cpus, 1)} or fewer, or add nodes"
+                )
             actor = self._ray.remote(num_cpus=1)(_ServerActor)
             self._actors = [actor.remote(factory, init) for init in inits]
         except BaseException:
