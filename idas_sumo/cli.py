@@ -19,7 +19,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
-from idas_sumo.distributed import check_ray_address
+from idas_sumo.distributed import LOCAL, check_ray_address
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS
 from idas_sumo.errors import IdasError, InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
@@ -101,16 +101,17 @@ def _seed(text: str) -> int:
     return value
 
 
-def _workers(text: str) -> int:
-    """A worker count this machine can run: one process (and one SUMO) per CPU at most; more only
-    slows the run down and can exhaust memory (1000 workers once forked 200+ processes and 8 GB)."""
-    value = _positive_int(text)
+def _check_workers(args: argparse.Namespace) -> None:
+    """``--workers``: a count this machine can run, one process (and one SUMO) per CPU at most; more
+    only slows the run down and can exhaust memory (1000 workers once forked 200+ processes and 8 GB).
+    Checked before anything starts. With ``--ray-address`` (but ``local``, this machine) the workers
+    are actors on a cluster, whose CPUs bound them instead (distributed/ray_pool.py)."""
+    workers = getattr(args, "workers", None)
+    if workers is None or getattr(args, "ray_address", None) not in (None, LOCAL):
+        return
     limit = max_workers()
-    if value > limit:
-        raise argparse.ArgumentTypeError(
-            f"{value} is more than this machine's {limit} CPUs (at most {limit})"
-        )
-    return value
+    if workers > limit:
+        raise InputError(f"--workers: {workers} is more than this machine's {limit} CPUs (at most {limit})")
 
 
 def _copies(text: str) -> int:
@@ -255,8 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument(
         "--workers",
-        type=_workers,
-        help=f"rollout processes, one SUMO each, at most the CPU count ({from_config('workers')})",
+        type=_positive_int,
+        help="rollout processes, one SUMO each, at most the CPU count (with --ray-address: Ray actors, at "
+        f"most the cluster's CPUs) ({from_config('workers')})",
     )
     train.add_argument(
         "--copies",
@@ -370,10 +372,11 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--gui", action="store_true", help="show the episodes in sumo-gui (needs a display)")
     ev.add_argument(
         "--workers",
-        type=_workers,
+        type=_positive_int,
         default=1,
-        help="processes sharing the episodes, one SUMO each, at most the CPU count (2 keeps both cores busy); "
-        "results do not depend on it (default: %(default)s)",
+        help="processes sharing the episodes, one SUMO each, at most the CPU count (2 keeps both cores busy; "
+        "with --ray-address: Ray actors, at most the cluster's CPUs); results do not depend on it "
+        "(default: %(default)s)",
     )
     ev.add_argument(
         "--copies",
@@ -483,7 +486,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, METHODS, check_method
     from idas_sumo.evaluation.runner import EvalRequest, default_others, run_evaluation
 
-    _require_ray_if_asked(args)
+    _check_backend(args)
     check_method(args.baseline, "--baseline", also=("all",))
     methods = METHODS if args.baseline == "all" else (args.baseline,)
     if args.others is not None:
@@ -637,8 +640,10 @@ def summary_table(summary: pd.DataFrame, title: str, labels: dict[str, str]) -> 
     return Group(table, more)
 
 
-def _require_ray_if_asked(args: argparse.Namespace) -> None:
-    """``--ray-address`` without the ray extra: exit 2 naming it, before anything runs."""
+def _check_backend(args: argparse.Namespace) -> None:
+    """Before anything runs: ``--workers`` within this machine's CPUs unless they run on a cluster,
+    and ``--ray-address`` without the ray extra is exit 2 naming it."""
+    _check_workers(args)
     if getattr(args, "ray_address", None) is not None:
         from idas_sumo.distributed import require_ray
 
@@ -648,7 +653,7 @@ def _require_ray_if_asked(args: argparse.Namespace) -> None:
 def _train(args: argparse.Namespace) -> int:
     from idas_sumo.training.cli import train_from_args
 
-    _require_ray_if_asked(args)
+    _check_backend(args)
     return train_from_args(args)
 
 
@@ -658,7 +663,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.best_checkpoint import evaluate_checkpoint
     from idas_sumo.training.sweep import parse_seeds, parse_sets, run_sweep
 
-    _require_ray_if_asked(args)
+    _check_backend(args)
     seeds, sets = parse_seeds(args.seeds), parse_sets(args.set)
     evaluate = (
         partial(evaluate_checkpoint, seed=args.eval_seed, scenarios=args.eval_scenarios)

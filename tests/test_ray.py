@@ -320,3 +320,22 @@ def test_more_workers_than_the_cluster_has_cpus_is_an_input_error() -> None:
     import ray
 
     assert not ray.is_initialized()
+
+
+def test_workers_are_bounded_by_this_machine_unless_they_run_on_a_cluster(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, tiny: Path
+) -> None:
+    from idas_sumo.sim.processes import max_workers
+
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    many = str(max_workers() + 1)
+    for command in (["train", "--config", str(tiny)], ["evaluate", "--baseline", "idm"]):
+        base = [*command, "--workers", many, "--out", str(tmp_path / "o")]
+        for local in ([], ["--ray-address", "local"]):  # a local Ray instance runs on this machine's CPUs
+            code, _, err = run_cli(capsys, *base, *local)
+            assert code == 2, err
+            one_error_line(err, "--workers", many, "CPUs")
+        # On a cluster the cluster's CPUs count: here the refusal is that there is none to connect to.
+        code, _, err = run_cli(capsys, *base, "--ray-address", "auto")
+        assert code == 2, err
+        one_error_line(err, "cannot connect to a Ray cluster")

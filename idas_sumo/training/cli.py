@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from idas_sumo.distributed import LOCAL
 from idas_sumo.env.net_needs import check_road_lengths, road_needs
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import remove_stale_temps
@@ -47,7 +48,8 @@ def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> No
             f"{source}: seed must be in [0, {SEED_LIMIT}) (SUMO's seed range), got {config.seed}"
         )
     limit = max_workers()
-    if config.workers > limit:
+    # Ray actors on a cluster are bound by its CPUs, not this machine's (distributed/ray_pool.py).
+    if config.workers > limit and getattr(args, "ray_address", None) in (None, LOCAL):
         raise InputError(
             f"{source}: workers = {config.workers} is more than this machine's {limit} CPUs "
             f"(pass --workers {limit} or fewer)"
