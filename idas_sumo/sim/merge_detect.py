@@ -525,7 +525,15 @@ def _net_summary(net: Any) -> str:
             # A signalled one is said to be left out: a net that is a merge but for its signal
             # (a traffic_light T-junction) must not read as a net without any junction to use.
             kind = f"a signal ({node.getType()}), left out" if _signalled(node) else str(node.getType())
-            meeting.append(f"{node.getID()} ({kind}, {n_in} in, {n_out} out)")
+            # A road that ends here without a connection onward (no car can drive on) is why a
+            # junction that looks like a merge is none: name it.
+            stuck = sorted(
+                str(e.getID())
+                for e in node.getIncoming()
+                if e.getFunction() != "internal" and not any(_normal_outgoing(lane) for lane in e.getLanes())
+            )
+            dead = f"; {', '.join(stuck)} lead(s) nowhere from it: route not drivable" if stuck else ""
+            meeting.append(f"{node.getID()} ({kind}, {n_in} in, {n_out} out{dead})")
     listed = ", ".join(meeting[:MAX_LISTED]) + (
         f" and {len(meeting) - MAX_LISTED} more" if len(meeting) > MAX_LISTED else ""
     )
