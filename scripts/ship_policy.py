@@ -64,7 +64,7 @@ def _validation_curve(path: Path, stages: list[str] | None) -> list[dict] | None
     rows = pd.read_csv(path)
     if stages:
         rows = rows[rows["stage"].isin(stages)]
-    columns = ["stage", "episode", "joint_return", "perfect_rate", "mean_end_time_s"]
+    columns = ["stage", "episode", "joint_return", "success_rate", "perfect_rate", "mean_end_time_s"]
     return [
         {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
         for r in rows[columns].to_dict("records")
