@@ -194,3 +194,18 @@ def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
         fig.savefig(f, format="png", dpi=dpi, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+def read_csv_columns(path: Path, columns: tuple[str, ...], written_by: str) -> Any:
+    """A CSV as a pandas DataFrame that has ``columns``; anything else is one InputError naming the file and
+    the command that writes such files (``written_by``, e.g. "idas-sumo train")."""
+    import pandas as pd
+
+    try:
+        frame = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
+        raise InputError(f"{path}: cannot read CSV ({err})") from None
+    missing = [c for c in columns if c not in frame.columns]
+    if missing:
+        raise InputError(f"{path}: not written by `{written_by}` (missing columns: {', '.join(missing)})")
+    return frame

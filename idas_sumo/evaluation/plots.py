@@ -14,21 +14,13 @@ from idas_sumo.errors import InputError
 from idas_sumo.evaluation.metrics import BASE_EPISODE_COLUMNS, FLOW_COLUMNS, TRAJECTORY_COLUMNS
 from idas_sumo.evaluation.policies import METHOD_LABELS
 from idas_sumo.evaluation.sweep import is_sweep_scenario, spearman_test
-from idas_sumo.io_utils import save_png
+from idas_sumo.io_utils import read_csv_columns, save_png
 
 ZONE_COLOR = "#9ecae1"
 
 
 def _read(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
-    try:
-        frame = pd.read_csv(path)
-    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
-        raise InputError(f"{path}: cannot read CSV ({err})") from None
-    missing = [c for c in columns if c not in frame.columns]
-    if missing:
-        raise InputError(
-            f"{path}: not written by `idas-sumo evaluate` (missing columns: {', '.join(missing)})"
-        )
+    frame: pd.DataFrame = read_csv_columns(path, columns, "idas-sumo evaluate")
     return frame
 
 

@@ -9,7 +9,7 @@ import pandas as pd
 
 from idas_sumo.env.rewards import FLOW_PENALTY_PER_HARD_BRAKE
 from idas_sumo.errors import InputError
-from idas_sumo.io_utils import save_png
+from idas_sumo.io_utils import read_csv_columns, save_png
 from idas_sumo.training.metrics import METRICS_NAME
 from idas_sumo.training.validation import VALIDATION_COLUMNS
 
@@ -38,13 +38,7 @@ def is_training_run(directory: Path) -> bool:
 
 
 def _read(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
-    try:
-        frame = pd.read_csv(path)
-    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
-        raise InputError(f"{path}: cannot read CSV ({err})") from None
-    missing = [c for c in columns if c not in frame.columns]
-    if missing:
-        raise InputError(f"{path}: not written by `idas-sumo train` (missing columns: {', '.join(missing)})")
+    frame: pd.DataFrame = read_csv_columns(path, columns, "idas-sumo train")
     return frame
 
 

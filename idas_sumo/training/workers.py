@@ -204,11 +204,7 @@ class PoolWorkers(RolloutWorkers):
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        # After an error or an interruption the workers may be mid-round: stop them now, not after it.
-        if exc_type is None:
-            self.close()
-        else:
-            self._pool.kill()
+        self._pool.__exit__(exc_type, exc, tb)  # closes the pool, or kills it mid-round after an error
 
 
 def make_workers(
