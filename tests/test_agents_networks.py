@@ -114,6 +114,28 @@ def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
     assert enc(torch.zeros(0, OBS_DIM)).shape == (0, enc(edge).shape[1])  # no agents acting this step
 
 
+def test_fast_encoder_on_mostly_empty_road_matches_conv2d_gradients() -> None:
+    """Grids with empty windows (skipped by the GEMM) give conv2d's outputs and parameter gradients too."""
+    torch.manual_seed(1)
+    enc = GridEncoder()
+    with torch.no_grad():
+        for p in enc.parameters():
+            p.normal_(0.0, 0.3)
+    obs = torch.zeros(5, OBS_DIM)
+    obs[:, :N_SCALARS] = torch.randn(5, N_SCALARS)
+    obs[0, N_SCALARS + 10 : N_SCALARS + 21] = 1.0  # one car near the start of obs_cl
+    obs[1, N_SCALARS + 3 * GRID_CELLS + 300 : N_SCALARS + 3 * GRID_CELLS + 311] = -0.4  # a speed in obs_ol
+    obs[2, N_SCALARS:] = torch.randn(4 * GRID_CELLS)  # every window occupied
+    # rows 3 and 4: empty road
+    fast, ref = enc(obs), enc.reference_forward(obs)
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6 * float(ref.detach().abs().max()))
+    weights = torch.randn_like(ref)
+    grads = [torch.autograd.grad((out * weights).sum(), list(enc.parameters())) for out in (fast, ref)]
+    for name_param, g_fast, g_ref in zip(enc.named_parameters(), *grads, strict=True):
+        scale = float(g_ref.abs().max())
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-5, atol=1e-6 * scale, msg=name_param[0])
+
+
 def test_frozen_conv_operands_follow_every_weight_change() -> None:
     """With autograd off the encoder reuses its Toeplitz operands; an optimizer step or a
     load_state_dict (both change the weights in place) must be seen by the very next forward."""
