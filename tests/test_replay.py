@@ -27,10 +27,11 @@ from idas_sumo.evaluation.replay import (
     write_animation,
 )
 
-SEED = 7
+SEED = 6
 SCENARIOS = 8
-"""Seed 7's first 8 paper scenarios with IDM as the method and the shipped IDAS as the others hold
-both a collision and a perfect episode (the test below checks that they still do)."""
+"""Seed 6's first 8 paper scenarios with IDM as the method and the shipped IDAS as the others hold
+both a collision and a perfect episode (the test below checks that they still do; seed 7 did before the
+shipped IDAS was retrained)."""
 GIF_MAGIC = (b"GIF87a", b"GIF89a")
 
 
