@@ -267,3 +267,25 @@ def test_replay_data_is_byte_identical_for_the_same_seed(
     cases = load_replay_data(again).cases
     assert [c.scenario.name for c in cases] == [f"paper-{i:03d}" for i in range(SCENARIOS)]
     assert np.isfinite([v.start_pos_m for c in cases for v in c.scenario.vehicles]).all()
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize(("sample", "junction"), [("onramp", None), ("two_merges", "j2")])
+def test_replay_on_a_sample_net(tmp_path: Path, sample: str, junction: str | None) -> None:
+    """Replay runs on the merge the evaluation used: the on-ramp's lane drop, or the merge chosen with
+    --junction on a net with two (read_merge_net refused both)."""
+    from idas_sumo.sim.sample_nets import build_sample_net
+
+    net = build_sample_net(sample, tmp_path / f"{sample}.net.xml")
+    out = tmp_path / "out"
+    args = ["evaluate", "--net", str(net), "--out", str(out), "--no-progress", "--seed", str(SEED)]
+    args += ["--scenarios", "3", "--baseline", "idm", "--others", "idm"]
+    if junction is not None:
+        args += ["--junction", junction]
+    assert main(args) == 0
+    assert load_replay_data(out).junction == (junction or "drop")
+    replay = replay_episode(out, "paper-002")
+    assert replay.site.junction_id == (junction or "drop")
+    assert replay.original_row == 3 and replay.identical, (replay.original_line, replay.replayed_line)
+    gif = write_animation(replay, tmp_path / "ep.gif", frame_step_s=4.0, dpi=30)
+    assert gif.read_bytes()[:6] in GIF_MAGIC

@@ -54,7 +54,8 @@ from idas_sumo.evaluation.protocol import (
 from idas_sumo.io_utils import TEMP_SUFFIX, atomic_open, file_digest, write_csv_atomic
 from idas_sumo.resources import POLICY_DIR
 from idas_sumo.sim.backend import STEP_LENGTH_S, require_display
-from idas_sumo.sim.netgen import MergeNet, NetParams, read_merge_net
+from idas_sumo.sim.merge_detect import MergeSite, choose_merge
+from idas_sumo.sim.netgen import NetParams
 
 REPLAY_DIR = "replay"
 """The results directory's folder of replay data (written by ``evaluate``)."""
@@ -111,8 +112,11 @@ def write_replay_data(
     others: str,
     seed: int,
     eval_config: EvalConfig,
+    junction: str | None = None,
 ) -> str:
-    """Write ``out/replay/`` (each file atomically); returns the folder's name for the "wrote" line."""
+    """Write ``out/replay/`` (each file atomically); returns the folder's name for the "wrote" line.
+
+    ``junction``: the merge of the net the evaluation ran on (None: the net's only one)."""
     folder = out / REPLAY_DIR
     folder.mkdir(exist_ok=True)
     with atomic_open(folder / NET_NAME, "wb") as f, net_path.open("rb") as net:
@@ -123,6 +127,7 @@ def write_replay_data(
         "max_episode_s": eval_config.max_episode_s,
         "safety_mask": eval_config.safety_mask,
         "net_sha256": file_digest(folder / NET_NAME),
+        "junction": junction,
         "methods": {m: asdict(policy_record(m, policy)) for m in methods},
         "others": asdict(policy_record(others)),
     }
@@ -153,6 +158,9 @@ class ReplayData:
     seed: int
     eval_config: EvalConfig
     net_path: Path
+    junction: str | None
+    """The merge of the net evaluated (``--junction``); None: the net's only one (also in replay data
+    written before the junction was kept, all on single-merge nets)."""
     methods: dict[str, PolicyRecord]
     others: PolicyRecord
     cases: tuple[EvalCase, ...]
@@ -186,6 +194,7 @@ def load_replay_data(directory: Path) -> ReplayData:
             seed=int(run["seed"]),
             eval_config=EvalConfig(max_episode_s=float(run["max_episode_s"]), safety_mask=run["safety_mask"]),
             net_path=net_path,
+            junction=run.get("junction"),
             methods={m: PolicyRecord(**r) for m, r in run["methods"].items()},
             others=PolicyRecord(**run["others"]),
             cases=cases,
@@ -331,7 +340,8 @@ class Replay:
     job: EvalJob
     result: EpisodeResult
     marks: Marks
-    net: MergeNet
+    site: MergeSite
+    """The merge the episode ran on (the evaluation's: its kept net and junction)."""
     replayed_line: str
     """The replayed episode's episodes.csv line, written as evaluate writes it."""
     original_line: str | None
@@ -363,11 +373,15 @@ def replay_episode(
     require_display(gui)
     policies = {method: checked_policy(data.methods[method], data.seed, policy)}
     others = checked_policy(data.others, data.seed, flag="(others)")
-    net = read_merge_net(data.net_path)
-    config = EnvConfig(max_episode_s=data.eval_config.max_episode_s, safety_mask=data.eval_config.safety_mask)
+    site = choose_merge(data.net_path, data.junction)
+    config = EnvConfig(
+        max_episode_s=data.eval_config.max_episode_s,
+        safety_mask=data.eval_config.safety_mask,
+        junction=data.junction,
+    )
     job = eval_jobs([case], [method])[0]
     marks = Marks(colour_gui=gui)
-    engine = MergeEngine(net, copies=1, seed=data.seed, config=config, gui=gui)
+    engine = MergeEngine(site, copies=1, seed=data.seed, config=config, gui=gui)
     try:
         options = GUI_OPTIONS if gui else ()
         ((_, result),) = list(run_jobs(engine, [job], policies, others, observer=marks, sumo_options=options))
@@ -377,7 +391,7 @@ def replay_episode(
         engine.close()
     replayed = _csv_line(result.episode)
     original, row = _original_line(directory, case.scenario.name, method)
-    return Replay(job, result, marks, net, replayed, original, row)
+    return Replay(job, result, marks, site, replayed, original, row)
 
 
 def _csv_line(episode: dict[str, object]) -> str:
@@ -436,9 +450,9 @@ def episode_verdict(row: dict[str, object]) -> str:
     return "perfect" if bool(row["perfect"]) else "success"
 
 
-def _view_xy(net: MergeNet, road: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _view_xy(road: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Positions in the view from above: the main road and the outgoing road along x, the merge road
-    joining from below at the net's default angle (a sketch: the net's own shape is not read)."""
+    joining from below at the generated net's default angle (a sketch: the net's own shape is not read)."""
     angle = np.radians(NetParams().angle_deg)
     on_merge = road == "merge"
     x = np.where(on_merge, -dist * np.cos(angle), -dist)
@@ -461,7 +475,7 @@ def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP
     traj = replay.result.trajectory
     case = replay.job.case
     specs = {v.id: v for v in case.scenario.vehicles}
-    net = replay.net
+    site = replay.site
     vehicles = list(dict.fromkeys(traj["vehicle"]))
     colour = {
         v: _unit_rgb(vehicle_colour(specs[v].road, specs[v].b_type, specs[v].controlled)) for v in vehicles
@@ -486,7 +500,8 @@ def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP
 
     # The view from above: roads, the merging zone around the merge point, the cars.
     angle = np.radians(NetParams().angle_deg)
-    main_len, merge_len, out_len = net.main.length_m, net.merge.length_m, net.out.length_m
+    main_len, merge_len = site.main.length_m, site.merge.length_m
+    out_len = sum(lane.length_m for lane in site.out)
     road_style = {"color": "0.8", "lw": 6, "solid_capstyle": "butt", "zorder": 0}
     top.plot([-main_len, out_len], [0, 0], **road_style)
     top.plot([-merge_len * np.cos(angle), 0], [-merge_len * np.sin(angle), 0], **road_style)
@@ -549,7 +564,7 @@ def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP
         now = by_time[t]
         ids = now["vehicle"].tolist()
         road = np.array([origin[v] if r != "out" else "out" for v, r in zip(ids, now["road"], strict=True)])
-        x, y = _view_xy(net, road, now["dist_to_merge_m"].to_numpy())
+        x, y = _view_xy(road, now["dist_to_merge_m"].to_numpy())
         for v, xi, yi in zip(ids, x.tolist(), y.tolist(), strict=True):
             last_xy[v] = (xi, yi)
         xy = np.column_stack([x, y]) if len(ids) else np.empty((0, 2))

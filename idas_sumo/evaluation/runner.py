@@ -190,7 +190,15 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         # What `idas-sumo replay` needs to run any of these episodes again (evaluation/replay.py).
         written.append(
             write_replay_data(
-                out, req.net, cases, req.methods, req.policy, others_name, req.seed, eval_config
+                out,
+                req.net,
+                cases,
+                req.methods,
+                req.policy,
+                others_name,
+                req.seed,
+                eval_config,
+                site.junction_id,
             )
         )
     return EvalOutput(out, summary, tuple(verdicts), tuple(written))
