@@ -19,6 +19,7 @@ from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 from idas_sumo.sim.multinet import MAX_COPIES
+from idas_sumo.training.geometry import GeometryConfig
 
 __all__ = [
     "RESUME_FIELDS",
@@ -120,6 +121,9 @@ class TrainConfig:
     junction: str = ""
     """Which merge of a net with several to train on (its junction id, ``idas-sumo nets inspect``);
     "": the net's only merge (``EnvConfig.junction``)."""
+    geometry: GeometryConfig | None = None
+    """``[geometry]``: train each round on a generated merge drawn from these ranges (training/geometry.py);
+    None (no table): every round on the run's net. Validation always runs on the run's net."""
 
     def __post_init__(self) -> None:
         for name in (

@@ -3,7 +3,8 @@
 ``run_training`` is what ``idas-sumo train`` calls; it reads as the run goes, and each part it
 calls follows it in this file in that order. One round = ``episodes_per_update`` episodes collected
 with the current actor (by 1 in-process worker or W processes), then one learner update on all
-their agent-steps, then one metrics row per episode. Randomness: one numpy generator draws the
+their agent-steps, then one metrics row per episode. With ``[geometry]`` (training/geometry.py) a
+round first draws its generated net, and ``geometries.csv`` gets one row per round saying which. Randomness: one numpy generator draws the
 scenarios, one torch generator draws each episode's action-sampling seed; both are saved in every
 checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
 """
@@ -28,14 +29,18 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
 from idas_sumo.env.engine import EnvConfig
+from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
 from idas_sumo.env.scenario import Road, generate_scenario
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import ensure_writable_dir
 from idas_sumo.sim.backend import require_display
-from idas_sumo.sim.merge_detect import choose_merge
+from idas_sumo.sim.merge_detect import MergeSite, choose_merge
+from idas_sumo.sim.net_cache import cached_net
+from idas_sumo.sim.netgen import NetParams
 from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint, save_checkpoint
 from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig, ValidationCriterion
 from idas_sumo.training.curriculum import StagePlan, plan_stages
+from idas_sumo.training.geometry import GEOMETRY_COLUMNS, GeometryConfig, draw_geometry, geometry_corners
 from idas_sumo.training.metrics import METRICS_NAME, TENSORBOARD_DIR, MetricsSink
 from idas_sumo.training.validation import (
     VALIDATION_COLUMNS,
@@ -44,7 +49,7 @@ from idas_sumo.training.validation import (
     validation_key,
     validation_tasks,
 )
-from idas_sumo.training.workers import EpisodeTask, RolloutWorkers, make_workers
+from idas_sumo.training.workers import EpisodeTask, RolloutWorkers, RoundNet, make_workers
 
 __all__ = ["CHECKPOINT_NAME", "run_training", "stored_config"]
 
@@ -53,6 +58,10 @@ log = logging.getLogger(__name__)
 CHECKPOINT_NAME = "checkpoint.pt"
 """The latest checkpoint of a run directory (what ``--resume`` reads)."""
 VALIDATION_NAME = "validation.csv"
+GEOMETRIES_NAME = "geometries.csv"
+"""With ``[geometry]``: the net each round ran on (``GEOMETRY_COLUMNS``)."""
+GEOMETRY_SOURCE = "[geometry]"
+"""What the road checks name as the source of a drawn net's episode rules."""
 SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
 
 
@@ -89,6 +98,7 @@ def run_training(
 
     plans = plan_stages(config)
     site = choose_merge(net_path, config.junction or None)
+    geometry_needs = _check_geometry(config) if config.geometry is not None else None
     if resumed is not None:
         state = _RunState.resume(resumed, plans, out_dir / CHECKPOINT_NAME)
         _drop_best_after(out_dir, state.global_episode)
@@ -97,9 +107,7 @@ def run_training(
         if force:
             _remove_run_outputs(out_dir)
 
-    run = _Run(
-        config, out_dir, {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
-    )
+    run = _Run(config, out_dir, _site_limits(site))
     env_config = EnvConfig(
         max_episode_s=config.max_episode_s,
         reward=config.reward,
@@ -118,8 +126,15 @@ def run_training(
         (
             _validation_sink(out_dir, keep_below) if config.validate_every else contextlib.nullcontext()
         ) as validation_sink,
+        (
+            _geometry_sink(out_dir, keep_below) if config.geometry is not None else contextlib.nullcontext()
+        ) as geometry_sink,
         _make_progress(progress and sys.stderr.isatty()) as bar,
     ):
+        if config.geometry is not None and geometry_sink is not None and geometry_needs is not None:
+            run = dataclasses.replace(
+                run, geometry=_GeometryDraws(config.geometry, geometry_needs, geometry_sink)
+            )
         for stage_index in range(state.stage_index, len(plans)):
             plan = plans[stage_index]
             # The checkpoint's own stage continues from it; a later stage starts afresh.
@@ -167,6 +182,23 @@ def _check_request(
         raise InputError(f"--out {out_dir}: exists and is not a directory")
     if resume and force:
         raise InputError("--resume and --force exclude each other")
+
+
+def _check_geometry(config: TrainConfig) -> RoadNeeds:
+    """Refuse ``[geometry]`` ranges whose nets the run's scenarios cannot use (``env/net_needs.py``,
+    on the two hardest draws, built now through the net cache) before anything is written; returns
+    the bounds every drawn net is checked against."""
+    assert config.geometry is not None
+    start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
+    needs = road_needs(start_range, config.max_episode_s, GEOMETRY_SOURCE)
+    for params in geometry_corners(config.geometry):
+        try:
+            check_road_lengths(choose_merge(cached_net(params)), needs)
+        except InputError as err:
+            raise InputError(
+                f"{GEOMETRY_SOURCE}: ranges draw a net the scenarios cannot use: {err}"
+            ) from None
+    return needs
 
 
 def _read_resume_point(out_dir: Path) -> TrainingCheckpoint:
@@ -223,7 +255,7 @@ def _init_weights(config: TrainConfig) -> dict[str, Any] | None:
 def _run_outputs(out_dir: Path) -> list[Path]:
     """Every file or folder a training run writes into ``out_dir`` (what ``force`` replaces)."""
     stages = {plan.name for stage in get_args(Stage) for plan in plan_stages(TrainConfig(stage=stage))}
-    names = [CHECKPOINT_NAME, METRICS_NAME, VALIDATION_NAME, TENSORBOARD_DIR]
+    names = [CHECKPOINT_NAME, METRICS_NAME, VALIDATION_NAME, GEOMETRIES_NAME, TENSORBOARD_DIR]
     names += [f"{stage}{suffix}" for stage in sorted(stages) for suffix in (".pt", "_best.pt")]
     return [out_dir / name for name in names]
 
@@ -262,7 +294,37 @@ def _validation_sink(out_dir: Path, keep_below: int | None) -> MetricsSink:
     )
 
 
+def _geometry_sink(out_dir: Path, keep_below: int | None) -> MetricsSink:
+    """``geometries.csv``: a round's row carries its first episode, so on resume the rounds the
+    checkpoint counted stay."""
+    return MetricsSink(
+        out_dir, keep_below, name=GEOMETRIES_NAME, columns=GEOMETRY_COLUMNS, tensorboard_keys=()
+    )
+
+
 # --- the run's state --------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class _GeometryDraws:
+    """``[geometry]``: the ranges, the bounds each drawn net must meet, ``geometries.csv``, and the
+    merge site of every net drawn so far (read once per net)."""
+
+    ranges: GeometryConfig
+    needs: RoadNeeds
+    sink: MetricsSink
+    sites: dict[Path, MergeSite] = dataclasses.field(default_factory=dict)
+
+    def draw(self, rng: np.random.Generator) -> tuple[NetParams, MergeSite]:
+        """The round's geometry from the run's generator, and its net's merge site."""
+        params = draw_geometry(rng, self.ranges)
+        path = cached_net(params)
+        site = self.sites.get(path)
+        if site is None:
+            site = choose_merge(path)
+            check_road_lengths(site, self.needs)
+            self.sites[path] = site
+        return params, site
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,7 +334,10 @@ class _Run:
     config: TrainConfig
     out_dir: Path
     speed_limits: dict[Road, float]
+    """The run's net's (every round without ``[geometry]``, and validation)."""
     started: float = dataclasses.field(default_factory=time.perf_counter)
+    geometry: _GeometryDraws | None = None
+    """``[geometry]``: each round draws its own net."""
 
     @property
     def latest(self) -> Path:
@@ -510,8 +575,14 @@ def _round(
     then a checkpoint and a validation when the round passed a multiple of ``checkpoint_every`` /
     ``validate_every`` episodes."""
     config = run.config
-    tasks = _episode_tasks(run, plan, state)
-    episodes = workers.run(learner, tasks)
+    if run.geometry is None:
+        net, speed_limits, drawn = None, run.speed_limits, None
+    else:
+        # Drawn before the round's scenarios, from the same generator: a resumed run draws it again.
+        drawn, site = run.geometry.draw(state.np_rng)
+        net, speed_limits = RoundNet(str(site.path)), _site_limits(site)
+    tasks = _episode_tasks(run, plan, state, speed_limits)
+    episodes = workers.run(learner, tasks, net)
     losses = learner.update(batch_from_episodes(episodes, central=plan.central))
 
     wall_s = run.wall_s()
@@ -525,6 +596,10 @@ def _round(
             for i, e in enumerate(episodes)
         ]
     )
+    if run.geometry is not None and drawn is not None and net is not None:
+        row = {"stage": plan.name, "episode": state.episode, "global_episode": state.global_episode}
+        row |= {"episodes": len(tasks), **dataclasses.asdict(drawn), "net": Path(net.path).name}
+        run.geometry.sink.write([row])
     before = state.global_episode
     state.advance(len(tasks))
     stage_bar.episodes_done(state.episode, [e.stats.success for e in episodes])
@@ -543,14 +618,23 @@ def _round(
             stage_bar.validated(validation.best_return)
 
 
-def _episode_tasks(run: _Run, plan: StagePlan, state: _RunState) -> list[EpisodeTask]:
-    """The round's episodes (``episodes_per_update``, fewer at the stage's end): each a scenario, then
-    an action seed, drawn in that order from the run's generators."""
+def _site_limits(site: MergeSite) -> dict[Road, float]:
+    """Each approach's own road's limit: what scenarios scale their start speeds by."""
+    return {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
+
+
+def _episode_tasks(
+    run: _Run, plan: StagePlan, state: _RunState, speed_limits: dict[Road, float]
+) -> list[EpisodeTask]:
+    """The round's episodes (``episodes_per_update``, fewer at the stage's end): each a scenario on
+    a net of ``speed_limits`` (the start speeds; the starts count from each road's start, so a
+    road's length does not enter), then an action seed, drawn in that order from the run's
+    generators."""
     n = min(run.config.episodes_per_update, plan.episodes - state.episode)
     return [
         EpisodeTask(
             scenario=generate_scenario(
-                state.np_rng, plan.traffic, run.speed_limits, name=f"{plan.name}-{state.episode + i}"
+                state.np_rng, plan.traffic, speed_limits, name=f"{plan.name}-{state.episode + i}"
             ),
             action_seed=int(torch.randint(0, 2**62, (1,), generator=state.torch_rng).item()),
         )

@@ -9,6 +9,11 @@ in one SUMO run, one actor forward per step for all of them); every round they g
 weights and a share of the episodes.
 Each episode carries its own action-sampling seed, so the data do not depend on the worker count, on
 which worker ran which episode, or on the backend.
+
+A round may name its own net (``RoundNet``: a training run with ``[geometry]`` draws one per round,
+training/geometry.py); it goes with the tasks, and a worker builds a new engine only when the net
+differs from the one it runs. A round that names none runs on the workers' own net (the run's
+``--net``: validation).
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ __all__ = [
     "PoolWorkers",
     "RolloutServer",
     "RolloutWorkers",
+    "RoundNet",
     "make_workers",
 ]
 
@@ -47,6 +53,41 @@ ActorWeights = dict[str, np.ndarray]
 
 EpisodeTask = RolloutTask
 """One episode to collect: the scenario, the seed of its action sampling, greedy (validation) or not."""
+
+
+@dataclass(frozen=True)
+class RoundNet:
+    """The net a round's episodes run on: its file, and which merge of it (None: its only one)."""
+
+    path: str
+    junction: str | None = None
+
+
+class _NetEngine:
+    """A worker's engine, built again for another net (same copies, seed and episode rules)."""
+
+    def __init__(
+        self, net: RoundNet, env_config: EnvConfig, seed: int, copies: int, gui: bool = False
+    ) -> None:
+        self.home, self.env_config, self.seed, self.copies, self.gui = net, env_config, seed, copies, gui
+        self.net = net
+        self.engine = self._build(net)
+
+    def _build(self, net: RoundNet) -> MergeEngine:
+        config = dataclasses.replace(self.env_config, junction=net.junction)
+        return MergeEngine(Path(net.path), copies=self.copies, seed=self.seed, config=config, gui=self.gui)
+
+    def on(self, net: RoundNet | None) -> MergeEngine:
+        """The engine for ``net`` (None: the worker's own), rebuilt only when the net changes."""
+        net = net or self.home
+        if net != self.net:
+            self.engine.close()
+            self.net = net
+            self.engine = self._build(net)
+        return self.engine
+
+    def close(self) -> None:
+        self.engine.close()
 
 
 def actor_weights(learner: Learner) -> ActorWeights:
@@ -62,7 +103,10 @@ class RolloutWorkers(ABC):
     """Collects episodes with given actor weights; results come back in task order."""
 
     @abstractmethod
-    def run(self, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]: ...
+    def run(
+        self, learner: Learner, tasks: list[EpisodeTask], net: RoundNet | None = None
+    ) -> list[EpisodeData]:
+        """The episodes of ``tasks`` on ``net`` (None: the workers' own net)."""
 
     @abstractmethod
     def close(self) -> None: ...
@@ -83,20 +127,27 @@ class InProcessWorkers(RolloutWorkers):
         self, net_path: Path, env_config: EnvConfig, seed: int, copies: int, gui: bool = False
     ) -> None:
         copies = 1 if gui else copies
-        self.engine = MergeEngine(net_path, copies=copies, seed=seed, config=env_config, gui=gui)
+        self.engines = _NetEngine(RoundNet(str(net_path), env_config.junction), env_config, seed, copies, gui)
 
-    def run(self, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]:
+    @property
+    def engine(self) -> MergeEngine:
+        """The engine of the net the last round ran on."""
+        return self.engines.engine
+
+    def run(
+        self, learner: Learner, tasks: list[EpisodeTask], net: RoundNet | None = None
+    ) -> list[EpisodeData]:
         # Small-batch inference is ~4x slower with intra-op threads fighting SUMO (measured, 2 cores);
         # the learner update afterwards gets the threads back.
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
         try:
-            return _run_tasks(self.engine, learner, tasks)
+            return _run_tasks(self.engines.on(net), learner, tasks)
         finally:
             torch.set_num_threads(threads)
 
     def close(self) -> None:
-        self.engine.close()
+        self.engines.close()
 
 
 @dataclass
@@ -149,26 +200,35 @@ def _unpack(p: _PackedEpisode) -> EpisodeData:
 
 
 class RolloutServer:
-    """A rollout worker (``sim.processes.Server``): owns one SUMO; answers a share of a round's tasks,
-    with the round's actor weights, by its packed episodes."""
+    """A rollout worker (``sim.processes.Server``): owns one SUMO; answers a share of a round's tasks
+    (``(net, tasks)``: the round's net, None for the worker's own), with the round's actor weights,
+    by its packed episodes."""
 
     def __init__(self, init: tuple[str, EnvConfig, int, int]) -> None:
         net_path, env_config, seed, copies = init
         torch.set_num_threads(1)
-        self.engine = MergeEngine(Path(net_path), copies=copies, seed=seed, config=env_config)
+        self.engines = _NetEngine(RoundNet(str(net_path), env_config.junction), env_config, seed, copies)
         self.learner = Learner(LearnerConfig(), seed=0)
 
-    def handle(self, tasks: list[EpisodeTask], weights: ActorWeights) -> tuple[Any, ...]:
+    @property
+    def engine(self) -> MergeEngine:
+        """The engine of the net the last round ran on."""
+        return self.engines.engine
+
+    def handle(
+        self, request: tuple[RoundNet | None, list[EpisodeTask]], weights: ActorWeights
+    ) -> tuple[Any, ...]:
         try:
+            net, tasks = request
             self.learner.actor.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()})
-            return ("ok", [_pack(e) for e in _run_tasks(self.engine, self.learner, tasks)])
+            return ("ok", [_pack(e) for e in _run_tasks(self.engines.on(net), self.learner, tasks)])
         except IdasError as err:
             return ("error", type(err).__name__, str(err))
         except Exception:
             return ("error", "Exception", traceback.format_exc())
 
     def close(self) -> None:
-        self.engine.close()
+        self.engines.close()
 
 
 class PoolWorkers(RolloutWorkers):
@@ -178,9 +238,11 @@ class PoolWorkers(RolloutWorkers):
     def __init__(self, pool: WorkerPool) -> None:
         self._pool = pool
 
-    def run(self, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]:
+    def run(
+        self, learner: Learner, tasks: list[EpisodeTask], net: RoundNet | None = None
+    ) -> list[EpisodeData]:
         shares = [list(s) for s in np.array_split(np.arange(len(tasks)), self._pool.size)]
-        requests = {w: [tasks[i] for i in idx] for w, idx in enumerate(shares) if idx}
+        requests = {w: (net, [tasks[i] for i in idx]) for w, idx in enumerate(shares) if idx}
         self._pool.submit(requests, shared=actor_weights(learner))
         results: list[EpisodeData] = []
         errors: list[str] = []

@@ -1,0 +1,238 @@
+"""Training with ``[geometry]``: a generated merge drawn per round from the config's ranges (on a
+grid, from the run's seed), the rollout workers switching nets with the rounds, validation on the
+run's own net, ``geometries.csv``; bad ranges are one line, exit 2; the default ranges leave out the
+held-out geometries of ``evaluate --suite geometry``."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from idas_sumo.cli import main
+from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.errors import InputError
+from idas_sumo.evaluation.geometry import HELD_OUT_GEOMETRIES
+from idas_sumo.resources import DEFAULT_TRAIN_CONFIG, SCENARIO_DIR
+from idas_sumo.sim.netgen import NetParams
+from idas_sumo.training.config import TrainConfig, load_train_config
+from idas_sumo.training.geometry import GRID, GeometryConfig, draw_geometry
+
+RANGES = GeometryConfig(
+    main_length_m=(230.0, 260.0),
+    merge_length_m=(230.0, 260.0),
+    out_length_m=(140.0, 160.0),
+    angle_deg=(20.0, 40.0),
+    equal_priority_probability=0.5,
+)
+"""Short approaches, so that the tiny runs' short episodes fit every draw."""
+
+
+def tiny_config(**changes: Any) -> TrainConfig:
+    """Two rounds of two episodes, few cars, short episodes, a geometry per round."""
+    base = TrainConfig(
+        stage="direct",
+        direct_episodes=4,
+        episodes_per_update=2,
+        checkpoint_every=2,
+        intelligent_traffic=TrafficConfig(n_vehicles=0, min_vehicles_per_road=1, max_vehicles_per_road=2),
+        max_episode_s=15.0,
+        geometry=RANGES,
+    )
+    return dataclasses.replace(base, **changes)
+
+
+def rows(path: Path, drop: tuple[str, ...] = ("wall_time_s",)) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return [{k: v for k, v in r.items() if k not in drop} for r in csv.DictReader(f)]
+
+
+@pytest.fixture
+def net_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("IDAS_SUMO_CACHE", str(cache))
+    return cache
+
+
+# --- the ranges -------------------------------------------------------------------------------------
+
+
+def test_geometry_is_off_by_default_and_only_in_the_geometry_recipes() -> None:
+    assert TrainConfig().geometry is None
+    for recipe in sorted(SCENARIO_DIR.glob("train_*.toml")):
+        config = load_train_config(recipe)
+        assert (config.geometry is not None) == recipe.name.startswith("train_geometry"), recipe
+    assert load_train_config(DEFAULT_TRAIN_CONFIG).geometry is None
+
+
+def test_the_geometry_recipes_are_the_shipped_ones_with_the_default_ranges() -> None:
+    stage1 = load_train_config(SCENARIO_DIR / "train_geometry.toml")
+    stage2 = load_train_config(SCENARIO_DIR / "train_geometry_stage2.toml")
+    assert stage1.geometry == stage2.geometry == GeometryConfig()
+    assert dataclasses.replace(stage1, geometry=None) == load_train_config(
+        SCENARIO_DIR / "train_shipped.toml"
+    )
+    shipped2 = load_train_config(SCENARIO_DIR / "train_shipped_stage2_safety.toml")
+    assert dataclasses.replace(stage2, geometry=None, init_from=shipped2.init_from) == shipped2
+    assert stage2.init_from == "runs/idas_geometry/robot_best.pt"
+
+
+def test_default_ranges_cannot_draw_a_held_out_geometry() -> None:
+    defaults = GeometryConfig()
+    for name, params in HELD_OUT_GEOMETRIES:
+        assert not defaults.can_draw(params), name
+    assert defaults.can_draw(NetParams())  # the shipped T-junction is one of them
+    # A config may say otherwise: then it can.
+    wide = GeometryConfig(angle_deg=(10.0, 70.0))
+    assert wide.can_draw(dict(HELD_OUT_GEOMETRIES)["angle-15"])
+    zipper = dataclasses.replace(GeometryConfig(), equal_priority_probability=1.0)
+    assert not zipper.can_draw(NetParams())
+
+
+def test_draws_lie_on_the_grid_within_the_ranges_and_follow_the_seed() -> None:
+    ranges = GeometryConfig()
+    draws = [draw_geometry(np.random.default_rng(5), ranges) for _ in range(2)]
+    assert draws[0] == draws[1]
+    rng = np.random.default_rng(0)
+    many = [draw_geometry(rng, ranges) for _ in range(300)]
+    for name, step in GRID.items():
+        values = np.array([getattr(p, name) for p in many])
+        lo, hi = getattr(ranges, name)
+        assert values.min() >= lo and values.max() <= hi, name
+        assert np.allclose(values / step, np.round(values / step)), name
+        assert len(set(values.tolist())) > 3, name
+    assert {p.priority for p in many} == {"main"}
+    half = dataclasses.replace(ranges, equal_priority_probability=0.5)
+    assert {draw_geometry(rng, half).priority for _ in range(50)} == {"main", "equal"}
+
+
+@pytest.mark.parametrize(
+    ("table", "needle"),
+    [
+        ("angle_deg = [40, 30]", "angle_deg: low 40 is above high 30"),
+        ("angle_deg = [2, 30]", "outside [5, 90]"),
+        ("main_length_m = [230.5, 300]", "not on the 1 m grid"),
+        ("main_speed_mps = [18.2, 20]", "not on the 0.5 m/s grid"),
+        ("merge_length_m = [230, 260, 300]", "expected [low, high]"),
+        ("equal_priority_probability = 1.5", "must be in [0, 1]"),
+        ("out_speed_mps = 'fast'", "expected a list"),
+        ("angle = [20, 30]", "did you mean"),
+        ("main_length_m = [100, 300]", "[geometry]: ranges draw a net the scenarios cannot use"),
+    ],
+)
+def test_bad_ranges_are_one_line_exit_2(
+    tmp_path: Path,
+    net_path: Path,
+    net_cache: Path,
+    capsys: pytest.CaptureFixture[str],
+    table: str,
+    needle: str,
+) -> None:
+    config = tmp_path / "bad.toml"
+    config.write_text(f'stage = "direct"\ndirect_episodes = 2\n\n[geometry]\n{table}\n')
+    out = tmp_path / "run"
+    code = main(
+        ["train", "--net", str(net_path), "--config", str(config), "--out", str(out), "--no-progress"]
+    )
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err and needle in err, err
+    assert not (out / "metrics.csv").exists()
+
+
+# --- runs ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def engine_sites(monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, int]]:
+    """(net file name, tasks) of every batch an in-process worker runs, read from its engine's site."""
+    import idas_sumo.training.workers as workers
+
+    seen: list[tuple[str, int]] = []
+    original = workers._run_tasks
+
+    def spy(engine: Any, learner: Any, tasks: list[Any]) -> Any:
+        seen.append((engine.site.path.name, len(tasks)))
+        return original(engine, learner, tasks)
+
+    monkeypatch.setattr(workers, "_run_tasks", spy)
+    return seen
+
+
+@pytest.mark.sumo
+def test_each_round_runs_on_its_drawn_net_and_validation_on_the_runs_own(
+    net_path: Path, tmp_path: Path, net_cache: Path, engine_sites: list[tuple[str, int]]
+) -> None:
+    from idas_sumo.training.loop import run_training
+
+    run = tmp_path / "run"
+    config = tiny_config(validate_every=4, validation_scenarios=2)
+    run_training(net_path, config, run, progress=False)
+    geometries = rows(run / "geometries.csv")
+    assert [(g["stage"], g["episode"], g["global_episode"], g["episodes"]) for g in geometries] == [
+        ("direct", "0", "0", "2"),
+        ("direct", "2", "2", "2"),
+    ]
+    nets = [g["net"] for g in geometries]
+    assert nets[0] != nets[1] and all((net_cache / "gen" / n).is_file() for n in nets)
+    # The rounds ran on the drawn nets, the validation (2 scenarios) on the run's own.
+    assert engine_sites == [(nets[0], 2), (nets[1], 2), (net_path.name, 2)]
+    for g in geometries:
+        params = NetParams(**{k: float(g[k]) for k in GRID}, priority=g["priority"])
+        assert RANGES.can_draw(params)
+    metrics = rows(run / "metrics.csv")
+    assert len(metrics) == 4 and list(metrics[0]) == list(rows(run / "metrics.csv")[0])
+
+
+@pytest.mark.sumo
+def test_the_same_seed_gives_the_same_run_and_workers_change_nothing(
+    net_path: Path, tmp_path: Path, net_cache: Path
+) -> None:
+    from idas_sumo.training.loop import run_training
+
+    config = tiny_config()
+    run_training(net_path, config, tmp_path / "a", progress=False)
+    run_training(net_path, config, tmp_path / "b", progress=False)
+    run_training(net_path, config.with_overrides(workers=2), tmp_path / "w2", progress=False)
+    first = rows(tmp_path / "a" / "metrics.csv")
+    assert len(first) == 4 and len({r["return_mean"] for r in first}) > 1
+    for other in ("b", "w2"):
+        assert rows(tmp_path / other / "metrics.csv") == first, other
+        assert rows(tmp_path / other / "geometries.csv") == rows(tmp_path / "a" / "geometries.csv"), other
+    assert (
+        rows(tmp_path / "a" / "geometries.csv")[0]["net"] != rows(tmp_path / "a" / "geometries.csv")[1]["net"]
+    )
+    other_seed = tmp_path / "seed1"
+    run_training(net_path, config.with_overrides(seed=1), other_seed, progress=False)
+    assert rows(other_seed / "geometries.csv") != rows(tmp_path / "a" / "geometries.csv")
+
+
+@pytest.mark.sumo
+def test_a_run_extended_on_resume_draws_as_one_straight_run(
+    net_path: Path, tmp_path: Path, net_cache: Path
+) -> None:
+    from idas_sumo.training.loop import run_training
+
+    straight = tmp_path / "straight"
+    run_training(net_path, tiny_config(direct_episodes=6), straight, progress=False)
+    run = tmp_path / "run"
+    run_training(net_path, tiny_config(direct_episodes=2), run, progress=False)
+    run_training(net_path, tiny_config(direct_episodes=6), run, resume=True, progress=False)
+    assert rows(run / "geometries.csv") == rows(straight / "geometries.csv")
+    assert rows(run / "metrics.csv") == rows(straight / "metrics.csv")
+    assert len(rows(run / "geometries.csv")) == 3
+
+
+def test_a_drawn_net_is_checked_against_the_runs_roads(tmp_path: Path, net_cache: Path) -> None:
+    """Episodes too short for the longest draw: refused before the run starts."""
+    from idas_sumo.resources import DEFAULT_NET
+    from idas_sumo.training.loop import run_training
+
+    config = tiny_config(max_episode_s=6.0)
+    with pytest.raises(InputError, match=r"\[geometry\]"):
+        run_training(DEFAULT_NET, config, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "metrics.csv").exists()
