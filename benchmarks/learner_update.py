@@ -13,6 +13,9 @@ steps linked by ``next_row``, sparse occupancy grids), timed as the median of ``
 
 from __future__ import annotations
 
+import idas_sumo  # noqa: F401  (first: its OMP_WAIT_POLICY must be set before torch loads)
+
+# isort: split
 import argparse
 import dataclasses
 import statistics

@@ -12,6 +12,9 @@ shows each backend's best, and the ratio Ray / local.
 
 from __future__ import annotations
 
+import idas_sumo  # noqa: F401  (first: its OMP_WAIT_POLICY must be set before torch loads)
+
+# isort: split
 import argparse
 import os
 import time

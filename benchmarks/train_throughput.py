@@ -3,7 +3,7 @@ paper's budgets would take at that pace.
 
     python benchmarks/train_throughput.py [--episodes 16] [--workers 1 2] [--net sumo_nets/tjunction.net.xml]
 
-Each measurement is a real ``run_training`` (collection + learner updates + metrics + checkpoints)
+Each measurement is a real ``idas-sumo train`` process (collection + learner updates + metrics)
 with the default config, full 60 s episodes, and an untrained policy (which tends to dawdle until the
 timeout, so episodes are long: a pessimistic pace for later training).
 """
@@ -12,32 +12,51 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
+import subprocess
+import sys
 import tempfile
-import time
 from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
-from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
+from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG, resolve_user_path
 from idas_sumo.training.config import TrainConfig
-from idas_sumo.training.loop import run_training
 
 
 def measure(net: Path, stage: str, workers: int, episodes: int, init_from: str = "") -> tuple[float, float]:
-    """(episodes/s, agent-steps/s) of one short run, start-up of workers included; ``init_from``: the
-    checkpoint to start from (empty: random weights)."""
-    config = TrainConfig(stage=stage, checkpoint_every=10**9, init_from=init_from).with_overrides(
-        episodes=episodes, workers=workers
-    )  # type: ignore[arg-type]
+    """(episodes/s, agent-steps/s) of one ``idas-sumo train`` run with the default config, timed by the run's
+    own clock (``wall_time_s`` of its last metrics row: worker start-up included, interpreter start-up not).
+
+    The run is a real ``idas-sumo`` process, as a user starts it, not ``run_training`` in this one: this
+    script imports torch before idas_sumo, and torch's OpenMP threads then spin instead of sleeping
+    (``idas_sumo/__init__.py``), which made the learner up to 10x slower here beside any other job.
+    ``init_from``: the checkpoint to start from (empty: random weights).
+    """
+    default = DEFAULT_TRAIN_CONFIG.read_text(encoding="utf-8")
+    config = default.replace('init_from = ""', f"init_from = {json.dumps(init_from)}").replace(
+        "checkpoint_every = 1000", f"checkpoint_every = {10**9}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
-        run_training(net, config, Path(tmp) / "run", progress=False)
-        wall = time.perf_counter() - start
-        with (Path(tmp) / "run" / "metrics.csv").open(newline="") as f:
-            steps = sum(int(r["agent_steps"]) for r in csv.DictReader(f))
-    return episodes / wall, steps / wall
+        toml = Path(tmp) / "config.toml"
+        toml.write_text(config, encoding="utf-8")
+        run = Path(tmp) / "run"
+        subprocess.run(
+            [
+                *(sys.executable, "-m", "idas_sumo.cli", "train", "--net", str(net), "--config", str(toml)),
+                *("--stage", stage, "--episodes", str(episodes), "--workers", str(workers)),
+                *("--no-progress", "--out", str(run)),
+            ],
+            check=True,
+            capture_output=True,
+        )
+        with (run / "metrics.csv").open(newline="") as f:
+            rows = list(csv.DictReader(f))
+    wall = float(rows[-1]["wall_time_s"])
+    steps = sum(int(r["agent_steps"]) for r in rows)
+    return len(rows) / wall, steps / wall
 
 
 def main() -> None:

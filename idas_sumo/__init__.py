@@ -1,11 +1,22 @@
 """idas-sumo: interaction-aware merging policies (IDAS, IROS 2019) trained and evaluated in SUMO."""
 
 import os
+import sys
+import warnings
 
 # Before anything loads torch's OpenMP runtime: idle OpenMP threads sleep instead of spinning. With the
 # default (spin) policy, a 2-thread learner step on 2 cores that other processes also use (SUMO workers,
 # a test run, anything) took 1.0-1.7 s instead of 0.03 s (measured: 512 agent-steps, actor forward and
-# backward); with PASSIVE it took 0.03 s under the same load. A user's own setting wins.
+# backward); with PASSIVE it took 0.03 s under the same load. A user's own setting wins. The runtime reads
+# the policy once, when torch loads it: a script that imports torch first keeps spinning threads (measured:
+# `run_training` in such a script, 2.3 against 10.9 episodes/s for `idas-sumo train`), so say so.
+if "OMP_WAIT_POLICY" not in os.environ and "torch" in sys.modules:
+    warnings.warn(
+        "torch was imported before idas_sumo, so its idle OpenMP threads spin: beside other processes "
+        "training can run several times slower; import idas_sumo first or set OMP_WAIT_POLICY=PASSIVE",
+        RuntimeWarning,
+        stacklevel=2,
+    )
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from gymnasium.envs.registration import register, registry

@@ -9,6 +9,9 @@ generator. docs/results.md ("What we tried") says what stage 2 did with such a s
 
 from __future__ import annotations
 
+import idas_sumo  # noqa: F401  (first: its OMP_WAIT_POLICY must be set before torch loads)
+
+# isort: split
 import argparse
 import dataclasses
 import time
