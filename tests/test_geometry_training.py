@@ -236,3 +236,46 @@ def test_a_drawn_net_is_checked_against_the_runs_roads(tmp_path: Path, net_cache
     with pytest.raises(InputError, match=r"\[geometry\]"):
         run_training(DEFAULT_NET, config, tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "metrics.csv").exists()
+
+
+@pytest.mark.sumo
+def test_ray_actors_switch_nets_as_local_workers_do(
+    tmp_path: Path, net_path: Path, net_cache: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The round's net goes to Ray actors with the tasks: the same run as with local processes."""
+    config = tmp_path / "geometry.toml"
+    config.write_text(
+        'stage = "direct"\ndirect_episodes = 4\nepisodes_per_update = 2\ncheckpoint_every = 2\n'
+        "max_episode_s = 15.0\ncopies = 2\n\n[geometry]\nmain_length_m = [230, 260]\n"
+        "merge_length_m = [230, 260]\nangle_deg = [20, 40]\n"
+    )
+    common = ["train", "--net", str(net_path), "--config", str(config), "--workers", "2", "--no-progress"]
+    assert main([*common, "--out", str(tmp_path / "local")]) == 0
+    assert main([*common, "--out", str(tmp_path / "ray"), "--ray-address", "local"]) == 0, (
+        capsys.readouterr().err
+    )
+    for name in ("metrics.csv", "geometries.csv"):
+        assert rows(tmp_path / "ray" / name) == rows(tmp_path / "local" / name), name
+    nets = [g["net"] for g in rows(tmp_path / "local" / "geometries.csv")]
+    assert len(nets) == 2 and nets[0] != nets[1]
+
+
+def test_the_build_ahead_reads_the_next_draw_without_taking_it(tmp_path: Path, net_cache: Path) -> None:
+    """The next round's nets are built while a round runs: from a copy of the run's generator, which
+    itself does not move (the round then draws that very geometry)."""
+    from idas_sumo.env.net_needs import road_needs
+    from idas_sumo.sim.net_cache import cached_net
+    from idas_sumo.training.loop import _GeometryDraws
+    from idas_sumo.training.metrics import MetricsSink
+
+    with MetricsSink(tmp_path, name="g.csv", columns=("global_episode",), tensorboard_keys=()) as sink:
+        draws = _GeometryDraws(RANGES, road_needs(200.0, 40.0), sink, copies=1)
+        rng = np.random.default_rng(11)
+        before = rng.bit_generator.state
+        draws.prefetch(rng)
+        assert rng.bit_generator.state == before
+        draws.wait()
+        built = sorted((net_cache / "gen").glob("*.net.xml"))
+        params, site = draws.draw(rng)
+    assert params == draw_geometry(np.random.default_rng(11), RANGES)
+    assert built == [cached_net(params)] == [site.path]
