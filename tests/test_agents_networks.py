@@ -89,15 +89,8 @@ def test_encoder_sees_each_lane_and_the_scalars() -> None:
         assert not torch.allclose(enc(changed), out)
 
 
-def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
-    """The block-Toeplitz GEMM is the paper's conv: same outputs and same parameter gradients as the
-    plain conv2d → flatten → cat → Linear, for random weights, a non-zero bias and every cell."""
-    torch.manual_seed(0)
-    enc = GridEncoder()
-    with torch.no_grad():
-        for p in enc.parameters():
-            p.normal_(0.0, 0.3)
-    obs = torch.randn(7, OBS_DIM)
+def _assert_matches_conv2d(enc: GridEncoder, obs: torch.Tensor) -> None:
+    """``enc``'s fast path gives the plain conv2d path's outputs and parameter gradients on ``obs``."""
     fast, ref = enc(obs), enc.reference_forward(obs)
     # Float32 sums of ~1500 terms in another order: equal to a few ulps of the output's scale.
     torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6 * float(ref.detach().abs().max()))
@@ -106,6 +99,17 @@ def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
     for name_param, g_fast, g_ref in zip(enc.named_parameters(), *grads, strict=True):
         scale = float(g_ref.abs().max())
         torch.testing.assert_close(g_fast, g_ref, rtol=1e-5, atol=1e-6 * scale, msg=name_param[0])
+
+
+def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
+    """The block-Toeplitz GEMM is the paper's conv: same outputs and same parameter gradients as the
+    plain conv2d → flatten → cat → Linear, for random weights, a non-zero bias and every cell."""
+    torch.manual_seed(0)
+    enc = GridEncoder()
+    with torch.no_grad():
+        for p in enc.parameters():
+            p.normal_(0.0, 0.3)
+    _assert_matches_conv2d(enc, torch.randn(7, OBS_DIM))
     # A single occupied cell at the right edge reaches the output too (the blocks end at cell 400).
     edge = torch.zeros(1, OBS_DIM)
     edge[0, N_SCALARS + GRID_CELLS - 1] = 1.0
@@ -127,13 +131,7 @@ def test_fast_encoder_on_mostly_empty_road_matches_conv2d_gradients() -> None:
     obs[1, N_SCALARS + 3 * GRID_CELLS + 300 : N_SCALARS + 3 * GRID_CELLS + 311] = -0.4  # a speed in obs_ol
     obs[2, N_SCALARS:] = torch.randn(4 * GRID_CELLS)  # every window occupied
     # rows 3 and 4: empty road
-    fast, ref = enc(obs), enc.reference_forward(obs)
-    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6 * float(ref.detach().abs().max()))
-    weights = torch.randn_like(ref)
-    grads = [torch.autograd.grad((out * weights).sum(), list(enc.parameters())) for out in (fast, ref)]
-    for name_param, g_fast, g_ref in zip(enc.named_parameters(), *grads, strict=True):
-        scale = float(g_ref.abs().max())
-        torch.testing.assert_close(g_fast, g_ref, rtol=1e-5, atol=1e-6 * scale, msg=name_param[0])
+    _assert_matches_conv2d(enc, obs)
 
 
 def test_frozen_conv_operands_follow_every_weight_change() -> None:
