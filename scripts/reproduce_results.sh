@@ -15,6 +15,8 @@ for seed in 2020 2021; do
 done
 # Ablation: our merge-aware shield instead of the paper's mask.
 ev --baseline all --suite paper --scenarios 100 --seed 2019 --safety-mask merge_aware --out "$out/paper-merge-aware"
+# Geometries the policies never saw (issue #17): six generated merges and the on-ramp sample net.
+ev --baseline all --suite geometry --scenarios 100 --seed 2019 --workers 2 --out "$out/geometry"
 ev --baseline all --suite representative --seed 2019 --out "$out/representative" --trajectories --plots
 ev --baseline all --suite driver-types --seed 2019 --out "$out/driver-types" --trajectories --plots
 # Every car on one method: the method drives the ego and, as --others, every other car.
