@@ -46,6 +46,7 @@ from idas_sumo.training.geometry import GEOMETRY_COLUMNS, GeometryConfig, draw_g
 from idas_sumo.training.metrics import METRICS_NAME, TENSORBOARD_DIR, MetricsSink
 from idas_sumo.training.validation import (
     VALIDATION_COLUMNS,
+    VALIDATION_NAME,
     ValidationScore,
     score_episodes,
     validation_key,
@@ -59,7 +60,6 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.pt"
 """The latest checkpoint of a run directory (what ``--resume`` reads)."""
-VALIDATION_NAME = "validation.csv"
 GEOMETRIES_NAME = "geometries.csv"
 """With ``[geometry]``: the net each round ran on (``GEOMETRY_COLUMNS``)."""
 GEOMETRY_SOURCE = "[geometry]"

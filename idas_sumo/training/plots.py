@@ -11,9 +11,8 @@ from idas_sumo.env.rewards import FLOW_PENALTY_PER_HARD_BRAKE
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import read_csv_columns, save_png
 from idas_sumo.training.metrics import METRICS_NAME
-from idas_sumo.training.validation import VALIDATION_COLUMNS
+from idas_sumo.training.validation import VALIDATION_COLUMNS, VALIDATION_NAME
 
-VALIDATION_NAME = "validation.csv"
 LEARNING_CURVES_NAME = "learning_curves.png"
 METRICS_NEEDED: tuple[str, ...] = (
     "stage",

@@ -18,7 +18,17 @@ from idas_sumo.env.scenario import Road, TrafficConfig, generate_scenario
 from idas_sumo.training.config import ValidationCriterion
 from idas_sumo.training.workers import EpisodeTask
 
-__all__ = ["VALIDATION_COLUMNS", "ValidationScore", "score_episodes", "validation_key", "validation_tasks"]
+__all__ = [
+    "VALIDATION_COLUMNS",
+    "VALIDATION_NAME",
+    "ValidationScore",
+    "score_episodes",
+    "validation_key",
+    "validation_tasks",
+]
+
+VALIDATION_NAME = "validation.csv"
+"""A run directory's validation rows (one per validation, ``VALIDATION_COLUMNS``)."""
 
 VALIDATION_COLUMNS: tuple[str, ...] = (
     "stage",
