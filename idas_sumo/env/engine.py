@@ -647,13 +647,11 @@ class MergeEngine:
         egos = np.array([self._rows[k][a] for a in agent_ids], dtype=np.int64)
         if not len(egos):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
-        s = slot.scenario
-        table = np.array([s.main_prio, s.merge_prio, max(s.main_prio, s.merge_prio)], dtype=np.float64)
         return build_observations(
             self.snapshot,
             egos,
             np.array([slot.accel[a] for a in agent_ids]),
-            table[self.snapshot.road[egos]],
+            self._prio_by_road[k, self.snapshot.road[egos]],
             np.array([slot.spec[a].b_type for a in agent_ids]),
         )
 
@@ -721,8 +719,7 @@ class MergeEngine:
         slot = self.slots[k]
         state = np.zeros((STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
         snap = self.snapshot
-        s = slot.scenario
-        table = np.array([s.main_prio, s.merge_prio, max(s.main_prio, s.merge_prio)], dtype=np.float64)
+        table = self._prio_by_road[k]
         rows = self.rows_of(k)
         for i in range(rows.start, rows.stop):
             vid = snap.ids[i]
