@@ -261,6 +261,8 @@ class StepResult:
     """Per copy."""
     hard_brakes_merge_zone: IntArray
     """Per copy."""
+    hard_brake_ids: list[list[str]]
+    """Per copy: the vehicles counted in ``hard_brakes``, in the order counted (agents, then SUMO's cars)."""
 
 
 # -- SUMO side -------------------------------------------------------------------------------------
@@ -790,6 +792,9 @@ class MergeEngine:
         brake_copy = self._copy_of(before, brakes)
         in_zone = np.abs(before.dist_to_merge_m[brakes]) <= MERGE_ZONE_RADIUS_M
         hard_brakes = np.bincount(brake_copy, minlength=k_count)
+        hard_brake_ids: list[list[str]] = [[] for _ in range(k_count)]
+        for r, k in zip(brake_rows, brake_copy.tolist(), strict=True):
+            hard_brake_ids[k].append(before.ids[r])
         zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
         flow = FLOW_PENALTY_PER_HARD_BRAKE * zone_brakes  # per merge-zone brake, shared per copy
         impeded_by = _impeding_vehicles(before, brakes)
@@ -874,6 +879,7 @@ class MergeEngine:
             collisions=collisions,
             hard_brakes=hard_brakes,
             hard_brakes_merge_zone=zone_brakes,
+            hard_brake_ids=hard_brake_ids,
         )
 
     def _copy_of(self, snap: TrafficSnapshot, rows: npt.ArrayLike) -> IntArray:

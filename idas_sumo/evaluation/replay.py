@@ -27,9 +27,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from idas_sumo.env.actions import HARD_BRAKE
 from idas_sumo.env.engine import (
-    HARD_BRAKE_DETECT_MPS2,
     AgentBatch,
     EnvConfig,
     EpisodeOutcome,
@@ -319,15 +317,9 @@ class Marks:
         actions: np.ndarray,
         result: StepResult,
     ) -> None:
-        agents = set(batch.ids)
-        for vid, applied in zip(batch.ids, result.applied.tolist(), strict=True):
-            if applied == HARD_BRAKE:
-                self.brakes.append((self._time_before, vid, self._before[vid]))
-        snap = engine.snapshot
-        for i in np.flatnonzero(snap.accel_mps2 <= HARD_BRAKE_DETECT_MPS2).tolist():
-            vid = snap.ids[i]
-            if vid not in agents and vid in self._before:  # a SUMO-driven car braking on its own
-                self.brakes.append((self._time_before, vid, self._before[vid]))
+        # The engine's own count, placed where each car was when it decided (the step's start).
+        for vid in result.hard_brake_ids[0]:
+            self.brakes.append((self._time_before, vid, self._before[vid]))
         for a, b in result.collisions[0]:
             self.collisions.append((engine.time_s, a, b, self._before.get(a, float("nan"))))
 
