@@ -195,11 +195,10 @@ class GridEncoder(nn.Module):
         # the bias alone, exactly, so only the others go through the GEMM. Empty rows add nothing to the
         # weight gradient either; the bias still receives every row's gradient.
         occupied = torch.nonzero(windows.ne(0).any(dim=1)).squeeze(1)
-        bias_rows = operands.bias.expand(b * _BLOCKS, -1)
         if occupied.numel() == b * _BLOCKS:
             conv = torch.addmm(operands.bias, windows, operands.toeplitz)
         else:
-            conv = bias_rows.index_copy(
+            conv = operands.bias.expand(b * _BLOCKS, -1).index_copy(
                 0, occupied, torch.addmm(operands.bias, windows.index_select(0, occupied), operands.toeplitz)
             )
         return torch.relu(conv).reshape(b, CONV_FEATURES)
