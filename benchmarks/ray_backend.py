@@ -16,13 +16,12 @@ import idas_sumo  # noqa: F401  (first: its OMP_WAIT_POLICY must be set before t
 
 # isort: split
 import argparse
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from rich.console import Console
+from report import print_table
 from rich.table import Table
 
 from idas_sumo.agents.learner import Learner
@@ -99,11 +98,7 @@ def main() -> None:
     local = best["local processes"][1]
     for name, (startup, pace) in best.items():
         table.add_row(name, f"{startup:.1f}", f"{pace:.2f}", f"{pace / local:.1%}")
-    console = Console()
-    console.print(table)
-    console.print(
-        f"load average after (1 min): {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores (others' jobs skew it)"
-    )
+    print_table(table)
 
 
 if __name__ == "__main__":

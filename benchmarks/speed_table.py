@@ -28,7 +28,6 @@ import idas_sumo  # noqa: F401  (first: its OMP_WAIT_POLICY must be set before t
 
 # isort: split
 import argparse
-import os
 import subprocess
 import sys
 import tempfile
@@ -42,6 +41,7 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from env_throughput import make_scenario, run_env, run_raw
+from report import print_table
 from train_throughput import measure as train_pace
 
 from idas_sumo.env.engine import AgentBatch, MergeEngine
@@ -202,8 +202,7 @@ def main() -> None:
         "",
         "--workers 2",
     )
-    console.print(table)
-    console.print(f"load average (1 min) after: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    print_table(table, console)
 
 
 if __name__ == "__main__":

@@ -13,13 +13,12 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from rich.console import Console
+from report import print_table
 from rich.table import Table
 
 from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG, resolve_user_path
@@ -85,11 +84,7 @@ def main() -> None:
             paper.robot_episodes / pace[("robot", w)] + paper.intelligent_episodes / pace[("intelligent", w)]
         ) / 3600
         table.add_row("curriculum (70k)", str(w), "", "", "70000", f"{hours:.1f}")
-    console = Console()
-    console.print(table)
-    console.print(
-        f"load average after (1 min): {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores (others' jobs skew it)"
-    )
+    print_table(table)
 
 
 if __name__ == "__main__":
