@@ -77,8 +77,7 @@ def test_the_geometry_recipes_are_the_shipped_ones_with_the_default_ranges() -> 
         SCENARIO_DIR / "train_shipped.toml"
     )
     shipped2 = load_train_config(SCENARIO_DIR / "train_shipped_stage2_safety.toml")
-    assert dataclasses.replace(stage2, geometry=None, init_from=shipped2.init_from) == shipped2
-    assert stage2.init_from == "runs/idas_geometry/robot_best.pt"
+    assert dataclasses.replace(stage2, geometry=None) == shipped2  # from IDAS-V too
 
 
 def test_default_ranges_cannot_draw_a_held_out_geometry() -> None:
