@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -193,6 +194,49 @@ class UpdateRecord:
 
 
 @dataclass(frozen=True)
+class _CriticPass:
+    """A critic's forward pass of an update: what it regressed to (``record``), and the loss whose
+    backward pass and optimiser step (``step``) are still to come."""
+
+    record: CriticStep
+    loss: torch.Tensor
+    net: nn.Module
+    optimiser: torch.optim.Optimizer
+    max_grad_norm: float
+
+    def step(self) -> None:
+        self.optimiser.zero_grad(set_to_none=True)
+        self.loss.backward()
+        nn.utils.clip_grad_norm_(self.net.parameters(), self.max_grad_norm)
+        self.optimiser.step()
+
+
+class _Background:
+    """Work running in a thread of this process; ``join`` waits for it and returns what it raised.
+
+    A thread, not the main one, so Ctrl-C (delivered to the main thread) never stops the work halfway:
+    whoever catches the interrupt joins it and finds the networks whole.
+    """
+
+    def __init__(self, work: Callable[[], None]) -> None:
+        self._work = work
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="critic step", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._work()
+        except BaseException as err:  # handed to the thread that joins
+            self._error = err
+
+    def join(self) -> BaseException | None:
+        """Wait for the work; what it raised, if anything."""
+        self._thread.join()
+        return self._error
+
+
+@dataclass(frozen=True)
 class _Policy:
     """The masked policy on a batch, with gradients: log π(a|o) (B,), entropy (B,), π (B, A)."""
 
@@ -230,10 +274,21 @@ def _require(value: torch.Tensor | None, name: str) -> torch.Tensor:
 
 
 class Learner:
-    """Actor, V, Q, their targets and Adam optimisers; ``act`` for rollouts, ``update`` to learn."""
+    """Actor, V, Q, their targets and Adam optimisers; ``act`` for rollouts, ``update`` to learn.
 
-    def __init__(self, config: LearnerConfig, seed: int = 0) -> None:
+    ``critics_in_background``: ``update`` returns once the actor has stepped, and the critics' backward
+    passes, optimiser steps and target updates run in a thread meanwhile (the training loop collects the
+    next round with the new actor then). The arithmetic and its order per tensor are those of the serial
+    update, so the weights are bit for bit the same. The next ``update``, ``state_dict``,
+    ``load_state_dict`` and ``finish_critics`` wait for that step; nothing else may read the critics
+    before one of them.
+    """
+
+    def __init__(self, config: LearnerConfig, seed: int = 0, critics_in_background: bool = False) -> None:
         self.config = config
+        self.critics_in_background = critics_in_background
+        self._critic_step: _Background | None = None
+        """The critics' step of the last update, while it runs in the background."""
         self.device = torch.device(config.device)
         # Seed only the initialisation, without touching the caller's global RNG; sampling in `act`
         # uses the caller's generator.
@@ -301,25 +356,61 @@ class Learner:
 
         Losses are means over the batch (the paper writes sums; a mean keeps the step size
         independent of B). Critics step before the actor, but both advantages are computed from the
-        critics as they were before their step. What each part regressed to and handed on is kept in
+        critics as they were before their step (so, with ``critics_in_background``, the critics can step
+        after the actor, in a thread). What each part regressed to and handed on is kept in
         ``last_update``.
         """
+        self.finish_critics()
         if batch.action.numel() == 0:
             # A round in which no learning car acted (each entered too late, or the episodes were cut
             # short): nothing to learn from, so no step; the metrics row says so with zero losses.
             return dict.fromkeys(UPDATE_STAT_NAMES, 0.0)
         b = self._checked(batch)
-        value_step = self._update_value_critic(b)
+        serial = not self.critics_in_background
+        value_pass = self._value_critic_pass(b)
+        if serial:
+            value_pass.step()
         policy = self._policy(b)
-        central_step = (
-            self._update_central_critic(b, policy.probs.detach()) if self.config.use_central_critic else None
+        central_pass = (
+            self._central_critic_pass(b, policy.probs.detach()) if self.config.use_central_critic else None
         )
+        if serial and central_pass is not None:
+            central_pass.step()
         actor_step = self._update_actor(
-            policy, value_step.advantage, None if central_step is None else central_step.advantage
+            policy,
+            value_pass.record.advantage,
+            None if central_pass is None else central_pass.record.advantage,
         )
-        self._update_targets()
-        self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
+        if serial:
+            self._update_targets()
+        else:
+            # Nothing above read a critic after its forward pass: the actor's step needed only the
+            # advantages, so the critics can step now, while the caller goes on.
+            self._critic_step = _Background(lambda: self._step_critics(value_pass, central_pass))
+        self.last_update = UpdateRecord(
+            value=value_pass.record,
+            central=None if central_pass is None else central_pass.record,
+            actor=actor_step,
+        )
         return self.last_update.stats()
+
+    def finish_critics(self) -> None:
+        """Wait for the critics' step of the last ``update`` when it runs in the background (else a
+        no-op); re-raises what it raised."""
+        pending = self._critic_step
+        if pending is None:
+            return
+        error = pending.join()  # a Ctrl-C here leaves it pending: the next call waits for it again
+        self._critic_step = None
+        if error is not None:
+            raise error
+
+    def _step_critics(self, value_pass: _CriticPass, central_pass: _CriticPass | None) -> None:
+        """The critics' half of a background update, in the serial update's order."""
+        value_pass.step()
+        if central_pass is not None:
+            central_pass.step()
+        self._update_targets()
 
     def _checked(self, batch: Batch) -> Batch:
         """The batch on this learner's device, refused when an action breaks its own mask."""
@@ -328,7 +419,7 @@ class Learner:
             raise ValueError("batch holds an action its own mask forbids")
         return b
 
-    def _update_value_critic(self, b: Batch) -> CriticStep:
+    def _value_critic_pass(self, b: Batch) -> _CriticPass:
         """L(φ1): V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the λ-return.
 
         The advantage A1 handed to the actor uses the online V on both ends (paper eq. for ∇J1).
@@ -346,13 +437,10 @@ class Learner:
                 )
                 target = advantage + values.detach()  # the λ-return
         loss = 0.5 * (target - values).pow(2).mean()
-        self.opt_value.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(self.value.parameters(), cfg.max_grad_norm)
-        self.opt_value.step()
-        return CriticStep(
+        record = CriticStep(
             prediction=values.detach(), target=target, advantage=advantage, loss=float(loss.item())
         )
+        return _CriticPass(record, loss, self.value, self.opt_value, cfg.max_grad_norm)
 
     def _next_values(self, b: Batch, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """V(o') and V̂(o') (B,), no gradient.
@@ -382,7 +470,7 @@ class Learner:
             torch.where(ended, zero, target_bank[where]),
         )
 
-    def _update_central_critic(self, b: Batch, probs: torch.Tensor) -> CriticStep:
+    def _central_critic_pass(self, b: Batch, probs: torch.Tensor) -> _CriticPass:
         """L(φ2): Q(s, a) regressed to R + γ·Q̂(s', a')·(1 - done), a' the action taken at t+1 (SARSA),
         or to the λ-return along each agent's steps; the advantage A2 is COMA's
         Q(s, a) - Σ_a' π(a'|o) Q(s, a') from the Q before its step.
@@ -415,16 +503,13 @@ class Learner:
                     target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
                 )
         loss = 0.5 * (target - q_taken).pow(2).mean()
-        self.opt_central.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
-        self.opt_central.step()
-        return CriticStep(
+        record = CriticStep(
             prediction=q_taken.detach(),
             target=target,
             advantage=coma_advantage(q_all.detach(), probs, action),
             loss=float(loss.item()),
         )
+        return _CriticPass(record, loss, self.central, self.opt_central, cfg.max_grad_norm)
 
     def _policy(self, b: Batch) -> _Policy:
         """The masked policy before the actor's step, as both the COMA baseline and ∇J need it."""
@@ -470,7 +555,9 @@ class Learner:
         """Everything needed to resume: nets, targets, optimisers, config and layout ids.
 
         Plain tensors, numbers, strings and dicts only, so ``torch.load(weights_only=True)`` reads it.
+        Waits for a critics' step in the background: a checkpoint holds the critics after it.
         """
+        self.finish_critics()
         return {
             "format": CHECKPOINT_FORMAT,
             "obs_layout_id": OBS_LAYOUT_ID,
@@ -500,6 +587,7 @@ class Learner:
                 raise InputError(
                     f"checkpoint {key} {state.get(key)!r} does not match this build's {expected!r}"
                 )
+        self.finish_critics()  # its step must not land on the loaded weights
         self.actor.load_state_dict(state["actor"])
         self.value.load_state_dict(state["value"])
         self.central.load_state_dict(state["central"])

@@ -3,7 +3,10 @@
 ``run_training`` is what ``idas-sumo train`` calls; it reads as the run goes, and each part it
 calls follows it in this file in that order. One round = ``episodes_per_update`` episodes collected
 with the current actor (by 1 in-process worker or W processes), then one learner update on all
-their agent-steps, then one metrics row per episode. With ``[geometry]`` (training/geometry.py) a
+their agent-steps, then one metrics row per episode. The update returns once the actor has stepped;
+its critics step in a thread of this process while the workers collect the next round
+(``Learner(critics_in_background=True)``: the same weights, bit for bit, as the serial update, which
+``SERIAL_UPDATE_ENV`` selects for benchmarks). With ``[geometry]`` (training/geometry.py) a
 round first draws its generated net, and ``geometries.csv`` gets one row per round saying which. Randomness: one numpy generator draws the
 scenarios, one torch generator draws each episode's action-sampling seed; both are saved in every
 checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
@@ -15,6 +18,7 @@ import collections
 import contextlib
 import dataclasses
 import logging
+import os
 import shutil
 import sys
 import threading
@@ -65,6 +69,9 @@ GEOMETRIES_NAME = "geometries.csv"
 GEOMETRY_SOURCE = "[geometry]"
 """What the road checks name as the source of a drawn net's episode rules."""
 SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
+SERIAL_UPDATE_ENV = "IDAS_SUMO_SERIAL_UPDATE"
+"""Set to 1, the learner steps its critics before returning from the update (the reference path, slower):
+for ``benchmarks/train_throughput.py --compare-serial`` and the tests; the results are the same."""
 
 
 def run_training(
@@ -472,7 +479,8 @@ def _stage_learner(
 ) -> Learner:
     """The stage's learner: the checkpoint's when the run resumes in this stage, else the previous
     stage's networks (the curriculum's stage 2), else ``init_weights``, else fresh ones."""
-    learner = Learner(plan.learner, seed=seed)
+    serial = os.environ.get(SERIAL_UPDATE_ENV, "") == "1"
+    learner = Learner(plan.learner, seed=seed, critics_in_background=not serial)
     if resumed is not None:
         learner.load_state_dict(resumed.learner)
     elif plan.init_from_previous and previous is not None:
@@ -608,7 +616,8 @@ def _round(
 ) -> None:
     """One round: collect episodes with the current actor, one update on them, their metrics rows;
     then a checkpoint and a validation when the round passed a multiple of ``checkpoint_every`` /
-    ``validate_every`` episodes."""
+    ``validate_every`` episodes. The update's critic step runs on into the next round's collection;
+    a checkpoint (``Learner.state_dict``) waits for it."""
     config = run.config
     if run.geometry is None:
         net, speed_limits, drawn = None, run.speed_limits, None
@@ -620,6 +629,7 @@ def _round(
     if run.geometry is not None:
         run.geometry.prefetch(state.np_rng)
     episodes = workers.run(learner, tasks, net)
+    # Returns when the actor has stepped (the next round's collection needs only the actor).
     losses = learner.update(batch_from_episodes(episodes, central=plan.central))
 
     wall_s = run.wall_s()
