@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from idas_sumo.env.actions import HARD_BRAKE
+from idas_sumo.env.actions import HARD_BRAKE, N_DELTA_ACTIONS
 from idas_sumo.env.engine import EnvConfig, _impeding_vehicles
 from idas_sumo.env.rewards import (
     FLOW_PENALTY_PER_HARD_BRAKE,
@@ -186,3 +186,45 @@ def test_collision_sign_config_is_used(net_path) -> None:  # type: ignore[no-unt
             assert collided == {"fast": expected, "stopped": expected}
         finally:
             sim.close()
+
+
+@pytest.mark.sumo
+def test_impede_blame_braker_if_unforced_charges_a_chosen_brake_to_the_braker(net_path) -> None:  # type: ignore[no-untyped-def]
+    """The labelled variant (RewardConfig.impede_blame): a brake chosen while a Δa action was allowed is
+    paid by the braker (-5), with or without a car ahead; a brake the mask forced still goes to the car
+    ahead, as under the default."""
+    variant = EnvConfig(max_episode_s=10.0, reward=RewardConfig(impede_blame="braker_if_unforced"))
+    sim = SingleEpisode(net_path, config=variant)
+    try:
+        # Chosen: 20 m apart at the same speed, every Δa is allowed, and back brakes anyway.
+        sim.reset(_two_on_main(150.0))
+        _, masks = sim.observe(["back"])
+        assert masks[0, :N_DELTA_ACTIONS].any()
+        out = sim.step({"back": HARD_BRAKE, "front": 2})
+        assert out.rewards == {"back": -5.0, "front": 0.0}
+        assert out.hard_brakes == 1 and out.joint_reward == -5.0
+        # Alone on the road: under the default nobody pays, under the variant the braker does.
+        alone = Scenario("alone", (VehicleSpec("solo", "main", 100.0, 10.0, b_type=0.0),))
+        sim.reset(alone)
+        assert sim.step({"solo": HARD_BRAKE}).rewards == {"solo": -5.0}
+        # Forced: 6 m behind a car 8 m/s slower, only the hard brake is allowed; the car ahead pays.
+        forced = Scenario(
+            "forced",
+            (
+                VehicleSpec("back", "main", 150.0, 16.0, b_type=0.0),
+                VehicleSpec("front", "main", 161.0, 8.0, b_type=0.0),
+            ),
+        )
+        sim.reset(forced)
+        _, masks = sim.observe(["back"])
+        assert not masks[0, :N_DELTA_ACTIONS].any()
+        out = sim.step({"back": HARD_BRAKE, "front": 2})
+        assert out.rewards == {"back": 0.0, "front": -5.0}
+    finally:
+        sim.close()
+    default = SingleEpisode(net_path, config=EnvConfig(max_episode_s=10.0))
+    try:
+        default.reset(Scenario("alone", (VehicleSpec("solo", "main", 100.0, 10.0, b_type=0.0),)))
+        assert default.step({"solo": HARD_BRAKE}).rewards == {"solo": 0.0}
+    finally:
+        default.close()

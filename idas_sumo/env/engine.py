@@ -29,6 +29,7 @@ from idas_sumo.env.actions import (
     DEFAULT_SAFETY_MASK,
     HARD_BRAKE,
     N_ACTIONS,
+    N_DELTA_ACTIONS,
     SAFETY_MASKS,
     MaskInputs,
     SafetyMask,
@@ -86,6 +87,7 @@ from idas_sumo.sim.netgen import MergeNet
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
 HARD_BRAKE_DETECT_MPS2 = -3.0  # a SUMO-driven car decelerating harder than this counts as a hard brake
 DEFAULT_MAX_EPISODE_S = 60.0  # ours: timeout, not a success
 END_REASONS: tuple[str, ...] = ("finished", "collided", "removed", "timeout")
@@ -533,6 +535,18 @@ class MergeEngine:
         if added:
             slot.active.sort(key=slot.order.__getitem__)
 
+    def _impede_culprits(
+        self, before: TrafficSnapshot, brakes: IntArray, batch: AgentBatch, agent_brake: BoolArray
+    ) -> IntArray:
+        """The row in ``before`` of whoever pays r_impede, once per hard brake that has a payer
+        (``RewardConfig.impede_blame``). ``brakes`` lists the agents' brakes first, in batch order."""
+        if self.config.reward.impede_blame == "car_ahead" or not agent_brake.any():
+            return _impeding_vehicles(before, brakes)
+        chosen = batch.masks[agent_brake, :N_DELTA_ACTIONS].any(axis=1)
+        n_agent = int(agent_brake.sum())
+        forced = np.concatenate([brakes[:n_agent][~chosen], brakes[n_agent:]])
+        return np.concatenate([_impeding_vehicles(before, forced), brakes[:n_agent][chosen]]).astype(np.int64)
+
     def _cross_check(self, events: BatchStepEvents) -> None:
         """Add the collisions SUMO did not report: cars of one running episode whose bodies overlap on
         one road (``geometric_collisions``). Both count as collided, as in a SUMO-reported
@@ -781,7 +795,8 @@ class MergeEngine:
 
         # Hard brakes, placed where the braking car was when it decided (the step's start): agents that
         # chose the hard brake, then SUMO-driven cars of acting copies that braked hard on their own.
-        brake_rows = [int(r) for r in batch.egos[applied == HARD_BRAKE]]
+        agent_brake = applied == HARD_BRAKE
+        brake_rows = [int(r) for r in batch.egos[agent_brake]]
         for i in np.flatnonzero(after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2).tolist():
             k = int(self._copy_of(after, i))
             slot = self.slots[k]
@@ -797,7 +812,7 @@ class MergeEngine:
             hard_brake_ids[k].append(before.ids[r])
         zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
         flow = FLOW_PENALTY_PER_HARD_BRAKE * zone_brakes  # per merge-zone brake, shared per copy
-        impeded_by = _impeding_vehicles(before, brakes)
+        impeded_by = self._impede_culprits(before, brakes, batch, agent_brake)
 
         # End reasons: collided, removed, finished, else timeout (if time is up).
         copies = batch.copy.tolist()

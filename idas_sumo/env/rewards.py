@@ -15,6 +15,7 @@ FLOW_PENALTY_PER_HARD_BRAKE = -1.0
 MERGE_ZONE_RADIUS_M = 50.0  # the merging zone: within 50 m of the merge point
 FINISH_DISTANCE_PAST_MERGE_M = 50.0  # ours: a vehicle finishes at the merging zone's far edge
 CollisionSign = Literal["paper", "lower_priority_pays"]
+ImpedeBlame = Literal["car_ahead", "braker_if_unforced"]
 
 
 def finish_reward(b_type: npt.ArrayLike) -> FloatArray:
@@ -51,3 +52,11 @@ class RewardConfig:
 
     collision_sign: CollisionSign = "paper"
     """'paper' (-5·b_prio - 5, the default) or 'lower_priority_pays'."""
+    impede_blame: ImpedeBlame = "car_ahead"
+    """Who pays r_impede for a hard brake. 'car_ahead' (the default, our reading of "penalizes agents that
+    cause other agents to hard brake", L286): the nearest car ahead, on either road, within sight.
+    'braker_if_unforced' (ours, a labelled variant): an agent that hard-brakes while its mask still allowed
+    a Δa action chose the brake, so it pays for it itself, whether or not a car is in sight; a brake the
+    mask forced, and a SUMO-driven car's brake, are still charged to the car ahead. Under 'car_ahead' such
+    a chosen brake is free for the braker in J1 (only the joint reward sees it), and the car ahead, which
+    did nothing, is charged."""
