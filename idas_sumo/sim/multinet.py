@@ -9,9 +9,16 @@ How a copy is made, for any ``.net.xml``: netconvert reads the source with ``--p
 edge and junction id, hence every lane and junction-internal id, gets the prefix) and ``--offset.y``
 (copy k lies k spacings above the source, the spacing larger than the source's bounding box), then one
 more netconvert merges the K copies. Normalisation is off in both steps so copy 0 keeps the source's
-coordinates. The result is checked with sumolib against the source: every edge of every copy, the
-junction-internal ones included, has the source's lanes with the same lengths and speed limits, the
-same priority and function, and the same connections. Any difference is a ``SimulationError``.
+coordinates. Reading a net, netconvert recomputes junction shapes and junction-internal lanes; on a
+shifted copy the coordinates round differently in binary, and at one of netconvert's thresholds the
+result changes (a 45 degree merge gave some copies a 7.70 m internal lane for the source's 7.49 m). So
+the copies are built from the source with its internal lanes pinned (``pin_internal_lanes``). A
+junction's outline may still come out otherwise in a copy: SUMO only draws it (the cars drive on the
+lanes, and collisions on junctions are checked between the cars' shapes on the internal lanes).
+
+The result is checked with sumolib against the source: every edge of every copy, the junction-internal
+ones included, has the source's lanes with the same lengths and speed limits, the same priority and
+function, and the same connections. Any difference is a ``SimulationError``.
 
 Built nets are cached by (source file content, K, SUMO version) in ``IDAS_SUMO_CACHE`` (else
 ``$XDG_CACHE_HOME/idas_sumo/nets``, else ``~/.cache/idas_sumo/nets``); a net is checked before it
@@ -37,7 +44,7 @@ from idas_sumo.sim.merge_detect import MergeSite, as_site
 from idas_sumo.sim.netgen import MergeNet, sumo_binary
 
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2
 """Bump when the way copies are built changes: older cached nets are then not reused."""
 COPY_MARGIN_M = 100.0
 """Free space between two copies' bounding boxes (copies never touch, and sumo-gui shows them apart)."""
@@ -190,17 +197,69 @@ def _netconvert(args: list[str], refused_source: Path | None = None) -> None:
         raise SimulationError(f"netconvert failed: {reason}")
 
 
+def pin_internal_lanes(source: Path, out: Path) -> None:
+    """Write ``source`` to ``out`` with its junction-internal lanes pinned to the source's.
+
+    netconvert, reading a net, recomputes each junction-internal lane from the lanes it joins. A copy
+    is the source shifted by ``--offset.y``: its coordinates round differently in binary, and where a
+    computation sits at one of netconvert's thresholds it goes the other way. A 45 degree merge is one:
+    the merging lane meets the outgoing lane at the angle where netconvert switches how it curves the
+    internal lane, and some copies got 7.70 m (9.23 m/s) for the source's 7.49 m (9.11 m/s); a car's
+    distance to the merge point is measured along that lane. Here every connection between two
+    ordinary edges through one internal lane gets that lane's ``shape``, ``length`` and ``speed`` as
+    its own (values the source gives already are kept), which netconvert takes as given; the strings
+    are the source's, so nothing is rounded again.
+
+    Left as they were, because pinning them made faithful copies unfaithful: an internal lane that an
+    internal junction splits in two (netconvert puts the split elsewhere on a custom shape), and the
+    junctions' shapes (ordinary edges are cut where they meet the junction's shape, and at the
+    shape's rounded coordinates their lengths moved by 0.01 m). ``check_copies`` checks the result.
+    """
+    import xml.etree.ElementTree as ET
+
+    ET.register_namespace("xsi", "http://www.w3.org/2001/XMLSchema-instance")
+    try:
+        tree = ET.parse(source)
+    except ET.ParseError as err:
+        raise InputError(f"{source}: not valid XML ({err})") from None
+    root = tree.getroot()
+    lanes = {
+        lane.get("id", ""): lane
+        for edge in root.iter("edge")
+        if edge.get("function") == "internal"
+        for lane in edge.iter("lane")
+    }
+    split = {  # internal edges an internal junction splits: a connection leaves them through another
+        c.get("from", "")
+        for c in root.iter("connection")
+        if c.get("from", "").startswith(":") and c.get("via")
+    }
+    for connection in root.iter("connection"):
+        lane = lanes.get(connection.get("via", ""))
+        if lane is None or connection.get("from", "").startswith(":"):
+            continue
+        if connection.get("via", "").rpartition("_")[0] in split:
+            continue
+        for name in ("shape", "length", "speed"):
+            value = lane.get(name)
+            if value is not None and connection.get(name) is None:
+                connection.set(name, value)
+    tree.write(out, encoding="UTF-8", xml_declaration=True)
+
+
 def _build(source: Path, copies: int, out: Path, workdir: Path) -> None:
     xmin, ymin, xmax, ymax = _bounding_box(source)
     del xmin, xmax
     spacing = float(int((ymax - ymin + COPY_MARGIN_M) / 100.0) + 1) * 100.0  # whole hundreds of metres
+    pinned = workdir / "pinned.net.xml"
+    pin_internal_lanes(source, pinned)
     parts: list[str] = []
     for k in range(copies):
         part = workdir / f"copy{k}.net.xml"
         _netconvert(
             [
                 "--sumo-net-file",
-                str(source),
+                str(pinned),
                 "--prefix",
                 copy_prefix(k, copies),
                 "--offset.y",
@@ -333,4 +392,5 @@ __all__ = [
     "default_cache_dir",
     "global_edge_id",
     "multi_net",
+    "pin_internal_lanes",
 ]
