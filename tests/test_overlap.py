@@ -13,7 +13,6 @@ import pytest
 import torch
 from test_agents_networks import random_batch
 
-from idas_sumo.agents import learner as learner_module
 from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.training.checkpoint import load_checkpoint
@@ -50,20 +49,22 @@ def test_background_critics_give_the_serial_weights_bit_for_bit(central: bool) -
     assert_same_tensors(serial.state_dict(), background.state_dict())
 
 
-def test_update_returns_before_the_critics_step_and_state_dict_waits(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The actor has stepped when ``update`` returns; V and Q step later, and ``state_dict`` (what a
+def test_begin_update_returns_before_the_critics_step_and_state_dict_waits(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The actor has stepped when ``begin_update`` returns; V and Q step later, and ``state_dict`` (what a
     checkpoint holds) has them after their step."""
     release = threading.Event()
-    real_step = learner_module._CriticPass.step
+    real_step = Learner._step_value_critic
 
-    def gated_step(self: Any) -> None:
+    def gated_step(self: Learner, *args: Any) -> Any:
         assert release.wait(timeout=20), "the critic step was waited for before the update returned"
-        real_step(self)
+        return real_step(self, *args)
 
-    monkeypatch.setattr(learner_module._CriticPass, "step", gated_step)
+    monkeypatch.setattr(Learner, "_step_value_critic", gated_step)
     learner = Learner(LearnerConfig(use_central_critic=True), seed=0, critics_in_background=True)
     before = {net: {n: t.clone() for n, t in learner.state_dict()[net].items()} for net in NETS}
-    learner.update(random_batch(n=64))
+    pending = learner.begin_update(random_batch(n=64))
     # The critics have not moved (their step waits for `release`), the actor has.
     assert all(torch.equal(t, before["value"][n]) for n, t in learner.value.state_dict().items())
     assert all(torch.equal(t, before["central"][n]) for n, t in learner.central.state_dict().items())
@@ -72,18 +73,21 @@ def test_update_returns_before_the_critics_step_and_state_dict_waits(monkeypatch
     state = learner.state_dict()
     for net in ("value", "central"):
         assert not all(torch.equal(t, before[net][n]) for n, t in state[net].items()), net
+    assert pending.stats()["v_loss"] > 0.0
 
 
 def test_an_error_in_the_background_step_is_raised_by_the_next_call(monkeypatch: pytest.MonkeyPatch) -> None:
-    def failing_step(self: Any) -> None:
+    def failing_step(self: Learner, *args: Any) -> Any:
         raise RuntimeError("critic step failed")
 
-    monkeypatch.setattr(learner_module._CriticPass, "step", failing_step)
+    monkeypatch.setattr(Learner, "_step_value_critic", failing_step)
     learner = Learner(LearnerConfig(), seed=0, critics_in_background=True)
-    learner.update(random_batch())
+    pending = learner.begin_update(random_batch())
+    with pytest.raises(RuntimeError, match="critic step failed"):
+        pending.stats()
     with pytest.raises(RuntimeError, match="critic step failed"):
         learner.finish_critics()
-    learner.finish_critics()  # raised once; nothing is pending any more
+    learner.finish_critics()  # raised; nothing is pending any more
 
 
 def tiny_config(**changes: Any) -> TrainConfig:
@@ -130,3 +134,41 @@ def test_overlapped_training_equals_serial_training(
         assert overlapped == serial
     metrics = rows(tmp_path / "overlapped" / "metrics.csv")
     assert len(metrics) == 12 and float(metrics[-1]["q_loss"]) > 0.0
+
+
+@pytest.mark.sumo
+def test_ctrl_c_during_a_collection_writes_the_held_rows_then_resume_continues_exactly(
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C while round 3 collects: round 2's rows still wait for its critics' losses; the checkpoint
+    counts round 2, so its rows must be written before it is saved (a resumed run rewrites only the rows
+    after the checkpoint)."""
+    from idas_sumo.training.loop import run_training
+    from idas_sumo.training.workers import InProcessWorkers
+
+    config = tiny_config(stage="robot", robot_episodes=4, episodes_per_update=1, checkpoint_every=1000)
+    config = dataclasses.replace(config, validate_every=0)
+    straight = tmp_path / "straight"
+    run_training(net_path, config, straight, progress=False)
+
+    real_run = InProcessWorkers.run
+    calls = {"n": 0}
+
+    def run_then_interrupt(self: InProcessWorkers, *args: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real_run(self, *args)
+
+    monkeypatch.setattr(InProcessWorkers, "run", run_then_interrupt)
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_training(net_path, config, run, progress=False)
+    monkeypatch.undo()
+    assert load_checkpoint(run / "checkpoint.pt").episode == 2
+    assert len(rows(run / "metrics.csv")) == 2
+    run_training(net_path, config, run, resume=True, progress=False)
+    assert rows(run / "metrics.csv") == rows(straight / "metrics.csv")
+    assert_same_tensors(
+        load_checkpoint(run / "robot.pt").learner, load_checkpoint(straight / "robot.pt").learner
+    )

@@ -327,16 +327,16 @@ def test_interrupt_then_resume_continues_exactly(
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)
 
-    real_update = Learner.update
+    real_update = Learner.begin_update
     calls = {"n": 0}
 
-    def update_then_interrupt(self: Learner, batch: Any) -> dict[str, float]:
+    def update_then_interrupt(self: Learner, batch: Any) -> Any:
         calls["n"] += 1
         if calls["n"] == 2:
             raise KeyboardInterrupt
         return real_update(self, batch)
 
-    monkeypatch.setattr(Learner, "update", update_then_interrupt)
+    monkeypatch.setattr(Learner, "begin_update", update_then_interrupt)
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         run_training(net_path, config, run, progress=False)
@@ -466,16 +466,16 @@ def test_resume_after_a_kill_in_stage_two_writes_no_row_twice(
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)
 
-    real_update = Learner.update
+    real_update = Learner.begin_update
     calls = {"n": 0}
 
-    def update_then_die(self: Learner, batch: Any) -> dict[str, float]:
+    def update_then_die(self: Learner, batch: Any) -> Any:
         calls["n"] += 1
         if calls["n"] == 4:  # 2 robot rounds, then stage 2's second round
             raise RuntimeError("killed")
         return real_update(self, batch)
 
-    monkeypatch.setattr(Learner, "update", update_then_die)
+    monkeypatch.setattr(Learner, "begin_update", update_then_die)
     run = tmp_path / "run"
     with pytest.raises(RuntimeError, match="killed"):
         run_training(net_path, config, run, progress=False)

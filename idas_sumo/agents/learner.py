@@ -17,7 +17,7 @@ import dataclasses
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -33,7 +33,7 @@ from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
-__all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "UpdateRecord"]
+__all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "PendingUpdate", "UpdateRecord"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -194,46 +194,78 @@ class UpdateRecord:
 
 
 @dataclass(frozen=True)
-class _CriticPass:
-    """A critic's forward pass of an update: what it regressed to (``record``), and the loss whose
-    backward pass and optimiser step (``step``) are still to come."""
+class _ValueForward:
+    """V's forward pass on a batch: what the actor needs from it (A1) and what V's own step reuses."""
 
-    record: CriticStep
-    loss: torch.Tensor
-    net: nn.Module
-    optimiser: torch.optim.Optimizer
-    max_grad_norm: float
-
-    def step(self) -> None:
-        self.optimiser.zero_grad(set_to_none=True)
-        self.loss.backward()
-        nn.utils.clip_grad_norm_(self.net.parameters(), self.max_grad_norm)
-        self.optimiser.step()
+    values: torch.Tensor
+    """V(o) (B,), with gradient."""
+    advantage: torch.Tensor
+    """A1: the TD error (or GAE) with the online V on both ends."""
+    next_index: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
+    """With ``next_row``: where each row's o' sits in [V(o), V(o') of the cut-off rows] (``_next_index``)."""
 
 
-class _Background:
-    """Work running in a thread of this process; ``join`` waits for it and returns what it raised.
+@dataclass(frozen=True)
+class _CentralForward:
+    """Q's forward pass on a batch: A2 for the actor, Q(s, ·) for Q's own step."""
+
+    q_all: torch.Tensor
+    """Q(s, ·) (B, N_ACTIONS), with gradient."""
+    advantage: torch.Tensor
+    """A2 (COMA) from this Q and the policy before the actor's step."""
+
+
+_T = TypeVar("_T")
+
+
+class _Background(Generic[_T]):
+    """Work running in a thread of this process: ``wait`` for it, then take its ``result``.
 
     A thread, not the main one, so Ctrl-C (delivered to the main thread) never stops the work halfway:
-    whoever catches the interrupt joins it and finds the networks whole.
+    whoever catches the interrupt waits for it and finds the networks whole.
     """
 
-    def __init__(self, work: Callable[[], None]) -> None:
+    def __init__(self, work: Callable[[], _T]) -> None:
         self._work = work
+        self._result: _T | None = None
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="critic step", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         try:
-            self._work()
-        except BaseException as err:  # handed to the thread that joins
+            self._result = self._work()
+        except BaseException as err:  # handed to whoever takes the result
             self._error = err
 
-    def join(self) -> BaseException | None:
-        """Wait for the work; what it raised, if anything."""
+    def wait(self) -> None:
         self._thread.join()
-        return self._error
+
+    def result(self) -> _T:
+        """What the work returned (re-raises what it raised); call after ``wait``."""
+        assert not self._thread.is_alive(), "result() before wait()"
+        if self._error is not None:
+            raise self._error
+        assert self._result is not None
+        return self._result
+
+
+class PendingUpdate:
+    """An update of ``Learner.begin_update``: its actor has stepped; its critics may still be stepping in
+    the background. ``stats`` waits for them and returns the update's metrics."""
+
+    def __init__(
+        self, done: dict[str, float] | None = None, critics: _Background[UpdateRecord] | None = None
+    ):
+        self._done, self._critics = done, critics
+
+    def stats(self) -> dict[str, float]:
+        """The scalar metrics (one row of metrics.csv columns), once the critics have stepped."""
+        if self._done is None:
+            assert self._critics is not None
+            self._critics.wait()
+            self._done = self._critics.result().stats()
+        return self._done
 
 
 @dataclass(frozen=True)
@@ -273,21 +305,27 @@ def _require(value: torch.Tensor | None, name: str) -> torch.Tensor:
     return value
 
 
+def _gather_next(bank: torch.Tensor, where: torch.Tensor, ended: torch.Tensor) -> torch.Tensor:
+    """Each row's value of o' from ``bank`` (``Learner._next_index``), 0 where the episode ended."""
+    zero = torch.zeros((), dtype=bank.dtype, device=bank.device)
+    return torch.where(ended, zero, bank[where])
+
+
 class Learner:
     """Actor, V, Q, their targets and Adam optimisers; ``act`` for rollouts, ``update`` to learn.
 
-    ``critics_in_background``: ``update`` returns once the actor has stepped, and the critics' backward
-    passes, optimiser steps and target updates run in a thread meanwhile (the training loop collects the
-    next round with the new actor then). The arithmetic and its order per tensor are those of the serial
-    update, so the weights are bit for bit the same. The next ``update``, ``state_dict``,
-    ``load_state_dict`` and ``finish_critics`` wait for that step; nothing else may read the critics
-    before one of them.
+    ``critics_in_background``: ``begin_update`` returns once the actor has stepped, and the critics'
+    targets, backward passes, optimiser steps and target-network updates run in a thread meanwhile (the
+    training loop collects the next round with the new actor then). The arithmetic and its order per
+    tensor are those of the serial update, so the weights are bit for bit the same. The next update,
+    ``state_dict``, ``load_state_dict`` and ``finish_critics`` wait for that step; nothing else may read
+    the critics before one of them.
     """
 
     def __init__(self, config: LearnerConfig, seed: int = 0, critics_in_background: bool = False) -> None:
         self.config = config
         self.critics_in_background = critics_in_background
-        self._critic_step: _Background | None = None
+        self._critic_step: _Background[UpdateRecord] | None = None
         """The critics' step of the last update, while it runs in the background."""
         self.device = torch.device(config.device)
         # Seed only the initialisation, without touching the caller's global RNG; sampling in `act`
@@ -356,61 +394,72 @@ class Learner:
 
         Losses are means over the batch (the paper writes sums; a mean keeps the step size
         independent of B). Critics step before the actor, but both advantages are computed from the
-        critics as they were before their step (so, with ``critics_in_background``, the critics can step
-        after the actor, in a thread). What each part regressed to and handed on is kept in
-        ``last_update``.
+        critics as they were before their step. What each part regressed to and handed on is kept in
+        ``last_update``. With ``critics_in_background`` the same, waited for.
         """
+        return self.begin_update(batch).stats()
+
+    def begin_update(self, batch: Batch) -> PendingUpdate:
+        """``update``, returning once the actor has stepped; with ``critics_in_background`` the critics
+        step in a thread meanwhile (``PendingUpdate.stats`` waits for them), else they have stepped."""
         self.finish_critics()
         if batch.action.numel() == 0:
             # A round in which no learning car acted (each entered too late, or the episodes were cut
             # short): nothing to learn from, so no step; the metrics row says so with zero losses.
-            return dict.fromkeys(UPDATE_STAT_NAMES, 0.0)
+            return PendingUpdate(done=dict.fromkeys(UPDATE_STAT_NAMES, 0.0))
         b = self._checked(batch)
-        serial = not self.critics_in_background
-        value_pass = self._value_critic_pass(b)
-        if serial:
-            value_pass.step()
-        policy = self._policy(b)
-        central_pass = (
-            self._central_critic_pass(b, policy.probs.detach()) if self.config.use_central_critic else None
-        )
-        if serial and central_pass is not None:
-            central_pass.step()
-        actor_step = self._update_actor(
-            policy,
-            value_pass.record.advantage,
-            None if central_pass is None else central_pass.record.advantage,
-        )
-        if serial:
-            self._update_targets()
-        else:
-            # Nothing above read a critic after its forward pass: the actor's step needed only the
-            # advantages, so the critics can step now, while the caller goes on.
-            self._critic_step = _Background(lambda: self._step_critics(value_pass, central_pass))
-        self.last_update = UpdateRecord(
-            value=value_pass.record,
-            central=None if central_pass is None else central_pass.record,
-            actor=actor_step,
-        )
-        return self.last_update.stats()
+        if not self.critics_in_background:
+            return PendingUpdate(done=self._serial_update(b).stats())
+        self._critic_step = self._actor_first_update(b)
+        return PendingUpdate(critics=self._critic_step)
 
     def finish_critics(self) -> None:
-        """Wait for the critics' step of the last ``update`` when it runs in the background (else a
-        no-op); re-raises what it raised."""
+        """Wait for the critics' step of the last update when it runs in the background (else a no-op);
+        re-raises what it raised."""
         pending = self._critic_step
         if pending is None:
             return
-        error = pending.join()  # a Ctrl-C here leaves it pending: the next call waits for it again
+        pending.wait()  # a Ctrl-C here leaves it pending: the next call waits for it again
         self._critic_step = None
-        if error is not None:
-            raise error
+        pending.result()
 
-    def _step_critics(self, value_pass: _CriticPass, central_pass: _CriticPass | None) -> None:
-        """The critics' half of a background update, in the serial update's order."""
-        value_pass.step()
-        if central_pass is not None:
-            central_pass.step()
+    def _serial_update(self, b: Batch) -> UpdateRecord:
+        """V steps, then Q, then the actor, each on its forward pass of the batch."""
+        value_forward = self._value_forward(b)
+        value_step = self._step_value_critic(b, value_forward)
+        policy = self._policy(b)
+        central_forward, central_step = None, None
+        if self.config.use_central_critic:
+            central_forward = self._central_forward(b, policy.probs.detach())
+            central_step = self._step_central_critic(b, central_forward)
+        actor_step = self._update_actor(
+            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+        )
         self._update_targets()
+        self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
+        return self.last_update
+
+    def _actor_first_update(self, b: Batch) -> _Background[UpdateRecord]:
+        """``_serial_update`` with the critics' half moved after the actor's step, into a thread: the actor
+        needs only the critics' forward passes (the advantages), and nothing the actor does reads a
+        critic. The same operations on the same tensors, so the same bits, in another order."""
+        value_forward = self._value_forward(b)
+        policy = self._policy(b)
+        central_forward = (
+            self._central_forward(b, policy.probs.detach()) if self.config.use_central_critic else None
+        )
+        actor_step = self._update_actor(
+            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+        )
+
+        def critics() -> UpdateRecord:
+            value_step = self._step_value_critic(b, value_forward)
+            central_step = None if central_forward is None else self._step_central_critic(b, central_forward)
+            self._update_targets()
+            self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
+            return self.last_update
+
+        return _Background(critics)
 
     def _checked(self, batch: Batch) -> Batch:
         """The batch on this learner's device, refused when an action breaks its own mask."""
@@ -419,62 +468,76 @@ class Learner:
             raise ValueError("batch holds an action its own mask forbids")
         return b
 
-    def _value_critic_pass(self, b: Batch) -> _CriticPass:
-        """L(φ1): V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the λ-return.
-
-        The advantage A1 handed to the actor uses the online V on both ends (paper eq. for ∇J1).
-        """
+    def _value_forward(self, b: Batch) -> _ValueForward:
+        """V(o) and the advantage A1 handed to the actor, with the online V on both ends (paper eq. for
+        ∇J1): the TD error, or GAE over it."""
         cfg = self.config
         reward, done = b.reward.float(), b.done.float()
         values = self.value(b.obs)
+        next_index = None if b.next_row is None else self._next_index(b)
         with torch.no_grad():
-            next_values, next_target_values = self._next_values(b, values.detach())
-            target = td_targets(reward, next_target_values, done, cfg.gamma)
+            if next_index is None:
+                next_values = self.value(b.next_obs)
+            else:
+                # V(o') of most rows is another row's V(o), already computed: V runs again only on the
+                # rows cut off by a timeout.
+                where, ended, cut_off = next_index
+                bank = torch.cat([values.detach(), self.value(b.next_obs[cut_off])])
+                next_values = _gather_next(bank, where, ended)
             advantage = td_advantages(reward, values.detach(), next_values, done, cfg.gamma)
             if cfg.gae_lambda > 0.0:
                 advantage = gae_advantages(
                     advantage, _require(b.next_row, "next_row"), cfg.gamma, cfg.gae_lambda
                 )
-                target = advantage + values.detach()  # the λ-return
+        return _ValueForward(values=values, advantage=advantage, next_index=next_index)
+
+    def _step_value_critic(self, b: Batch, forward: _ValueForward) -> CriticStep:
+        """L(φ1): V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the λ-return."""
+        cfg = self.config
+        reward, done = b.reward.float(), b.done.float()
+        values = forward.values
+        with torch.no_grad():
+            if forward.next_index is None:
+                next_target_values = self.value_target(b.next_obs)
+            else:
+                where, ended, cut_off = forward.next_index
+                target_bank = torch.cat([self.value_target(b.obs), self.value_target(b.next_obs[cut_off])])
+                next_target_values = _gather_next(target_bank, where, ended)
+            target = td_targets(reward, next_target_values, done, cfg.gamma)
+            if cfg.gae_lambda > 0.0:
+                target = forward.advantage + values.detach()  # the λ-return
         loss = 0.5 * (target - values).pow(2).mean()
-        record = CriticStep(
-            prediction=values.detach(), target=target, advantage=advantage, loss=float(loss.item())
+        self.opt_value.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.value.parameters(), cfg.max_grad_norm)
+        self.opt_value.step()
+        return CriticStep(
+            prediction=values.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
         )
-        return _CriticPass(record, loss, self.value, self.opt_value, cfg.max_grad_norm)
 
-    def _next_values(self, b: Batch, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """V(o') and V̂(o') (B,), no gradient.
-
-        With ``next_row`` the next observation of most rows is another row's observation, so V(o') is
-        read from ``values`` (V on the batch, already computed) and only the rows cut off by a timeout,
-        whose o' is in no row, go through V again: one forward pass of V fewer per update. Rows that
-        ended (``done``) get 0, which the TD target multiplies by 1 - done = 0 anyway.
-        """
-        if b.next_row is None:
-            return self.value(b.next_obs), self.value_target(b.next_obs)
-        next_row = b.next_row.long()
+    def _next_index(self, b: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Where each row's o' is, given ``next_row``: row i's o' is row next_row[i]'s o, or row n + j for
+        the j-th row cut off by a timeout (o' in no row: ``cut_off``); ``ended`` rows (done) have none,
+        their V(o') is 0, which the TD target multiplies by 1 - done = 0 anyway."""
+        next_row = _require(b.next_row, "next_row").long()
         has_next = next_row >= 0
         cut_off = torch.nonzero(~has_next & (b.done == 0)).squeeze(1)
-        n = values.shape[0]
-        # Row i's o' is row next_row[i]'s o, or row n + j for the j-th cut-off row.
         where = next_row.clone()
-        where[cut_off] = n + torch.arange(cut_off.numel(), device=next_row.device)
-        extra_obs = b.next_obs[cut_off]
-        bank = torch.cat([values, self.value(extra_obs)])
-        target_bank = torch.cat([self.value_target(b.obs), self.value_target(extra_obs)])
+        where[cut_off] = b.obs.shape[0] + torch.arange(cut_off.numel(), device=next_row.device)
         ended = where < 0
-        where = where.clamp(min=0)
-        zero = torch.zeros((), dtype=values.dtype, device=values.device)
-        return (
-            torch.where(ended, zero, bank[where]),
-            torch.where(ended, zero, target_bank[where]),
-        )
+        return where.clamp(min=0), ended, cut_off
 
-    def _central_critic_pass(self, b: Batch, probs: torch.Tensor) -> _CriticPass:
+    def _central_forward(self, b: Batch, probs: torch.Tensor) -> _CentralForward:
+        """Q(s, ·) and COMA's advantage A2 = Q(s, a) - Σ_a' π(a'|o) Q(s, a'), from the Q before its step."""
+        state = _require(b.state, "state")
+        others = _require(b.others_actions, "others_actions")
+        slot = _require(b.slot, "slot").long()
+        q_all = self.central(state, others, slot)
+        return _CentralForward(q_all=q_all, advantage=coma_advantage(q_all.detach(), probs, b.action.long()))
+
+    def _step_central_critic(self, b: Batch, forward: _CentralForward) -> CriticStep:
         """L(φ2): Q(s, a) regressed to R + γ·Q̂(s', a')·(1 - done), a' the action taken at t+1 (SARSA),
-        or to the λ-return along each agent's steps; the advantage A2 is COMA's
-        Q(s, a) - Σ_a' π(a'|o) Q(s, a') from the Q before its step.
-        """
+        or to the λ-return along each agent's steps."""
         cfg = self.config
         action = b.action.long()
         done = b.done.float()
@@ -494,8 +557,7 @@ class Learner:
             next_a = _require(b.next_action, "next_action").long().clamp(0, N_ACTIONS - 1)
             next_q_taken = next_q.gather(1, next_a.unsqueeze(1)).squeeze(1)
             target = joint_reward + cfg.gamma * next_valid * (1.0 - done) * next_q_taken
-        q_all = self.central(state, others, slot)
-        q_taken = q_all.gather(1, action.unsqueeze(1)).squeeze(1)
+        q_taken = forward.q_all.gather(1, action.unsqueeze(1)).squeeze(1)
         if cfg.q_lambda > 0.0:
             with torch.no_grad():
                 q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
@@ -503,13 +565,13 @@ class Learner:
                     target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
                 )
         loss = 0.5 * (target - q_taken).pow(2).mean()
-        record = CriticStep(
-            prediction=q_taken.detach(),
-            target=target,
-            advantage=coma_advantage(q_all.detach(), probs, action),
-            loss=float(loss.item()),
+        self.opt_central.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
+        self.opt_central.step()
+        return CriticStep(
+            prediction=q_taken.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
         )
-        return _CriticPass(record, loss, self.central, self.opt_central, cfg.max_grad_norm)
 
     def _policy(self, b: Batch) -> _Policy:
         """The masked policy before the actor's step, as both the COMA baseline and ∇J need it."""

@@ -6,7 +6,8 @@ with the current actor (by 1 in-process worker or W processes), then one learner
 their agent-steps, then one metrics row per episode. The update returns once the actor has stepped;
 its critics step in a thread of this process while the workers collect the next round
 (``Learner(critics_in_background=True)``: the same weights, bit for bit, as the serial update, which
-``SERIAL_UPDATE_ENV`` selects for benchmarks). With ``[geometry]`` (training/geometry.py) a
+``SERIAL_UPDATE_ENV`` selects for benchmarks), so a round's metrics rows, which carry the critics'
+losses, are written after the next round's collection (``_HeldRows``), and before any checkpoint. With ``[geometry]`` (training/geometry.py) a
 round first draws its generated net, and ``geometries.csv`` gets one row per round saying which. Randomness: one numpy generator draws the
 scenarios, one torch generator draws each episode's action-sampling seed; both are saved in every
 checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
@@ -31,7 +32,7 @@ import numpy as np
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from idas_sumo.agents.learner import Learner
+from idas_sumo.agents.learner import Learner, PendingUpdate
 from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
 from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
@@ -131,7 +132,7 @@ def run_training(
         make_workers(
             net_path, env_config, config.seed, config.workers, config.copies, gui=gui, ray_address=ray_address
         ) as workers,
-        MetricsSink(out_dir, keep_below) as sink,
+        MetricsSink(out_dir, keep_below) as metrics_sink,
         (
             _validation_sink(out_dir, keep_below) if config.validate_every else contextlib.nullcontext()
         ) as validation_sink,
@@ -147,6 +148,7 @@ def run_training(
                     config.geometry, geometry_needs, geometry_sink, 1 if gui else config.copies
                 ),
             )
+        metrics = _HeldRows(metrics_sink)
         for stage_index in range(state.stage_index, len(plans)):
             plan = plans[stage_index]
             # The checkpoint's own stage continues from it; a later stage starts afresh.
@@ -164,7 +166,7 @@ def run_training(
                 if validation_sink is None
                 else _StageValidation.start(run, plan, workers, validation_sink, resumed_here)
             )
-            _train_stage(run, plan, learner, state, workers, sink, validation, bar)
+            _train_stage(run, plan, learner, state, workers, metrics, validation, bar)
             final = _finish_stage(run, plan, learner, state, validation)
         if run.geometry is not None:
             run.geometry.wait()
@@ -314,6 +316,28 @@ def _geometry_sink(out_dir: Path, keep_below: int | None) -> MetricsSink:
     return MetricsSink(
         out_dir, keep_below, name=GEOMETRIES_NAME, columns=GEOMETRY_COLUMNS, tensorboard_keys=()
     )
+
+
+class _HeldRows:
+    """``metrics.csv``: a round's rows are held until its update's losses are known (its critics step
+    while the next round collects); ``flush`` waits for them and writes the rows."""
+
+    def __init__(self, sink: MetricsSink) -> None:
+        self.sink = sink
+        self._held: tuple[list[dict[str, Any]], PendingUpdate, float] | None = None
+
+    def hold(self, rows: list[dict[str, Any]], update: PendingUpdate, wall_s: float) -> None:
+        """``rows`` get ``update``'s losses and the round's end ``wall_s``."""
+        self.flush()
+        self._held = (rows, update, wall_s)
+
+    def flush(self) -> None:
+        if self._held is None:
+            return
+        rows, update, wall_s = self._held
+        losses = update.stats()  # a Ctrl-C while it waits leaves the rows held: the handler flushes them
+        self._held = None
+        self.sink.write([{**row, **losses, "wall_time_s": wall_s} for row in rows])
 
 
 # --- the run's state --------------------------------------------------------------------------------
@@ -581,12 +605,12 @@ def _train_stage(
     learner: Learner,
     state: _RunState,
     workers: RolloutWorkers,
-    sink: MetricsSink,
+    metrics: _HeldRows,
     validation: _StageValidation | None,
     bar: Progress,
 ) -> None:
-    """Rounds until the stage's budget is spent. Ctrl-C saves a checkpoint of the completed rounds,
-    then re-raises KeyboardInterrupt."""
+    """Rounds until the stage's budget is spent, their rows written. Ctrl-C saves a checkpoint of the
+    completed rounds, then re-raises KeyboardInterrupt."""
     stage_bar = _StageBar(bar, plan, state.episode)
     try:
         if state.global_episode == 0 and not run.latest.exists():
@@ -597,10 +621,16 @@ def _train_stage(
             validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
             stage_bar.validated(validation.best_return)
         while state.episode < plan.episodes:
-            _round(run, plan, learner, state, workers, sink, validation, stage_bar)
+            _round(run, plan, learner, state, workers, metrics, validation, stage_bar)
+        metrics.flush()
     except KeyboardInterrupt:
+        metrics.flush()
         save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
         log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
+        raise
+    except Exception:
+        with contextlib.suppress(Exception):  # the rows of the rounds done, as far as they can be
+            metrics.flush()
         raise
 
 
@@ -610,14 +640,14 @@ def _round(
     learner: Learner,
     state: _RunState,
     workers: RolloutWorkers,
-    sink: MetricsSink,
+    metrics: _HeldRows,
     validation: _StageValidation | None,
     stage_bar: _StageBar,
 ) -> None:
     """One round: collect episodes with the current actor, one update on them, their metrics rows;
     then a checkpoint and a validation when the round passed a multiple of ``checkpoint_every`` /
-    ``validate_every`` episodes. The update's critic step runs on into the next round's collection;
-    a checkpoint (``Learner.state_dict``) waits for it."""
+    ``validate_every`` episodes. The update's critic step runs on into the next round's collection,
+    and the round's rows wait for its losses; a checkpoint waits for both."""
     config = run.config
     if run.geometry is None:
         net, speed_limits, drawn = None, run.speed_limits, None
@@ -628,21 +658,14 @@ def _round(
     tasks = _episode_tasks(run, plan, state, speed_limits)
     if run.geometry is not None:
         run.geometry.prefetch(state.np_rng)
-    episodes = workers.run(learner, tasks, net)
-    # Returns when the actor has stepped (the next round's collection needs only the actor).
-    losses = learner.update(batch_from_episodes(episodes, central=plan.central))
-
-    wall_s = run.wall_s()
-    sink.write(
-        [
-            {
-                **_episode_row(plan, state.episode + i, state.global_episode + i, e),
-                **losses,
-                "wall_time_s": wall_s,
-            }
-            for i, e in enumerate(episodes)
-        ]
-    )
+    episodes = workers.run(learner, tasks, net)  # meanwhile the last round's critics step
+    metrics.flush()  # the last round's rows, now that its critics' losses are known
+    # Returns once the actor has stepped: the next round's collection needs only the actor.
+    update = learner.begin_update(batch_from_episodes(episodes, central=plan.central))
+    rows = [
+        _episode_row(plan, state.episode + i, state.global_episode + i, e) for i, e in enumerate(episodes)
+    ]
+    metrics.hold(rows, update, run.wall_s())
     if run.geometry is not None and drawn is not None and net is not None:
         row = {"stage": plan.name, "episode": state.episode, "global_episode": state.global_episode}
         row |= {"episodes": len(tasks), **dataclasses.asdict(drawn), "net": Path(net.path).name}
@@ -656,6 +679,7 @@ def _round(
         before, state.global_episode, config.validate_every
     )
     if checkpoint_due or validation_due:
+        metrics.flush()  # a resumed run keeps the rows below its checkpoint: they must be written
         checkpoint = state.checkpoint(learner, config, plan)
         if checkpoint_due:
             save_checkpoint(run.latest, checkpoint)
