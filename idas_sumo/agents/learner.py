@@ -256,7 +256,7 @@ class PendingUpdate:
 
     def __init__(
         self, done: dict[str, float] | None = None, critics: _Background[UpdateRecord] | None = None
-    ):
+    ) -> None:
         self._done, self._critics = done, critics
 
     def stats(self) -> dict[str, float]:
