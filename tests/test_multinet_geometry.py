@@ -24,8 +24,12 @@ COPIES = 16
 
 THRESHOLD_GEOMETRIES = {
     "angle-45": NetParams(angle_deg=45.0),
+    "angle-45-roads-20": NetParams(20.0, 20.0, 20.0, angle_deg=45.0),
+    "angle-45-zipper": NetParams(angle_deg=45.0, priority="equal"),
 }
-"""Generated nets whose 16-copy net was not faithful before the internal lanes were pinned."""
+"""Generated nets whose 16-copy net was not faithful before the internal lanes were pinned: of the
+whole angles 5-90 (roads 250/250/150, 20/20/20 and 1000/600/400 m) and some fractional ones, only
+45 degrees, with either priority."""
 
 
 def _lanes(path: Path) -> dict[str, tuple[str, str]]:
