@@ -13,8 +13,9 @@ coordinates. Reading a net, netconvert recomputes junction shapes and junction-i
 shifted copy the coordinates round differently in binary, and at one of netconvert's thresholds the
 result changes (a 45 degree merge gave some copies a 7.70 m internal lane for the source's 7.49 m). So
 the copies are built from the source with its internal lanes pinned (``pin_internal_lanes``). A
-junction's outline may still come out otherwise in a copy: SUMO only draws it (the cars drive on the
-lanes, and collisions on junctions are checked between the cars' shapes on the internal lanes).
+junction's outline may still come out otherwise in a copy: the cars drive on the lanes (on a 45
+degree net, the same cars in copies with either outline drove identical trajectories, collisions on
+junctions checked).
 
 The result is checked with sumolib against the source: every edge of every copy, the junction-internal
 ones included, has the source's lanes with the same lengths and speed limits, the same priority and
