@@ -73,3 +73,56 @@ def test_pinning_copies_each_internal_lane_onto_its_connection(tmp_path: Path) -
             lane.get(a) for a in ("shape", "length", "speed")
         ]
     assert _lanes(pinned) == _lanes(source)  # only connections gain attributes
+
+
+def test_copies_of_a_45_degree_merge_drive_alike(tmp_path: Path) -> None:
+    """The junction outline is not pinned and differs in some copies of a 45 degree net; the same cars
+    must still drive the same way in every copy (SUMO's collision check on junctions included)."""
+    import subprocess
+
+    from idas_sumo.sim.netgen import sumo_binary
+
+    source = generate_net(tmp_path / "a45.net.xml", THRESHOLD_GEOMETRIES["angle-45"])
+    built = build_copies(source, COPIES, tmp_path / "cache")
+    root = ET.parse(built).getroot()
+    junctions = {j.get("id", ""): j for j in root.iter("junction")}
+    outlines = {jid: j.get("shape", "") for jid, j in junctions.items()}
+    spacing = float(junctions["c01_main_start"].get("y", "")) - float(
+        junctions["c00_main_start"].get("y", "")
+    )
+
+    def local(shape: str, k: int) -> str:
+        return " ".join(
+            f"{p.split(',')[0]},{float(p.split(',')[1]) - k * spacing:.2f}" for p in shape.split()
+        )
+
+    junction = outlines["c00_merge_point"]
+    others = [k for k in range(1, COPIES) if local(outlines[f"c{k:02d}_merge_point"], k) != junction]
+    assert others  # the case this test is about: some copy's outline differs from copy 0's
+    cars = []
+    for i in range(6):  # main and merging cars reach the merge point close together
+        cars += [(2.0 * i, f"m{i}", "main", 10 + i), (2.0 * i + 0.5, f"r{i}", "merge", 12 - i)]
+    vehicles = [
+        f'<vehicle id="c{k:02d}_{vid}" type="t" depart="{t}" departSpeed="{v}">'
+        f'<route edges="c{k:02d}_{road} c{k:02d}_out"/></vehicle>'
+        for t, vid, road, v in sorted(cars)
+        for k in [0, *others]
+    ]
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text('<routes><vType id="t" sigma="0" speedDev="0"/>' + "".join(vehicles) + "</routes>")
+    fcd = tmp_path / "fcd.xml"
+    sumo = [str(sumo_binary("sumo")), "-n", str(built), "-r", str(routes), "--step-length", "0.1"]
+    checks = ["--collision.check-junctions", "true", "--collision.action", "remove", "--end", "60"]
+    out = ["--fcd-output", str(fcd), "--no-step-log", "true"]
+    subprocess.run([*sumo, *checks, *out], check=True, capture_output=True)
+    trajectories: dict[str, list[tuple[str, ...]]] = {}
+    for step in ET.parse(fcd).getroot().iter("timestep"):
+        for car in step.iter("vehicle"):
+            prefix, vid = car.get("id", "")[:4], car.get("id", "")[4:]
+            lane = car.get("lane", "").replace(prefix, "")
+            row = (step.get("time", ""), vid, lane, car.get("pos", ""), car.get("speed", ""))
+            trajectories.setdefault(prefix, []).append(row)
+    assert len(trajectories["c00_"]) > 100
+    assert any(":merge_point_0" in row[2] for row in trajectories["c00_"])  # they crossed the junction
+    for k in others:
+        assert trajectories[f"c{k:02d}_"] == trajectories["c00_"]
