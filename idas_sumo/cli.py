@@ -301,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser("evaluate", help="evaluate a method with the paper's protocol; write CSVs")
     ev.add_argument(
-        "--baseline", required=True, help="method: idas | idas_v | idas_direct | idm | fsm_idm | all"
+        "--baseline", required=True, help="method: idas | idas_v | idas_direct | idm | fsm_idm | all (those five: the paper's); also idas_geometry | idas_brakes (ours, docs/results.md)"
     )
     ev.add_argument(
         "--net", type=_input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
@@ -483,12 +483,12 @@ def _default_out(args: argparse.Namespace) -> Path:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, METHODS, check_method
+    from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, PAPER_METHODS, check_method
     from idas_sumo.evaluation.runner import EvalRequest, default_others, run_evaluation
 
     _check_backend(args)
     check_method(args.baseline, "--baseline", also=("all",))
-    methods = METHODS if args.baseline == "all" else (args.baseline,)
+    methods = PAPER_METHODS if args.baseline == "all" else (args.baseline,)
     if args.others is not None:
         check_method(args.others, "--others")
     if args.policy is not None and not any(m in LEARNED_METHODS for m in methods):

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from idas_sumo.evaluation.policies import LEARNED_METHODS
 from idas_sumo.io_utils import file_digest
 from idas_sumo.resources import POLICY_DIR
 from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint
@@ -74,7 +75,7 @@ def _validation_curve(path: Path, stages: list[str] | None) -> list[dict] | None
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("checkpoint", type=Path)
-    parser.add_argument("name", choices=("idas", "idas_v", "idas_direct"))
+    parser.add_argument("name", choices=tuple(LEARNED_METHODS))
     parser.add_argument("--command", required=True, help="the train command that made the run")
     parser.add_argument("--stages", nargs="*", help="only these stages' metrics (default: all in the run)")
     parser.add_argument("--note", default="", help="how the run relates to the paper's budget and recipe")

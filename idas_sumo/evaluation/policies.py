@@ -11,12 +11,24 @@ from idas_sumo.env.engine import Policy
 from idas_sumo.errors import InputError
 from idas_sumo.resources import POLICY_DIR
 
-LEARNED_METHODS: dict[str, str] = {"idas": "idas.pt", "idas_v": "idas_v.pt", "idas_direct": "idas_direct.pt"}
+LEARNED_METHODS: dict[str, str] = {
+    "idas": "idas.pt",
+    "idas_v": "idas_v.pt",
+    "idas_direct": "idas_direct.pt",
+    # Ours, beside the paper's: IDAS trained on generated merges of many geometries (issue #17), and IDAS
+    # trained with the labelled reward variant impede_blame = "braker_if_unforced" (docs/results.md).
+    "idas_geometry": "idas_geometry.pt",
+    "idas_brakes": "idas_brakes.pt",
+}
+PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", *BASELINES)
+"""The paper's five methods: what ``--baseline all`` runs."""
 METHODS: tuple[str, ...] = (*LEARNED_METHODS, *BASELINES)
 METHOD_LABELS: dict[str, str] = {
     "idas": "IDAS",
     "idas_v": "IDAS-V",
     "idas_direct": "IDAS-direct",
+    "idas_geometry": "IDAS-geometry",
+    "idas_brakes": "IDAS-brakes",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
 }
