@@ -172,3 +172,31 @@ def test_ctrl_c_during_a_collection_writes_the_held_rows_then_resume_continues_e
     assert_same_tensors(
         load_checkpoint(run / "robot.pt").learner, load_checkpoint(straight / "robot.pt").learner
     )
+
+
+def test_a_signal_while_waiting_for_the_critics_leaves_them_pending_and_whole(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Ctrl-C (or SIGTERM) while the main thread waits for the background step: the step goes on, and the
+    handler's second wait gets it whole (a Thread.join interrupted so let the second one return at once,
+    before the step had finished)."""
+    import signal
+
+    release = threading.Event()
+    real_step = Learner._step_value_critic
+
+    def gated_step(self: Learner, *args: Any) -> Any:
+        assert release.wait(timeout=20)
+        return real_step(self, *args)
+
+    monkeypatch.setattr(Learner, "_step_value_critic", gated_step)
+    learner = Learner(LearnerConfig(), seed=0, critics_in_background=True)
+    pending = learner.begin_update(random_batch(n=64))
+    main = threading.main_thread().ident
+    assert main is not None
+    threading.Timer(0.3, signal.pthread_kill, (main, signal.SIGINT)).start()
+    with pytest.raises(KeyboardInterrupt):
+        learner.finish_critics()
+    threading.Timer(0.3, release.set).start()
+    assert pending.stats()["v_loss"] > 0.0
+    learner.finish_critics()

@@ -229,21 +229,25 @@ class _Background(Generic[_T]):
         self._work = work
         self._result: _T | None = None
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="critic step", daemon=True)
-        self._thread.start()
+        # An event, not Thread.join: a join interrupted by a signal (Ctrl-C, SIGTERM) can mark the thread
+        # stopped while it still runs (CPython 3.11), and a second join then returns at once.
+        self._finished = threading.Event()
+        threading.Thread(target=self._run, name="critic step", daemon=True).start()
 
     def _run(self) -> None:
         try:
             self._result = self._work()
         except BaseException as err:  # handed to whoever takes the result
             self._error = err
+        finally:
+            self._finished.set()
 
     def wait(self) -> None:
-        self._thread.join()
+        self._finished.wait()
 
     def result(self) -> _T:
         """What the work returned (re-raises what it raised); call after ``wait``."""
-        assert not self._thread.is_alive(), "result() before wait()"
+        assert self._finished.is_set(), "result() before wait()"
         if self._error is not None:
             raise self._error
         assert self._result is not None
