@@ -23,3 +23,18 @@ ev --baseline all --suite driver-types --seed 2019 --out "$out/driver-types" --t
 for method in idas idas_v idas_direct idm fsm_idm; do
   ev --baseline "$method" --others "$method" --scenarios 100 --seed 2019 --out "$out/every-car/$method"
 done
+# Ours, beside the paper's methods, every other car on the same policy as the ego's learned method:
+# IDAS trained on many merges (issue #17), on the held-out geometries and on the shipped T-junction;
+for method in idas_geometry idm fsm_idm; do
+  ev --baseline "$method" --others idas_geometry --suite geometry --scenarios 100 --seed 2019 --workers 2 \
+    --out "$out/geometry-trained/$method"
+  ev --baseline "$method" --others idas_geometry --scenarios 100 --seed 2019 --workers 2 \
+    --out "$out/geometry-trained/tjunction-2019/$method"
+done
+# and the labelled reward variant (the braker pays for a chosen hard brake) on the declared seed and 2019-2021.
+for seed in 2024 2019 2020 2021; do
+  for method in idas_brakes idm fsm_idm; do
+    ev --baseline "$method" --others idas_brakes --scenarios 100 --seed "$seed" --workers 2 \
+      --out "$out/brakes/paper-$seed/$method"
+  done
+done
