@@ -9,10 +9,10 @@ with the default config, full 60 s episodes, and an untrained policy (which tend
 timeout, so episodes are long: a pessimistic pace for later training).
 
 ``--compare-serial``: the intelligent world from the shipped ``idas.pt`` (``--workers``, first value),
-each run twice in turn, ``--repeats`` times (serial, overlapped, serial, overlapped, ...): *overlapped* is
-what ``idas-sumo train`` does (a round's critics step in a thread while the workers collect the next
-round), *serial* the same run with ``IDAS_SUMO_SERIAL_UPDATE=1`` (the critics step before the update
-returns). The two give the same weights and metrics bit for bit (tests/test_overlap.py); only the time
+each run twice in turn, ``--repeats`` times (serial, overlapped, serial, overlapped, ...): *serial* is
+what ``idas-sumo train`` does (the critics step before the update returns), *overlapped* the same run with
+``IDAS_SUMO_OVERLAP_UPDATE=1`` (a round's critics step in a thread while the workers collect the next
+round). The two give the same weights and metrics bit for bit (tests/test_overlap.py); only the time
 differs. Prints each run and the ratio of the summed paces.
 """
 
@@ -32,7 +32,7 @@ from rich.table import Table
 
 from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG, POLICY_DIR, resolve_user_path
 from idas_sumo.training.config import TrainConfig
-from idas_sumo.training.loop import SERIAL_UPDATE_ENV
+from idas_sumo.training.loop import OVERLAP_UPDATE_ENV
 
 
 def measure(
@@ -45,7 +45,7 @@ def measure(
     script imports torch before idas_sumo, and torch's OpenMP threads then spin instead of sleeping
     (``idas_sumo/__init__.py``), which made the learner up to 10x slower here beside any other job.
     ``init_from``: the checkpoint to start from (empty: random weights). ``serial``: the learner's
-    critics step before its update returns (``SERIAL_UPDATE_ENV``), not beside the next collection.
+    critics step before its update returns (the default), not beside the next collection (``OVERLAP_UPDATE_ENV``).
     """
     default = DEFAULT_TRAIN_CONFIG.read_text(encoding="utf-8")
     config = default.replace('init_from = ""', f"init_from = {json.dumps(init_from)}").replace(
@@ -55,9 +55,9 @@ def measure(
         toml = Path(tmp) / "config.toml"
         toml.write_text(config, encoding="utf-8")
         run = Path(tmp) / "run"
-        env = {k: v for k, v in os.environ.items() if k != SERIAL_UPDATE_ENV}
-        if serial:
-            env[SERIAL_UPDATE_ENV] = "1"
+        env = {k: v for k, v in os.environ.items() if k != OVERLAP_UPDATE_ENV}
+        if not serial:
+            env[OVERLAP_UPDATE_ENV] = "1"
         subprocess.run(
             [
                 *(sys.executable, "-m", "idas_sumo.cli", "train", "--net", str(net), "--config", str(toml)),

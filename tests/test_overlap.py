@@ -1,4 +1,5 @@
-"""The critics' step in the background (``Learner(critics_in_background=True)``, what training runs) gives
+"""The critics' step in the background (``Learner(critics_in_background=True)``, what training runs with
+``IDAS_SUMO_OVERLAP_UPDATE=1``) gives
 the serial update's weights bit for bit, and the training loop's results do not depend on it."""
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig
-from idas_sumo.training.loop import SERIAL_UPDATE_ENV
+from idas_sumo.training.loop import OVERLAP_UPDATE_ENV
 
 ROWS = 600  # enough rows that the update's kernels split over both threads
 NETS = ("actor", "value", "central")
@@ -122,9 +123,9 @@ def test_overlapped_training_equals_serial_training(
     from idas_sumo.training.loop import run_training
 
     config = tiny_config(workers=workers)
-    run_training(net_path, config, tmp_path / "overlapped", progress=False)
-    monkeypatch.setenv(SERIAL_UPDATE_ENV, "1")
     run_training(net_path, config, tmp_path / "serial", progress=False)
+    monkeypatch.setenv(OVERLAP_UPDATE_ENV, "1")
+    run_training(net_path, config, tmp_path / "overlapped", progress=False)
 
     for name in ("robot.pt", "robot_best.pt", "intelligent.pt", "intelligent_best.pt", "checkpoint.pt"):
         a, b = load_checkpoint(tmp_path / "overlapped" / name), load_checkpoint(tmp_path / "serial" / name)
@@ -146,6 +147,7 @@ def test_ctrl_c_during_a_collection_writes_the_held_rows_then_resume_continues_e
     from idas_sumo.training.loop import run_training
     from idas_sumo.training.workers import InProcessWorkers
 
+    monkeypatch.setenv(OVERLAP_UPDATE_ENV, "1")
     config = tiny_config(stage="robot", robot_episodes=4, episodes_per_update=1, checkpoint_every=1000)
     config = dataclasses.replace(config, validate_every=0)
     straight = tmp_path / "straight"
@@ -165,6 +167,7 @@ def test_ctrl_c_during_a_collection_writes_the_held_rows_then_resume_continues_e
     with pytest.raises(KeyboardInterrupt):
         run_training(net_path, config, run, progress=False)
     monkeypatch.undo()
+    monkeypatch.setenv(OVERLAP_UPDATE_ENV, "1")
     assert load_checkpoint(run / "checkpoint.pt").episode == 2
     assert len(rows(run / "metrics.csv")) == 2
     run_training(net_path, config, run, resume=True, progress=False)

@@ -3,11 +3,10 @@
 ``run_training`` is what ``idas-sumo train`` calls; it reads as the run goes, and each part it
 calls follows it in this file in that order. One round = ``episodes_per_update`` episodes collected
 with the current actor (by 1 in-process worker or W processes), then one learner update on all
-their agent-steps, then one metrics row per episode. The update returns once the actor has stepped;
-its critics step in a thread of this process while the workers collect the next round
-(``Learner(critics_in_background=True)``: the same weights, bit for bit, as the serial update, which
-``SERIAL_UPDATE_ENV`` selects for benchmarks), so a round's metrics rows, which carry the critics'
-losses, are written after the next round's collection (``_HeldRows``), and before any checkpoint. With ``[geometry]`` (training/geometry.py) a
+their agent-steps, then one metrics row per episode. With ``OVERLAP_UPDATE_ENV`` set, the update returns once
+the actor has stepped and its critics step in a thread of this process while the workers collect the next round
+(``Learner(critics_in_background=True)``: the same weights, bit for bit), so a round's metrics rows, which carry
+the critics' losses, are written after the next round's collection (``_HeldRows``), and before any checkpoint. With ``[geometry]`` (training/geometry.py) a
 round first draws its generated net, and ``geometries.csv`` gets one row per round saying which. Randomness: one numpy generator draws the
 scenarios, one torch generator draws each episode's action-sampling seed; both are saved in every
 checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
@@ -70,9 +69,11 @@ GEOMETRIES_NAME = "geometries.csv"
 GEOMETRY_SOURCE = "[geometry]"
 """What the road checks name as the source of a drawn net's episode rules."""
 SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
-SERIAL_UPDATE_ENV = "IDAS_SUMO_SERIAL_UPDATE"
-"""Set to 1, the learner steps its critics before returning from the update (the reference path, slower):
-for ``benchmarks/train_throughput.py --compare-serial`` and the tests; the results are the same."""
+OVERLAP_UPDATE_ENV = "IDAS_SUMO_OVERLAP_UPDATE"
+"""Set to 1, the learner's critics step in a thread while the workers collect the next round; the results are
+the same bit for bit. Off by default: on a quiet 2-core machine the thread competes with the two workers and
+training ran 0.93-0.94x as fast (``benchmarks/train_throughput.py --compare-serial``, 3 pairs of 1,000-2,000
+episodes); only beside other jobs did it gain (1.07-1.09x)."""
 
 
 def run_training(
@@ -503,8 +504,8 @@ def _stage_learner(
 ) -> Learner:
     """The stage's learner: the checkpoint's when the run resumes in this stage, else the previous
     stage's networks (the curriculum's stage 2), else ``init_weights``, else fresh ones."""
-    serial = os.environ.get(SERIAL_UPDATE_ENV, "") == "1"
-    learner = Learner(plan.learner, seed=seed, critics_in_background=not serial)
+    overlap = os.environ.get(OVERLAP_UPDATE_ENV, "") == "1"
+    learner = Learner(plan.learner, seed=seed, critics_in_background=overlap)
     if resumed is not None:
         learner.load_state_dict(resumed.learner)
     elif plan.init_from_previous and previous is not None:
