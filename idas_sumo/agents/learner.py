@@ -263,6 +263,11 @@ class PendingUpdate:
     ) -> None:
         self._done, self._critics = done, critics
 
+    @property
+    def ready(self) -> bool:
+        """Whether ``stats`` returns without waiting (the serial update: the critics stepped already)."""
+        return self._done is not None
+
     def stats(self) -> dict[str, float]:
         """The scalar metrics (one row of metrics.csv columns), once the critics have stepped."""
         if self._done is None:

@@ -320,8 +320,9 @@ def _geometry_sink(out_dir: Path, keep_below: int | None) -> MetricsSink:
 
 
 class _HeldRows:
-    """``metrics.csv``: a round's rows are held until its update's losses are known (its critics step
-    while the next round collects); ``flush`` waits for them and writes the rows."""
+    """``metrics.csv``: a round's rows are held until its update's losses are known (with
+    ``OVERLAP_UPDATE_ENV`` its critics step while the next round collects; otherwise they are known at once
+    and the rows are written at once); ``flush`` waits for them and writes the rows."""
 
     def __init__(self, sink: MetricsSink) -> None:
         self.sink = sink
@@ -331,6 +332,8 @@ class _HeldRows:
         """``rows`` get ``update``'s losses and the round's end ``wall_s``."""
         self.flush()
         self._held = (rows, update, wall_s)
+        if update.ready:
+            self.flush()
 
     def flush(self) -> None:
         if self._held is None:
