@@ -544,8 +544,9 @@ class MergeEngine:
             return _impeding_vehicles(before, brakes)
         chosen = batch.masks[agent_brake, :N_DELTA_ACTIONS].any(axis=1)
         n_agent = int(agent_brake.sum())
-        forced = np.concatenate([brakes[:n_agent][~chosen], brakes[n_agent:]])
-        return np.concatenate([_impeding_vehicles(before, forced), brakes[:n_agent][chosen]]).astype(np.int64)
+        agent_rows, sumo_rows = brakes[:n_agent], brakes[n_agent:]
+        forced = np.concatenate([agent_rows[~chosen], sumo_rows])
+        return np.concatenate([_impeding_vehicles(before, forced), agent_rows[chosen]])
 
     def _cross_check(self, events: BatchStepEvents) -> None:
         """Add the collisions SUMO did not report: cars of one running episode whose bodies overlap on
