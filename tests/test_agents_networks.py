@@ -13,6 +13,7 @@ from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_one
 from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
 from idas_sumo.agents.networks import (
     CENTRAL_INPUT_DIM,
+    ENCODER_CHUNK_ROWS,
     STATE_DIM,
     Actor,
     CentralCritic,
@@ -131,6 +132,25 @@ def test_fast_encoder_on_mostly_empty_road_matches_conv2d_gradients() -> None:
     obs[1, N_SCALARS + 3 * GRID_CELLS + 300 : N_SCALARS + 3 * GRID_CELLS + 311] = -0.4  # a speed in obs_ol
     obs[2, N_SCALARS:] = torch.randn(4 * GRID_CELLS)  # every window occupied
     # rows 3 and 4: empty road
+    _assert_matches_conv2d(enc, obs)
+
+
+def test_encoder_in_row_slices_matches_conv2d_and_each_slice_alone() -> None:
+    """A batch longer than ENCODER_CHUNK_ROWS goes through in slices: each row's output is what it gives
+    in a slice of its own (to float rounding: a GEMM's kernel depends on its row count), and the outputs
+    and gradients are still conv2d's."""
+    torch.manual_seed(2)
+    enc = GridEncoder()
+    rows = 2 * ENCODER_CHUNK_ROWS + 3
+    obs = torch.zeros(rows, OBS_DIM)
+    obs[:, :N_SCALARS] = torch.randn(rows, N_SCALARS)
+    cells = torch.randint(0, 4 * GRID_CELLS - 11, (rows,))
+    for offset in range(11):  # one car-long run per row, somewhere on the four grid rows
+        obs[torch.arange(rows), N_SCALARS + cells + offset] = 0.7
+    whole = enc(obs)
+    slices = torch.cat([enc(part) for part in obs.split(ENCODER_CHUNK_ROWS)])
+    torch.testing.assert_close(whole, slices, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(whole[-3:], enc(obs[-3:]), rtol=1e-6, atol=1e-6)
     _assert_matches_conv2d(enc, obs)
 
 
