@@ -506,15 +506,20 @@ class Learner:
         reward, done = b.reward.float(), b.done.float()
         values = forward.values
         with torch.no_grad():
-            if forward.next_index is None:
-                next_target_values = self.value_target(b.next_obs)
-            else:
-                where, ended, cut_off = forward.next_index
-                target_bank = torch.cat([self.value_target(b.obs), self.value_target(b.next_obs[cut_off])])
-                next_target_values = _gather_next(target_bank, where, ended)
-            target = td_targets(reward, next_target_values, done, cfg.gamma)
             if cfg.gae_lambda > 0.0:
-                target = forward.advantage + values.detach()  # the λ-return
+                # The λ-return, from the online V the advantage was built on: V̂ is not read, so it is not
+                # run (a fifth of the update's encoder passes).
+                target = forward.advantage + values.detach()
+            else:
+                if forward.next_index is None:
+                    next_target_values = self.value_target(b.next_obs)
+                else:
+                    where, ended, cut_off = forward.next_index
+                    target_bank = torch.cat(
+                        [self.value_target(b.obs), self.value_target(b.next_obs[cut_off])]
+                    )
+                    next_target_values = _gather_next(target_bank, where, ended)
+                target = td_targets(reward, next_target_values, done, cfg.gamma)
         loss = 0.5 * (target - values).pow(2).mean()
         self.opt_value.zero_grad(set_to_none=True)
         loss.backward()
