@@ -1,7 +1,7 @@
 """Training with ``[geometry]``: a generated merge drawn per round from the config's ranges (on a
 grid, from the run's seed), the rollout workers switching nets with the rounds, validation on the
-run's own net, ``geometries.csv``; bad ranges are one line, exit 2; the default ranges leave out the
-held-out geometries of ``evaluate --suite geometry``."""
+run's own net (or on merges drawn by the validation seed), ``geometries.csv``; bad ranges are one
+line, exit 2; the default ranges leave out the held-out geometries of ``evaluate --suite geometry``."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation.geometry import HELD_OUT_GEOMETRIES
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG, SCENARIO_DIR
+from idas_sumo.sim.net_cache import cached_net
 from idas_sumo.sim.netgen import NetParams
 from idas_sumo.training.config import TrainConfig, load_train_config
 from idas_sumo.training.geometry import GRID, GeometryConfig, draw_geometry
@@ -78,6 +79,13 @@ def test_the_geometry_recipes_are_the_shipped_ones_with_the_default_ranges() -> 
     )
     shipped2 = load_train_config(SCENARIO_DIR / "train_shipped_stage2_safety.toml")
     assert dataclasses.replace(stage2, geometry=None) == shipped2  # from IDAS-V too
+    validated = load_train_config(SCENARIO_DIR / "train_geometry_stage2_validated.toml")
+    assert validated == dataclasses.replace(
+        stage2,
+        intelligent_episodes=2000,
+        validate_every=200,
+        geometry=GeometryConfig(validation_geometries=8),
+    )
 
 
 def test_default_ranges_cannot_draw_a_held_out_geometry() -> None:
@@ -185,6 +193,37 @@ def test_each_round_runs_on_its_drawn_net_and_validation_on_the_runs_own(
         assert RANGES.can_draw(params)
     metrics = rows(run / "metrics.csv")
     assert len(metrics) == 4 and list(metrics[0]) == list(rows(run / "metrics.csv")[0])
+
+
+@pytest.mark.sumo
+def test_validation_geometries_validate_on_merges_drawn_by_the_validation_seed(
+    net_path: Path, tmp_path: Path, net_cache: Path, engine_sites: list[tuple[str, int]]
+) -> None:
+    """With ``validation_geometries`` the validation scenarios (3 over 2 merges: 2 and 1) run on merges
+    drawn from the ranges by the validation seed, the same ones at both validations, none the run's net."""
+    from idas_sumo.training.loop import run_training
+
+    ranges = dataclasses.replace(RANGES, validation_geometries=2)
+    config = tiny_config(geometry=ranges, validate_every=2, validation_scenarios=3, validation_seed=5)
+    run_training(net_path, config, tmp_path / "run", progress=False)
+    rounds = [g["net"] for g in rows(tmp_path / "run" / "geometries.csv")]
+    assert [site for site, _ in engine_sites[:1]] == rounds[:1]
+    validation = [e for e in engine_sites if e[0] not in rounds]
+    assert [n for _, n in validation] == [2, 1, 2, 1]  # two validations, each over the two merges
+    first, second = validation[:2], validation[2:]
+    assert first == second and first[0][0] != first[1][0]
+    assert net_path.name not in {site for site, _ in engine_sites}
+    rng = np.random.default_rng(5)
+    expected = [draw_geometry(rng, ranges) for _ in range(2)]
+    assert [site for site, _ in first] == [cached_net(p).name for p in expected]
+    assert all(ranges.can_draw(p) for p in expected)
+    assert len(rows(tmp_path / "run" / "validation.csv")) == 2
+    # Another validation seed draws other merges.
+    other = tiny_config(geometry=ranges, validate_every=2, validation_scenarios=3, validation_seed=6)
+    engine_sites.clear()
+    run_training(net_path, other, tmp_path / "other", progress=False)
+    rounds = [g["net"] for g in rows(tmp_path / "other" / "geometries.csv")]
+    assert {e[0] for e in engine_sites if e[0] not in rounds} != {site for site, _ in first}
 
 
 @pytest.mark.sumo

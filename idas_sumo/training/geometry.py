@@ -5,7 +5,8 @@ angle, road lengths, speed limits and priority are drawn from the table's ranges
 seeded generator; every episode of the round runs on it, and the nets come from the net cache
 (``sim/net_cache.cached_net``), keyed by their parameters. The draws lie on a grid (lengths to the
 metre, angles to the degree, limits to 0.5 m/s), so a long run needs a bounded number of nets, not
-one per round. Validation stays on the run's ``--net``.
+one per round. Validation stays on the run's ``--net``, or, with ``validation_geometries``, runs on that
+many merges drawn from the same ranges by the validation seed.
 
 The default ranges leave out every held-out geometry of ``evaluate --suite geometry``
 (``evaluation/geometry.py``), so that suite keeps measuring merges the training never saw: angles
@@ -93,6 +94,10 @@ class GeometryConfig:
     equal_priority_probability: float = 0.0
     """Chance of a zipper merge (equal priority, ``--priority equal``) in a round; else the main road
     has right of way."""
+    validation_geometries: int = 0
+    """Ours: > 0 spreads the validation scenarios over this many merges drawn from these ranges by the
+    validation seed (the same merges at every validation), so that the kept weights are the ones that
+    drive the trained distribution best; 0: validation on the run's own net."""
 
     def __post_init__(self) -> None:
         for name, step in GRID.items():
@@ -112,6 +117,10 @@ class GeometryConfig:
                     raise GeometryRangeError(
                         f"{name}: {end:g} is not on the {step:g} {unit} grid the draws lie on"
                     )
+        if self.validation_geometries < 0:
+            raise GeometryRangeError(
+                f"validation_geometries must be non-negative, got {self.validation_geometries}"
+            )
         if not 0.0 <= self.equal_priority_probability <= 1.0:
             raise GeometryRangeError(
                 f"equal_priority_probability must be in [0, 1], got {self.equal_priority_probability:g}"

@@ -53,6 +53,7 @@ from idas_sumo.training.validation import (
     VALIDATION_NAME,
     ValidationScore,
     score_episodes,
+    split_evenly,
     validation_key,
     validation_tasks,
 )
@@ -523,7 +524,8 @@ class _StageValidation:
     """One stage's held-out scenarios, its ``validation.csv`` sink and the best score so far."""
 
     workers: RolloutWorkers
-    tasks: list[EpisodeTask]
+    groups: list[tuple[RoundNet | None, list[EpisodeTask]]]
+    """The held-out scenarios, by the net they run on (None: the run's own)."""
     sink: MetricsSink
     best_path: Path
     criterion: ValidationCriterion = "joint_return"
@@ -544,11 +546,12 @@ class _StageValidation:
     ) -> _StageValidation:
         """The stage's validation; ``resumed``: the checkpoint a run resumes from in this stage."""
         config = run.config
-        tasks = validation_tasks(
-            plan.traffic, run.speed_limits, config.validation_scenarios, config.validation_seed
-        )
         validation = cls(
-            workers, tasks, sink, run.out_dir / f"{plan.name}_best.pt", config.validation_criterion
+            workers,
+            _validation_groups(run, plan),
+            sink,
+            run.out_dir / f"{plan.name}_best.pt",
+            config.validation_criterion,
         )
         if resumed is not None:
             # The stage's validations before the checkpoint: the best so far, and whether the
@@ -572,7 +575,9 @@ class _StageValidation:
 
     def run(self, learner: Learner, checkpoint: TrainingCheckpoint, wall_s: float) -> None:
         """Score the greedy policy; save ``checkpoint`` as ``best_path`` when it beats the best so far."""
-        score = score_episodes([e.stats for e in self.workers.run(learner, self.tasks)])
+        score = score_episodes(
+            [e.stats for net, tasks in self.groups for e in self.workers.run(learner, tasks, net)]
+        )
         key = validation_key(score, self.criterion)
         improved = key > self.best
         if improved:
@@ -596,6 +601,33 @@ class _StageValidation:
             100 * score.perfect_rate,
             " (best so far)" if improved else "",
         )
+
+
+def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[RoundNet | None, list[EpisodeTask]]]:
+    """The stage's held-out scenarios: on the run's net, or with ``[geometry]`` and its
+    ``validation_geometries`` spread over that many merges drawn by the validation seed (their scenarios
+    each from a seed of their own, scaled to their limits)."""
+    config = run.config
+    count = 0 if run.geometry is None else run.geometry.ranges.validation_geometries
+    if run.geometry is None or count == 0:
+        tasks = validation_tasks(
+            plan.traffic, run.speed_limits, config.validation_scenarios, config.validation_seed
+        )
+        return [(None, tasks)]
+    rng = np.random.default_rng(config.validation_seed)
+    groups: list[tuple[RoundNet | None, list[EpisodeTask]]] = []
+    for i, scenarios in enumerate(split_evenly(config.validation_scenarios, count)):
+        params, site = run.geometry.draw(rng)
+        log.info("validation merge %d of %d: %s", i + 1, count, params)
+        if scenarios:
+            seed = config.validation_seed + 1 + i
+            groups.append(
+                (
+                    RoundNet(str(site.path)),
+                    validation_tasks(plan.traffic, _site_limits(site), scenarios, seed),
+                )
+            )
+    return groups
 
 
 def _score_of(row: dict[str, str]) -> ValidationScore:

@@ -3,7 +3,8 @@
 In our budget, stage 2's policy improves for a few hundred episodes and then declines
 (docs/results.md), so a run with ``validate_every`` > 0 keeps the weights that scored best here as
 ``<stage>_best.pt``. Every learning car drives the greedy policy, as in evaluation; the scenarios come
-from the stage's own traffic generator with their own seed, the same set at every validation.
+from the stage's own traffic generator with their own seed, the same set at every validation (with
+``[geometry]`` and ``validation_geometries``, spread over merges drawn from the training ranges).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ __all__ = [
     "VALIDATION_NAME",
     "ValidationScore",
     "score_episodes",
+    "split_evenly",
     "validation_key",
     "validation_tasks",
 ]
@@ -67,6 +69,11 @@ def validation_tasks(
         )
         for i in range(scenarios)
     ]
+
+
+def split_evenly(total: int, parts: int) -> list[int]:
+    """``total`` items over ``parts`` groups as evenly as possible, the first groups one larger."""
+    return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
 
 
 def validation_key(score: ValidationScore, criterion: ValidationCriterion) -> tuple[float, float]:
