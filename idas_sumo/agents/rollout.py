@@ -155,28 +155,23 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
 
 
 class _EpisodeRecorder:
-    """One episode's agent-steps as ``collect_episode`` records them, filled from the engine's hooks."""
+    """One episode's agent-steps, filled from the engine's hooks a step (all its agents) at a time and
+    assembled into an ``EpisodeData`` at the end."""
 
     def __init__(self) -> None:
         self.obs_rows: list[npt.NDArray[np.float32]] = []
-        self.n_obs = 0
-        self.obs_index: list[int] = []
-        self.next_obs_index: list[int] = []
+        self.ids: list[str] = []
         self.masks: list[npt.NDArray[np.int8]] = []
-        self.actions: list[int] = []
-        self.rewards: list[float] = []
-        self.dones: list[float] = []
+        self.actions: list[npt.NDArray[np.int64]] = []
+        self.rewards: list[npt.NDArray[np.float64]] = []
+        self.parts: list[npt.NDArray[np.float64]] = []
+        self.reasons: list[str] = []
         self.states: list[npt.NDArray[np.float32]] = []
         self.others: list[npt.NDArray[np.float32]] = []
-        self.slots: list[int] = []
+        self.slots: list[npt.NDArray[np.int64]] = []
         self.joints: list[float] = []
-        self.next_row: list[int] = []
-        self.pending: dict[str, int] = {}
-        self.returns: dict[str, float] = {}
-        self.parts = dict.fromkeys(REWARD_PART_NAMES, 0.0)
+        self.agents_per_step: list[int] = []
         self.collisions = 0
-        self.steps = 0
-        self.end_reasons: dict[str, str] = {}
         self.state: npt.NDArray[np.float32] | None = None
 
     def step(
@@ -193,73 +188,107 @@ class _EpisodeRecorder:
         collisions: int,
     ) -> None:
         assert self.state is not None, "the state is taken before the step"
-        state = self.state
         slot_actions = np.zeros(STATE_SLOTS, dtype=np.int64)
         acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
         in_range = agent_slots >= 0
         slot_actions[agent_slots[in_range]] = applied[in_range]
         acting[agent_slots[in_range]] = True
-        onehot = others_actions_onehot(slot_actions, acting)
+        # Row n of the one-hot is slot n's view; an agent without a slot sees no one (zeros).
+        onehot = np.vstack(
+            [others_actions_onehot(slot_actions, acting), np.zeros((1, OTHERS_ACTIONS_DIM), np.float32)]
+        )
         self.obs_rows.append(obs)
-        first_obs = self.n_obs
-        self.n_obs += len(ids)
-        finish, collide, impede = (REWARD_PART_NAMES.index(p) for p in ("finish", "collide", "impede"))
-        for i, a in enumerate(ids):
-            row = len(self.actions)
-            if a in self.pending:
-                self.next_row[self.pending.pop(a)] = row
-            self.obs_index.append(first_obs + i)
-            self.next_obs_index.append(-1)
-            self.masks.append(mask[i])
-            self.actions.append(int(applied[i]))
-            r = float(rewards[i])
-            self.rewards.append(r)
-            self.returns[a] = self.returns.get(a, 0.0) + r
-            self.parts["finish"] += float(parts[i, finish])
-            self.parts["collide"] += float(parts[i, collide])
-            self.parts["impede"] += float(parts[i, impede])
-            reason = reasons[i] or None
-            self.dones.append(1.0 if reason in DONE_REASONS else 0.0)
-            self.states.append(state)
-            slot = int(agent_slots[i])
-            self.others.append(onehot[slot] if slot >= 0 else np.zeros(OTHERS_ACTIONS_DIM, dtype=np.float32))
-            self.slots.append(slot)
-            self.joints.append(joint)
-            self.next_row.append(-1)
-            if reason is not None:
-                self.end_reasons[a] = reason
-            if reason not in DONE_REASONS:  # still driving, or cut off: needs a next observation
-                self.pending[a] = row
-        if len(ids):
-            self.parts["flow"] += float(parts[0, REWARD_PART_NAMES.index("flow")])
+        self.ids.extend(ids)
+        self.masks.append(mask)
+        self.actions.append(np.asarray(applied, dtype=np.int64))
+        self.rewards.append(np.asarray(rewards, dtype=np.float64))
+        self.parts.append(np.asarray(parts, dtype=np.float64))
+        self.reasons.extend(reasons)
+        self.states.append(self.state)
+        self.others.append(onehot[np.where(in_range, agent_slots, STATE_SLOTS)])
+        self.slots.append(np.asarray(agent_slots, dtype=np.int64))
+        self.joints.append(joint)
+        self.agents_per_step.append(len(ids))
         self.collisions += collisions
-        self.steps += 1
 
     def finish(self, engine: MergeEngine, k: int, outcome: EpisodeOutcome) -> EpisodeData:
+        rows = _AgentRows.of(self.ids, self.reasons)
+        bank = list(self.obs_rows)
         # Agents still pending were cut off (timeout): their final observation bootstraps V.
-        cut = [a for a in self.pending if engine.row(k, a) is not None]
+        cut = [(a, r) for a, r in rows.pending.items() if engine.row(k, a) is not None]
+        next_obs_index = np.full(len(self.ids), -1, dtype=np.int64)
         if cut:
-            self.obs_rows.append(engine.observe_agents(k, cut))
-            for i, a in enumerate(cut):
-                self.next_obs_index[self.pending[a]] = self.n_obs + i
-            self.n_obs += len(cut)
-        timed_out = bool(any(r == "timeout" for r in self.end_reasons.values()) or cut)
-        return _episode_data(self, engine.time_s, timed_out, outcome)
+            bank.append(engine.observe_agents(k, [a for a, _ in cut]))
+            next_obs_index[[r for _, r in cut]] = len(self.ids) + np.arange(len(cut))
+        timed_out = bool(any(r == "timeout" for r in rows.end_reasons.values()) or cut)
+        return _episode_data(self, rows, bank, next_obs_index, engine.time_s, timed_out, outcome)
+
+
+@dataclass(frozen=True)
+class _AgentRows:
+    """How an episode's rows (in step order, agents in each step's order) link up by agent."""
+
+    next_row: npt.NDArray[np.int64]
+    """Row of the same agent's next step; -1 after its last."""
+    done: npt.NDArray[np.float32]
+    """1 where the agent finished, collided or was removed at that step (nothing to bootstrap)."""
+    first_seen: list[str]
+    """The agents in the order they first acted."""
+    agent_of_row: npt.NDArray[np.int64]
+    """Each row's agent, as an index into ``first_seen``."""
+    pending: dict[str, int]
+    """Agents whose last row is not an end (a timeout or none): that row, which needs a next observation."""
+    end_reasons: dict[str, str]
+
+    @classmethod
+    def of(cls, ids: list[str], reasons: list[str]) -> _AgentRows:
+        n = len(ids)
+        first_seen = list(dict.fromkeys(ids))
+        index = {a: i for i, a in enumerate(first_seen)}
+        agent = np.fromiter((index[a] for a in ids), dtype=np.int64, count=n)
+        order = np.argsort(agent, kind="stable")  # each agent's rows, in step order
+        next_row = np.full(n, -1, dtype=np.int64)
+        same = agent[order[1:]] == agent[order[:-1]]
+        next_row[order[:-1][same]] = order[1:][same]
+        done = np.fromiter((r in DONE_REASONS for r in reasons), dtype=np.float32, count=n)
+        end_reasons = {a: r for a, r in zip(ids, reasons, strict=True) if r}
+        last = {a: i for i, a in enumerate(ids)}  # each agent's last row
+        by_last = sorted(last.items(), key=lambda item: item[1])  # cut-off observations go in this order
+        pending = {a: r for a, r in by_last if reasons[r] not in DONE_REASONS}
+        return cls(next_row, done, first_seen, agent, pending, end_reasons)
+
+
+def _sequential_sum(values: npt.NDArray[np.float64]) -> float:
+    """The sum added up one value after another (as a running total would), not pairwise."""
+    return float(np.cumsum(values)[-1]) if len(values) else 0.0
 
 
 def _episode_data(
-    rec: _EpisodeRecorder, time_s: float, timed_out: bool, outcome: EpisodeOutcome
+    rec: _EpisodeRecorder,
+    rows: _AgentRows,
+    bank: list[npt.NDArray[np.float32]],
+    next_obs_index: npt.NDArray[np.int64],
+    time_s: float,
+    timed_out: bool,
+    outcome: EpisodeOutcome,
 ) -> EpisodeData:
-    n = len(rec.actions)
-    nxt = np.asarray(rec.next_row, dtype=np.int64)
+    n = len(rec.ids)
+    per_step = np.asarray(rec.agents_per_step, dtype=np.int64)
+    nxt = rows.next_row
     has_next = nxt >= 0
-    obs_idx = np.asarray(rec.obs_index, dtype=np.int64)
-    next_obs_idx = np.asarray(rec.next_obs_index, dtype=np.int64)
+    obs_idx = np.arange(n, dtype=np.int64)  # every row's observation is its own row of the bank
+    next_obs_idx = next_obs_index.copy()
     next_obs_idx[has_next] = obs_idx[nxt[has_next]]
-    state_arr = np.asarray(rec.states, dtype=np.float32).reshape(n, STATE_DIM)
-    others_arr = np.asarray(rec.others, dtype=np.float32).reshape(n, OTHERS_ACTIONS_DIM)
-    slot_arr = np.asarray(rec.slots, dtype=np.int64)
-    action_arr = np.asarray(rec.actions, dtype=np.int64)
+    state_arr = (
+        np.repeat(np.asarray(rec.states, dtype=np.float32), per_step, axis=0)
+        if n
+        else np.zeros((0, STATE_DIM), np.float32)
+    )
+    others_arr = np.concatenate(rec.others) if n else np.zeros((0, OTHERS_ACTIONS_DIM), np.float32)
+    slot_arr = np.concatenate(rec.slots) if n else np.zeros(0, np.int64)
+    action_arr = np.concatenate(rec.actions) if n else np.zeros(0, np.int64)
+    reward_arr = np.concatenate(rec.rewards) if n else np.zeros(0, np.float64)
+    parts_arr = np.concatenate(rec.parts) if n else np.zeros((0, len(REWARD_PART_NAMES)), np.float64)
     next_state = np.zeros_like(state_arr)
     next_others = np.zeros_like(others_arr)
     next_slot = np.zeros(n, dtype=np.int64)
@@ -268,38 +297,44 @@ def _episode_data(
     next_others[has_next] = others_arr[nxt[has_next]]
     next_slot[has_next] = slot_arr[nxt[has_next]]
     next_action[has_next] = action_arr[nxt[has_next]]
-    agent_returns = list(rec.returns.values())
+    # Each agent's return summed over its rows in step order (bincount adds them one after another).
+    agent_returns = np.bincount(rows.agent_of_row, weights=reward_arr, minlength=len(rows.first_seen))
+    column = REWARD_PART_NAMES.index
+    first_of_step = np.cumsum(per_step)[per_step > 0] - per_step[per_step > 0]  # flow: once per step
+    reward_parts = {
+        "finish": _sequential_sum(parts_arr[:, column("finish")]),
+        "collide": _sequential_sum(parts_arr[:, column("collide")]),
+        "impede": _sequential_sum(parts_arr[:, column("impede")]),
+        "flow": _sequential_sum(parts_arr[first_of_step, column("flow")]),
+    }
     stats = EpisodeStats(
-        agents=len(rec.returns),
-        steps=rec.steps,
+        agents=len(rows.first_seen),
+        steps=len(rec.agents_per_step),
         agent_steps=n,
         sim_time_s=float(time_s),
-        return_mean=float(np.mean(agent_returns)) if agent_returns else 0.0,
-        reward_parts=rec.parts,
+        return_mean=float(np.mean(agent_returns.tolist())) if len(agent_returns) else 0.0,
+        reward_parts={name: reward_parts[name] for name in REWARD_PART_NAMES},
         collisions=rec.collisions,
         timed_out=timed_out,
         # The one definition (env/engine.py): no collision and every controlled car finished.
         success=outcome.success,
         perfect=outcome.perfect,
-        end_reasons=rec.end_reasons,
-    )
-    bank = (
-        np.concatenate(rec.obs_rows).astype(np.float32, copy=False)
-        if rec.obs_rows
-        else np.zeros((0, OBS_DIM), np.float32)
+        end_reasons=rows.end_reasons,
     )
     return EpisodeData(
-        obs_bank=bank,
+        obs_bank=np.concatenate(bank).astype(np.float32, copy=False)
+        if bank
+        else np.zeros((0, OBS_DIM), np.float32),
         obs_index=obs_idx,
         next_obs_index=next_obs_idx,
-        mask=np.asarray(rec.masks, dtype=np.int8).reshape(n, N_ACTIONS),
+        mask=(np.concatenate(rec.masks) if n else np.zeros((0, N_ACTIONS))).astype(np.int8, copy=False),
         action=action_arr,
-        reward=np.asarray(rec.rewards, dtype=np.float32),
-        done=np.asarray(rec.dones, dtype=np.float32),
+        reward=reward_arr.astype(np.float32),
+        done=rows.done,
         state=state_arr,
         others_actions=others_arr,
         slot=slot_arr,
-        joint_reward=np.asarray(rec.joints, dtype=np.float32),
+        joint_reward=np.repeat(np.asarray(rec.joints, dtype=np.float32), per_step),
         next_state=next_state,
         next_others_actions=next_others,
         next_slot=next_slot,
