@@ -86,6 +86,15 @@ def test_the_geometry_recipes_are_the_shipped_ones_with_the_default_ranges() -> 
         validate_every=200,
         geometry=GeometryConfig(validation_geometries=8),
     )
+    equal = load_train_config(SCENARIO_DIR / "train_geometry_stage2_equal.toml")
+    assert equal == dataclasses.replace(
+        validated,
+        validation_scenarios=80,
+        geometry=GeometryConfig(validation_geometries=8, equal_approaches_probability=0.5),
+    )
+    assert equal.geometry is not None
+    for name, params in HELD_OUT_GEOMETRIES:
+        assert not equal.geometry.can_draw(params), name
 
 
 def test_default_ranges_cannot_draw_a_held_out_geometry() -> None:
@@ -117,6 +126,30 @@ def test_draws_lie_on_the_grid_within_the_ranges_and_follow_the_seed() -> None:
     assert {draw_geometry(rng, half).priority for _ in range(50)} == {"main", "equal"}
 
 
+def test_equal_approaches_make_the_merging_road_as_long_as_the_main_road_at_that_rate() -> None:
+    """With ``equal_approaches_probability`` = 0.5 about half the draws have two equal approaches (drawn
+    independently, almost none do); at 0 the generator draws exactly as before the option existed."""
+    ranges = GeometryConfig()
+    half = dataclasses.replace(ranges, equal_approaches_probability=0.5)
+    rng = np.random.default_rng(1)
+    draws = [draw_geometry(rng, half) for _ in range(400)]
+    equal = np.mean([p.main_length_m == p.merge_length_m for p in draws])
+    assert 0.42 < equal < 0.58
+    assert all(half.can_draw(p) for p in draws)
+    # At 0 a draw takes one integer per grid value and one float (the priority), as before the option.
+    drawn, by_hand = np.random.default_rng(1), np.random.default_rng(1)
+    draw_geometry(drawn, ranges)
+    for name, step in GRID.items():
+        lo, hi = getattr(ranges, name)
+        by_hand.integers(0, round((hi - lo) / step) + 1)
+    by_hand.random()
+    assert drawn.random() == by_hand.random()
+    always = dataclasses.replace(ranges, equal_approaches_probability=1.0)
+    assert not always.can_draw(dataclasses.replace(NetParams(), main_length_m=250.0, merge_length_m=260.0))
+    with pytest.raises(InputError, match="same range"):
+        dataclasses.replace(ranges, merge_length_m=(230.0, 300.0), equal_approaches_probability=0.5)
+
+
 @pytest.mark.parametrize(
     ("table", "needle"),
     [
@@ -126,6 +159,7 @@ def test_draws_lie_on_the_grid_within_the_ranges_and_follow_the_seed() -> None:
         ("main_speed_mps = [18.2, 20]", "not on the 0.5 m/s grid"),
         ("merge_length_m = [230, 260, 300]", "expected [low, high]"),
         ("equal_priority_probability = 1.5", "must be in [0, 1]"),
+        ("equal_approaches_probability = -0.1", "must be in [0, 1]"),
         ("out_speed_mps = 'fast'", "expected a list"),
         ("angle = [20, 30]", "did you mean"),
         ("main_length_m = [100, 300]", "[geometry]: ranges draw a net the scenarios cannot use"),

@@ -94,6 +94,11 @@ class GeometryConfig:
     equal_priority_probability: float = 0.0
     """Chance of a zipper merge (equal priority, ``--priority equal``) in a round; else the main road
     has right of way."""
+    equal_approaches_probability: float = 0.0
+    """Ours: chance that a draw's merging road is as long as its main road (the two ranges must then be
+    the same). Drawn independently, the approaches differ by 33 m on average, which puts the two roads'
+    cars apart at the merge more often than on the T-junction or any held-out geometry, all of which have
+    equal approaches (docs/results.md). 0 draws nothing for it, so runs without it draw as before."""
     validation_geometries: int = 0
     """Ours: > 0 spreads the validation scenarios over this many merges drawn from these ranges by the
     validation seed (the same merges at every validation), so that the kept weights are the ones that
@@ -121,6 +126,14 @@ class GeometryConfig:
             raise GeometryRangeError(
                 f"validation_geometries must be non-negative, got {self.validation_geometries}"
             )
+        if not 0.0 <= self.equal_approaches_probability <= 1.0:
+            raise GeometryRangeError(
+                f"equal_approaches_probability must be in [0, 1], got {self.equal_approaches_probability:g}"
+            )
+        if self.equal_approaches_probability > 0.0 and self.main_length_m != self.merge_length_m:
+            raise GeometryRangeError(
+                "equal_approaches_probability needs main_length_m and merge_length_m to be the same range"
+            )
         if not 0.0 <= self.equal_priority_probability <= 1.0:
             raise GeometryRangeError(
                 f"equal_priority_probability must be in [0, 1], got {self.equal_priority_probability:g}"
@@ -133,6 +146,8 @@ class GeometryConfig:
             value = getattr(params, name)
             if not (lo <= value <= hi and math.isclose(value / step, round(value / step), abs_tol=1e-9)):
                 return False
+        if self.equal_approaches_probability == 1.0 and params.main_length_m != params.merge_length_m:
+            return False
         if params.priority == "equal":
             return self.equal_priority_probability > 0.0
         return self.equal_priority_probability < 1.0
@@ -140,13 +155,19 @@ class GeometryConfig:
 
 def draw_geometry(rng: np.random.Generator, geometry: GeometryConfig) -> NetParams:
     """One geometry from ``rng``: each value uniform over its grid points, in ``GRID``'s order, then
-    the priority (always drawn, so the draws that follow do not depend on the probability)."""
+    the priority (always drawn, so the draws that follow do not depend on the probability), then, with
+    ``equal_approaches_probability`` > 0, whether the merging road takes the main road's length."""
     values: dict[str, float] = {}
     for name, step in GRID.items():
         lo, hi = getattr(geometry, name)
         points = round((hi - lo) / step)
         values[name] = lo + step * int(rng.integers(0, points + 1))
     equal = float(rng.random()) < geometry.equal_priority_probability
+    if (
+        geometry.equal_approaches_probability > 0.0
+        and float(rng.random()) < geometry.equal_approaches_probability
+    ):
+        values["merge_length_m"] = values["main_length_m"]
     return NetParams(**values, priority="equal" if equal else "main")
 
 
