@@ -30,6 +30,9 @@ for method in idas_geometry idm fsm_idm; do
     --out "$out/geometry-trained/$method"
   ev --baseline "$method" --others idas_geometry --scenarios 100 --seed 2019 --workers 2 \
     --out "$out/geometry-trained/tjunction-2019/$method"
+  # the declared second evaluation seed of the held-out geometries
+  ev --baseline "$method" --others idas_geometry --suite geometry --scenarios 100 --seed 2024 --workers 2 \
+    --out "$out/geometry-trained-2024/$method"
 done
 # and the labelled reward variant (the braker pays for a chosen hard brake) on the declared seed and 2019-2021.
 for seed in 2024 2019 2020 2021; do
