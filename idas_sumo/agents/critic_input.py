@@ -15,6 +15,9 @@ from idas_sumo.env.state_layout import STATE_FEATURES, STATE_SLOTS
 
 OTHERS_ACTIONS_DIM = STATE_SLOTS * N_ACTIONS  # 112
 
+# Row n keeps every slot's block but slot n's own (a product with 0/1 values, exact).
+_OTHERS_ONLY = 1.0 - np.kron(np.eye(STATE_SLOTS, dtype=np.float32), np.ones((1, N_ACTIONS), dtype=np.float32))
+
 # Recorded in checkpoints so a critic trained on another state layout is refused on load.
 STATE_LAYOUT_ID = f"slots{STATE_SLOTS}-features{STATE_FEATURES}-actions{N_ACTIONS}-v1"
 
@@ -34,7 +37,4 @@ def others_actions_onehot(actions: npt.ArrayLike, acting: npt.ArrayLike) -> npt.
         raise ValueError(f"acting slots need actions in [0, {N_ACTIONS}), got {act[on].tolist()}")
     joint = np.zeros((STATE_SLOTS, N_ACTIONS), dtype=np.float32)
     joint[np.flatnonzero(on), act[on]] = 1.0
-    rows = np.broadcast_to(joint.reshape(1, -1), (STATE_SLOTS, OTHERS_ACTIONS_DIM)).copy()
-    for n in range(STATE_SLOTS):
-        rows[n, n * N_ACTIONS : (n + 1) * N_ACTIONS] = 0.0
-    return rows
+    return joint.reshape(1, -1) * _OTHERS_ONLY
