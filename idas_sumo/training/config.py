@@ -124,7 +124,8 @@ class TrainConfig:
     "": the net's only merge (``EnvConfig.junction``)."""
     geometry: GeometryConfig | None = None
     """``[geometry]``: train each round on a generated merge drawn from these ranges (training/geometry.py);
-    None (no table): every round on the run's net. Validation always runs on the run's net."""
+    None (no table): every round on the run's net. Validation runs on the run's net unless the table's
+    ``validation_geometries`` draws merges for it."""
 
     def __post_init__(self) -> None:
         for name in (
