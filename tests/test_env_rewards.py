@@ -228,3 +228,28 @@ def test_impede_blame_braker_if_unforced_charges_a_chosen_brake_to_the_braker(ne
         assert default.step({"solo": HARD_BRAKE}).rewards == {"solo": 0.0}
     finally:
         default.close()
+
+
+@pytest.mark.sumo
+def test_brake_count_manoeuvre_prices_a_brake_once_while_the_statistics_count_every_step(net_path) -> None:  # type: ignore[no-untyped-def]
+    """The labelled variant (RewardConfig.brake_count = 'manoeuvre'): a car that brakes hard two steps in a
+    row costs the car ahead -5 and the merging zone -1 once, at the first step; the default prices both
+    steps. The hard-brake counts (the evaluation's) stay per step under both."""
+    for count, impede, flow in (
+        ("step", [-5.0, -5.0], [-2.0, -2.0]),
+        ("manoeuvre", [-5.0, 0.0], [-2.0, 0.0]),
+    ):
+        config = EnvConfig(max_episode_s=10.0, reward=RewardConfig(brake_count=count))  # type: ignore[arg-type]
+        sim = SingleEpisode(net_path, config=config)
+        try:
+            sim.reset(_two_on_main(220.0, gap_m=15.0))  # both in the merging zone, back 15 m behind front
+            seen_impede, seen_flow = [], []
+            for _ in range(2):
+                out = sim.step({"back": HARD_BRAKE, "front": HARD_BRAKE})
+                assert out.hard_brakes == 2 and out.hard_brakes_merge_zone == 2
+                seen_impede.append(out.reward_parts["front"]["impede"])
+                seen_flow.append(out.reward_parts["back"]["flow"])
+            assert seen_impede == impede, count
+            assert seen_flow == flow, count
+        finally:
+            sim.close()

@@ -535,6 +535,22 @@ class MergeEngine:
         if added:
             slot.active.sort(key=slot.order.__getitem__)
 
+    def _priced_brakes(
+        self, before: TrafficSnapshot, brakes: IntArray, batch: AgentBatch, agent_brake: BoolArray
+    ) -> BoolArray:
+        """Which of ``brakes`` (the agents' first, in batch order) r_impede and r_flow count: all of them,
+        or with ``brake_count = 'manoeuvre'`` those that begin a brake (the car was not braking hard
+        before this step: an agent's last acceleration, a SUMO car's measured one, above the detection
+        threshold)."""
+        if self.config.reward.brake_count == "step":
+            return np.ones(len(brakes), dtype=np.bool_)
+        n_agent = int(agent_brake.sum())
+        was_braking = (
+            np.concatenate([batch.prev_accel[agent_brake], before.accel_mps2[brakes[n_agent:]]])
+            <= HARD_BRAKE_DETECT_MPS2
+        )
+        return ~was_braking
+
     def _impede_culprits(
         self, before: TrafficSnapshot, brakes: IntArray, batch: AgentBatch, agent_brake: BoolArray
     ) -> IntArray:
@@ -812,8 +828,13 @@ class MergeEngine:
         for r, k in zip(brake_rows, brake_copy.tolist(), strict=True):
             hard_brake_ids[k].append(before.ids[r])
         zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
-        flow = FLOW_PENALTY_PER_HARD_BRAKE * zone_brakes  # per merge-zone brake, shared per copy
-        impeded_by = self._impede_culprits(before, brakes, batch, agent_brake)
+        # The brakes the rewards count (RewardConfig.brake_count); the statistics above count every step.
+        priced = self._priced_brakes(before, brakes, batch, agent_brake)
+        priced_zone = np.bincount(brake_copy[in_zone & priced], minlength=k_count)
+        flow = FLOW_PENALTY_PER_HARD_BRAKE * priced_zone  # per merge-zone brake, shared per copy
+        priced_agents = agent_brake.copy()
+        priced_agents[agent_brake] = priced[: int(agent_brake.sum())]
+        impeded_by = self._impede_culprits(before, brakes[priced], batch, priced_agents)
 
         # End reasons: collided, removed, finished, else timeout (if time is up).
         copies = batch.copy.tolist()

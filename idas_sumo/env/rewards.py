@@ -16,6 +16,7 @@ MERGE_ZONE_RADIUS_M = 50.0  # the merging zone: within 50 m of the merge point
 FINISH_DISTANCE_PAST_MERGE_M = 50.0  # ours: a vehicle finishes at the merging zone's far edge
 CollisionSign = Literal["paper", "lower_priority_pays"]
 ImpedeBlame = Literal["car_ahead", "braker_if_unforced"]
+BrakeCount = Literal["step", "manoeuvre"]
 
 
 def finish_reward(b_type: npt.ArrayLike) -> FloatArray:
@@ -60,3 +61,8 @@ class RewardConfig:
     mask forced, and a SUMO-driven car's brake, are still charged to the car ahead. Under 'car_ahead' such
     a chosen brake is free for the braker in J1 (only the joint reward sees it), and the car ahead, which
     did nothing, is charged."""
+    brake_count: BrakeCount = "step"
+    """What r_impede and r_flow count as one hard brake. 'step' (the default, our reading of "every sudden
+    brake"): every 0.2 s step a car brakes hard. 'manoeuvre' (ours, a labelled variant): only the step a hard
+    brake begins (the car did not brake hard the step before), so a long brake costs what a short one does.
+    The evaluation's hard-brake counts and perfect success count steps either way."""
