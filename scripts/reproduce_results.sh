@@ -41,3 +41,10 @@ for seed in 2024 2019 2020 2021; do
       --out "$out/brakes/paper-$seed/$method"
   done
 done
+# and the labelled reward variant (a hard brake counts once, at the step it begins), the same way.
+for seed in 2024 2019 2020 2021; do
+  for method in idas_manoeuvre idm fsm_idm; do
+    ev --baseline "$method" --others idas_manoeuvre --scenarios 100 --seed "$seed" --workers 2 \
+      --out "$out/manoeuvre/paper-$seed/$method"
+  done
+done

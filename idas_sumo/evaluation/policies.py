@@ -16,9 +16,11 @@ LEARNED_METHODS: dict[str, str] = {
     "idas_v": "idas_v.pt",
     "idas_direct": "idas_direct.pt",
     # Ours, beside the paper's: IDAS trained on generated merges of many geometries (issue #17), and IDAS
-    # trained with the labelled reward variant impede_blame = "braker_if_unforced" (docs/results.md).
+    # trained with the labelled reward variants impede_blame = "braker_if_unforced" and brake_count =
+    # "manoeuvre" (docs/results.md).
     "idas_geometry": "idas_geometry.pt",
     "idas_brakes": "idas_brakes.pt",
+    "idas_manoeuvre": "idas_manoeuvre.pt",
 }
 PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", *BASELINES)
 """The paper's five methods: what ``--baseline all`` runs."""
@@ -29,6 +31,7 @@ METHOD_LABELS: dict[str, str] = {
     "idas_direct": "IDAS-direct",
     "idas_geometry": "IDAS-geometry",
     "idas_brakes": "IDAS-brakes",
+    "idas_manoeuvre": "IDAS-manoeuvre",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
 }
