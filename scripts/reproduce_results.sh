@@ -34,17 +34,15 @@ for method in idas_geometry idm fsm_idm; do
   ev --baseline "$method" --others idas_geometry --suite geometry --scenarios 100 --seed 2024 --workers 2 \
     --out "$out/geometry-trained-2024/$method"
 done
-# and the labelled reward variant (the braker pays for a chosen hard brake) on the declared seed and 2019-2021.
-for seed in 2024 2019 2020 2021; do
-  for method in idas_brakes idm fsm_idm; do
-    ev --baseline "$method" --others idas_brakes --scenarios 100 --seed "$seed" --workers 2 \
-      --out "$out/brakes/paper-$seed/$method"
-  done
-done
-# and the labelled reward variant (a hard brake counts once, at the step it begins), the same way.
-for seed in 2024 2019 2020 2021; do
-  for method in idas_manoeuvre idm fsm_idm; do
-    ev --baseline "$method" --others idas_manoeuvre --scenarios 100 --seed "$seed" --workers 2 \
-      --out "$out/manoeuvre/paper-$seed/$method"
+# and the two labelled reward variants, each on the declared seed and 2019-2021: brakes/ (the braker pays for a
+# chosen hard brake, idas_brakes) and manoeuvre/ (a hard brake counts once, at the step it begins, idas_manoeuvre).
+for variant in brakes:idas_brakes manoeuvre:idas_manoeuvre; do
+  dir=${variant%%:*}
+  policy=${variant##*:}
+  for seed in 2024 2019 2020 2021; do
+    for method in "$policy" idm fsm_idm; do
+      ev --baseline "$method" --others "$policy" --scenarios 100 --seed "$seed" --workers 2 \
+        --out "$out/$dir/paper-$seed/$method"
+    done
   done
 done
