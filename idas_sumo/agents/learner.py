@@ -503,7 +503,6 @@ class Learner:
     def _step_value_critic(self, b: Batch, forward: _ValueForward) -> CriticStep:
         """L(φ1): V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the λ-return."""
         cfg = self.config
-        reward, done = b.reward.float(), b.done.float()
         values = forward.values
         with torch.no_grad():
             if cfg.gae_lambda > 0.0:
@@ -519,7 +518,7 @@ class Learner:
                         [self.value_target(b.obs), self.value_target(b.next_obs[cut_off])]
                     )
                     next_target_values = _gather_next(target_bank, where, ended)
-                target = td_targets(reward, next_target_values, done, cfg.gamma)
+                target = td_targets(b.reward.float(), next_target_values, b.done.float(), cfg.gamma)
         loss = 0.5 * (target - values).pow(2).mean()
         self.opt_value.zero_grad(set_to_none=True)
         loss.backward()

@@ -69,10 +69,11 @@ def _mlp(sizes: list[int]) -> nn.Sequential:
 # checkpoints keep their keys and layout.
 BLOCK_CELLS = 53
 # A learner batch goes through the encoder in slices of this many rows (the same maths; the float rounding
-# of a GEMM depends on its row count, and the weight gradient sums the slices in turn). A slice's windows (2048 · 7 · 328 floats,
-# 19 MB) stay in this machine's 32 MB L3 cache, where a whole stage-2 batch of 16 episodes (about 9,600
-# rows, 88 MB of windows) did not: the update then ran 1.6× faster (14,500 against 23,500 rows/s on 2
-# threads, benchmarks/learner_update.py); batches up to this size, every rollout's, are untouched.
+# of a GEMM depends on its row count, and the weight gradient sums the slices in turn). A slice's windows
+# (2048 · 7 · 328 floats, 19 MB) stay in this machine's 32 MB L3 cache, where a whole stage-2 batch of 16
+# episodes (about 9,600 rows, 88 MB of windows) did not: one update on such a batch of real intelligent-world
+# rows ran 1.6× faster (14,500 against 23,500 rows/s on 2 threads). Batches up to this size, every rollout's
+# and evaluation's, take the path they took before.
 ENCODER_CHUNK_ROWS = 2048
 _BLOCKS = CONV_OUT_CELLS // BLOCK_CELLS  # 7
 assert _BLOCKS * BLOCK_CELLS == CONV_OUT_CELLS, "blocks must tile the conv output exactly"

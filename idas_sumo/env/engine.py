@@ -535,15 +535,13 @@ class MergeEngine:
         if added:
             slot.active.sort(key=slot.order.__getitem__)
 
-    def _priced_brakes(
-        self, before: TrafficSnapshot, brakes: IntArray, batch: AgentBatch, agent_brake: BoolArray
+    @staticmethod
+    def _brake_onsets(
+        before: TrafficSnapshot, brakes: IntArray, batch: AgentBatch, agent_brake: BoolArray
     ) -> BoolArray:
-        """Which of ``brakes`` (the agents' first, in batch order) r_impede and r_flow count: all of them,
-        or with ``brake_count = 'manoeuvre'`` those that begin a brake (the car was not braking hard
-        before this step: an agent's last acceleration, a SUMO car's measured one, above the detection
-        threshold)."""
-        if self.config.reward.brake_count == "step":
-            return np.ones(len(brakes), dtype=np.bool_)
+        """Which of ``brakes`` (the agents' first, in batch order) begin a brake: the car was not braking
+        hard before this step (an agent's last acceleration, a SUMO car's measured one, above the
+        detection threshold). What ``brake_count = 'manoeuvre'`` prices."""
         n_agent = int(agent_brake.sum())
         was_braking = (
             np.concatenate([batch.prev_accel[agent_brake], before.accel_mps2[brakes[n_agent:]]])
@@ -829,12 +827,15 @@ class MergeEngine:
             hard_brake_ids[k].append(before.ids[r])
         zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
         # The brakes the rewards count (RewardConfig.brake_count); the statistics above count every step.
-        priced = self._priced_brakes(before, brakes, batch, agent_brake)
-        priced_zone = np.bincount(brake_copy[in_zone & priced], minlength=k_count)
+        priced_zone, priced_brakes, priced_agents = zone_brakes, brakes, agent_brake
+        if self.config.reward.brake_count == "manoeuvre":
+            onset = self._brake_onsets(before, brakes, batch, agent_brake)
+            priced_zone = np.bincount(brake_copy[in_zone & onset], minlength=k_count)
+            priced_brakes = brakes[onset]
+            priced_agents = agent_brake.copy()
+            priced_agents[agent_brake] = onset[: int(agent_brake.sum())]
         flow = FLOW_PENALTY_PER_HARD_BRAKE * priced_zone  # per merge-zone brake, shared per copy
-        priced_agents = agent_brake.copy()
-        priced_agents[agent_brake] = priced[: int(agent_brake.sum())]
-        impeded_by = self._impede_culprits(before, brakes[priced], batch, priced_agents)
+        impeded_by = self._impede_culprits(before, priced_brakes, batch, priced_agents)
 
         # End reasons: collided, removed, finished, else timeout (if time is up).
         copies = batch.copy.tolist()

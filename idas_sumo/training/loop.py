@@ -6,10 +6,11 @@ with the current actor (by 1 in-process worker or W processes), then one learner
 their agent-steps, then one metrics row per episode. With ``OVERLAP_UPDATE_ENV`` set, the update returns once
 the actor has stepped and its critics step in a thread of this process while the workers collect the next round
 (``Learner(critics_in_background=True)``: the same weights, bit for bit), so a round's metrics rows, which carry
-the critics' losses, are written after the next round's collection (``_HeldRows``), and before any checkpoint. With ``[geometry]`` (training/geometry.py) a
-round first draws its generated net, and ``geometries.csv`` gets one row per round saying which. Randomness: one numpy generator draws the
-scenarios, one torch generator draws each episode's action-sampling seed; both are saved in every
-checkpoint, so ``resume`` continues exactly where the last checkpoint left off.
+the critics' losses, are written after the next round's collection (``_HeldRows``), and before any checkpoint.
+With ``[geometry]`` (training/geometry.py) a round first draws its generated net, and ``geometries.csv`` gets one
+row per round saying which. Randomness: one numpy generator draws the scenarios, one torch generator draws each
+episode's action-sampling seed; both are saved in every checkpoint, so ``resume`` continues exactly where the last
+checkpoint left off.
 """
 
 from __future__ import annotations
