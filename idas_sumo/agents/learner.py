@@ -100,13 +100,17 @@ class Batch:
     ``done`` is 1 when the agent's episode ended at this step by finishing or colliding (no
     bootstrap); a timeout is 0 (bootstrap). ``next_valid`` is 1 when the agent also acts at t+1,
     i.e. ``next_state``/``next_others_actions``/``next_slot``/``next_action`` are meaningful.
+
+    With ``next_row`` most rows' o' is another row's o, so ``next_obs`` may be None and ``bootstrap_obs``
+    hold o' for just the rows that have no next row but did not end (cut off by the timeout), in row
+    order: a stage-2 round's full ``next_obs`` is some 30 MB copied to read a handful of rows.
     """
 
     obs: torch.Tensor  # (B, OBS_DIM) float32
     mask: torch.Tensor  # (B, N_ACTIONS) bool, the mask the action was drawn under
     action: torch.Tensor  # (B,) int64
     reward: torch.Tensor  # (B,) float32, individual reward
-    next_obs: torch.Tensor  # (B, OBS_DIM) float32
+    next_obs: torch.Tensor | None  # (B, OBS_DIM) float32; None only with next_row and bootstrap_obs
     done: torch.Tensor  # (B,) float32
     state: torch.Tensor | None = None  # (B, STATE_DIM)
     others_actions: torch.Tensor | None = None  # (B, OTHERS_ACTIONS_DIM)
@@ -118,6 +122,7 @@ class Batch:
     next_action: torch.Tensor | None = None  # (B,) int64, any value where next_valid is 0
     next_valid: torch.Tensor | None = None  # (B,) float32
     next_row: torch.Tensor | None = None  # (B,) int64 row of the same agent's next step, -1: none
+    bootstrap_obs: torch.Tensor | None = None  # (cut-off rows, OBS_DIM): o' where next_row is -1, done 0
 
     def to(self, device: torch.device | str) -> Batch:
         moved: dict[str, Any] = {
@@ -320,6 +325,67 @@ def _gather_next(bank: torch.Tensor, where: torch.Tensor, ended: torch.Tensor) -
     return torch.where(ended, zero, bank[where])
 
 
+def _cut_off_obs(b: Batch, cut_off: torch.Tensor) -> torch.Tensor:
+    """o' of the rows ``cut_off`` (no next row, not done), from ``bootstrap_obs`` when the batch has it."""
+    if b.bootstrap_obs is None:
+        return _require(b.next_obs, "next_obs")[cut_off]
+    if b.bootstrap_obs.shape[0] != cut_off.numel():
+        raise ValueError(
+            f"bootstrap_obs has {b.bootstrap_obs.shape[0]} rows for {cut_off.numel()} rows cut off by a timeout"
+        )
+    return b.bootstrap_obs
+
+
+def _sample_grouped(
+    probs: torch.Tensor, groups: Sequence[tuple[npt.NDArray[np.int64], torch.Generator]]
+) -> torch.Tensor:
+    """One draw per row of ``probs``, each group's rows with its own generator: exactly
+    ``torch.multinomial(probs[rows], 1, generator=g)`` per group, draws and generator states alike.
+
+    For one sample torch's CPU multinomial is argmax(p / q) with q ~ Exp(1) drawn into a tensor of
+    ``probs[rows]``'s shape (the Gumbel-max trick; ``test_learner_update.py`` checks the equality). Drawing
+    each group's q and dividing and taking the argmax once for all rows does the same arithmetic with a
+    tenth of the small tensor operations, which cost more than the arithmetic at rollout batch sizes. A
+    masked action (probability exactly 0) gives 0 / q = 0 and an allowed one a positive ratio, so it never
+    comes out.
+    """
+    draws = [torch.empty(len(rows), probs.shape[1]).exponential_(1, generator=g) for rows, g in groups]
+    order = np.concatenate([np.asarray(rows, dtype=np.int64) for rows, _ in groups])
+    if np.array_equal(order, np.arange(probs.shape[0])):  # the groups tile the rows in order
+        q = torch.cat(draws)
+    else:
+        q = torch.ones_like(probs)
+        q[torch.from_numpy(order)] = torch.cat(draws)
+    return (probs / q).argmax(dim=1)
+
+
+class _LazyAdam:
+    """A learner's Adam optimiser for one of its networks, built on first use.
+
+    Building the first optimiser of a process imports ``torch._dynamo`` (about 0.9 s here), which a learner
+    that only acts, a rollout worker's or an evaluated policy's, never needs. Adam keeps no state until its
+    first step, so building it later changes nothing; a test may put another optimiser in its place.
+    """
+
+    def __init__(self, network: str, lr: str) -> None:
+        self.network, self.lr = network, lr
+        self.attr = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.attr = f"_{name}"
+
+    def __get__(self, learner: Any, owner: type | None = None) -> torch.optim.Optimizer:
+        optimiser: torch.optim.Optimizer | None = learner.__dict__.get(self.attr)
+        if optimiser is None:
+            params = getattr(learner, self.network).parameters()
+            optimiser = torch.optim.Adam(params, lr=getattr(learner.config, self.lr))
+            learner.__dict__[self.attr] = optimiser
+        return optimiser
+
+    def __set__(self, learner: Any, optimiser: torch.optim.Optimizer) -> None:
+        learner.__dict__[self.attr] = optimiser
+
+
 class Learner:
     """Actor, V, Q, their targets and Adam optimisers; ``act`` for rollouts, ``update`` to learn.
 
@@ -330,6 +396,10 @@ class Learner:
     ``state_dict``, ``load_state_dict`` and ``finish_critics`` wait for that step; nothing else may read
     the critics before one of them.
     """
+
+    opt_actor = _LazyAdam("actor", "lr_actor")
+    opt_value = _LazyAdam("value", "lr_value")
+    opt_central = _LazyAdam("central", "lr_central")
 
     def __init__(self, config: LearnerConfig, seed: int = 0, critics_in_background: bool = False) -> None:
         self.config = config
@@ -346,11 +416,6 @@ class Learner:
             self.central = CentralCritic().to(self.device)
         self.value_target = _frozen_copy(self.value)
         self.central_target = _frozen_copy(self.central)
-        self.opt_actor: torch.optim.Optimizer = torch.optim.Adam(self.actor.parameters(), lr=config.lr_actor)
-        self.opt_value: torch.optim.Optimizer = torch.optim.Adam(self.value.parameters(), lr=config.lr_value)
-        self.opt_central: torch.optim.Optimizer = torch.optim.Adam(
-            self.central.parameters(), lr=config.lr_central
-        )
         self.last_update: UpdateRecord | None = None
         """What the last ``update`` regressed to and stepped with; None before the first."""
 
@@ -386,13 +451,7 @@ class Learner:
             if deterministic:
                 actions = logits.argmax(dim=1)
             else:
-                # Categorical.sample takes no generator; multinomial does, and never draws a 0-probability
-                # entry, so masked actions (probability exactly 0) cannot come out.
-                probs = torch.softmax(logits, dim=1)
-                actions = torch.zeros(obs.shape[0], dtype=torch.int64)
-                for rows, generator in groups:
-                    index = torch.from_numpy(np.asarray(rows, dtype=np.int64))
-                    actions[index] = torch.multinomial(probs[index], 1, generator=generator).squeeze(1)
+                actions = _sample_grouped(torch.softmax(logits, dim=1), groups)
         chosen = allowed.gather(1, actions.unsqueeze(1))
         assert bool(chosen.all()), "sampled a masked action"
         out: npt.NDArray[np.int64] = actions.numpy().astype(np.int64)
@@ -486,12 +545,12 @@ class Learner:
         next_index = None if b.next_row is None else self._next_index(b)
         with torch.no_grad():
             if next_index is None:
-                next_values = self.value(b.next_obs)
+                next_values = self.value(_require(b.next_obs, "next_obs"))
             else:
                 # V(o') of most rows is another row's V(o), already computed: V runs again only on the
                 # rows cut off by a timeout.
                 where, ended, cut_off = next_index
-                bank = torch.cat([values.detach(), self.value(b.next_obs[cut_off])])
+                bank = torch.cat([values.detach(), self.value(_cut_off_obs(b, cut_off))])
                 next_values = _gather_next(bank, where, ended)
             advantage = td_advantages(reward, values.detach(), next_values, done, cfg.gamma)
             if cfg.gae_lambda > 0.0:
@@ -511,11 +570,11 @@ class Learner:
                 target = forward.advantage + values.detach()
             else:
                 if forward.next_index is None:
-                    next_target_values = self.value_target(b.next_obs)
+                    next_target_values = self.value_target(_require(b.next_obs, "next_obs"))
                 else:
                     where, ended, cut_off = forward.next_index
                     target_bank = torch.cat(
-                        [self.value_target(b.obs), self.value_target(b.next_obs[cut_off])]
+                        [self.value_target(b.obs), self.value_target(_cut_off_obs(b, cut_off))]
                     )
                     next_target_values = _gather_next(target_bank, where, ended)
                 target = td_targets(b.reward.float(), next_target_values, b.done.float(), cfg.gamma)

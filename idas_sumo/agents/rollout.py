@@ -105,13 +105,28 @@ class EpisodeData:
 
     @property
     def obs(self) -> npt.NDArray[np.float32]:
+        """(N, OBS_DIM); a view of the bank when row i's observation is bank row i (as recorded)."""
+        n = len(self.obs_index)
+        if n <= len(self.obs_bank) and np.array_equal(self.obs_index, np.arange(n)):
+            return self.obs_bank[:n]
         return self.obs_bank[self.obs_index]
 
     @property
     def next_obs(self) -> npt.NDArray[np.float32]:
         """(N, OBS_DIM): the next observation, zeros where there is none (``done`` = 1)."""
-        bank = np.concatenate([self.obs_bank, np.zeros((1, OBS_DIM), dtype=np.float32)])
-        return bank[np.where(self.next_obs_index >= 0, self.next_obs_index, len(self.obs_bank))]
+        return self._next_obs_of(np.arange(len(self)))
+
+    @property
+    def bootstrap_obs(self) -> npt.NDArray[np.float32]:
+        """``next_obs`` of the rows without a next row that did not end (cut off by the timeout)."""
+        return self._next_obs_of(np.flatnonzero((self.next_row < 0) & (self.done == 0)))
+
+    def _next_obs_of(self, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.float32]:
+        index = self.next_obs_index[rows]
+        out = np.zeros((len(rows), OBS_DIM), dtype=np.float32)
+        has = index >= 0
+        out[has] = self.obs_bank[index[has]]
+        return out
 
 
 def _global_next_rows(episodes: list[EpisodeData]) -> npt.NDArray[np.int64]:
@@ -134,9 +149,10 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
         mask=cat("mask").bool(),
         action=cat("action"),
         reward=cat("reward"),
-        next_obs=torch.from_numpy(np.concatenate([e.next_obs for e in episodes])),
+        next_obs=None,  # o' is row next_row's o, or in bootstrap_obs
         done=cat("done"),
         next_row=torch.from_numpy(_global_next_rows(episodes)),
+        bootstrap_obs=torch.from_numpy(np.concatenate([e.bootstrap_obs for e in episodes])),
     )
     if central:
         batch.state = cat("state")
