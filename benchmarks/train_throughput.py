@@ -36,7 +36,7 @@ from idas_sumo.training.loop import OVERLAP_UPDATE_ENV
 
 
 def measure(
-    net: Path, stage: str, workers: int, episodes: int, init_from: str = "", serial: bool = False
+    net: Path, stage: str, workers: int, episodes: int, init_from: str = "", overlap: bool = False
 ) -> tuple[float, float]:
     """(episodes/s, agent-steps/s) of one ``idas-sumo train`` run with the default config, timed by the run's
     own clock (``wall_time_s`` of its last metrics row: worker start-up included, interpreter start-up not).
@@ -44,8 +44,9 @@ def measure(
     The run is a real ``idas-sumo`` process, as a user starts it, not ``run_training`` in this one: this
     script imports torch before idas_sumo, and torch's OpenMP threads then spin instead of sleeping
     (``idas_sumo/__init__.py``), which made the learner up to 10x slower here beside any other job.
-    ``init_from``: the checkpoint to start from (empty: random weights). ``serial``: the learner's
-    critics step before its update returns (the default), not beside the next collection (``OVERLAP_UPDATE_ENV``).
+    ``init_from``: the checkpoint to start from (empty: random weights). ``overlap``: the learner's critics step
+    beside the next collection (``OVERLAP_UPDATE_ENV``), not before the update returns as ``idas-sumo train``
+    does by default.
     """
     default = DEFAULT_TRAIN_CONFIG.read_text(encoding="utf-8")
     config = default.replace('init_from = ""', f"init_from = {json.dumps(init_from)}").replace(
@@ -56,7 +57,7 @@ def measure(
         toml.write_text(config, encoding="utf-8")
         run = Path(tmp) / "run"
         env = {k: v for k, v in os.environ.items() if k != OVERLAP_UPDATE_ENV}
-        if not serial:
+        if overlap:
             env[OVERLAP_UPDATE_ENV] = "1"
         subprocess.run(
             [
@@ -125,7 +126,7 @@ def compare_serial(net: Path, workers: int, episodes: int, repeats: int) -> None
     paces: dict[bool, list[float]] = {True: [], False: []}
     for r in range(repeats):
         for serial in (True, False):
-            eps, steps = measure(net, "intelligent", workers, episodes, init, serial=serial)
+            eps, steps = measure(net, "intelligent", workers, episodes, init, overlap=not serial)
             paces[serial].append(eps)
             table.add_row(str(r + 1), "serial" if serial else "overlapped", f"{eps:.2f}", f"{steps:.0f}")
     ratio = sum(paces[False]) / sum(paces[True])
