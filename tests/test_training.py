@@ -777,3 +777,12 @@ def test_validation_criterion_ranks_by_return_or_by_success_first() -> None:
     assert TrainConfig().validation_criterion == "joint_return"
     with pytest.raises(ConfigValueError, match="validation_criterion"):
         TrainConfig(validation_criterion="speed")  # type: ignore[arg-type]
+
+
+def test_a_sum_of_zero_penalties_is_written_as_0_not_minus_0() -> None:
+    """r_impede and r_flow are -5·0 and -1·0 on a step without a hard brake, which is -0.0: their episode sums
+    must still read 0 in metrics.csv, and a real penalty must keep its sign."""
+    from idas_sumo.agents.rollout import _sequential_sum
+
+    assert f"{_sequential_sum(np.array([-0.0, -0.0]))}" == "0.0"
+    assert _sequential_sum(np.array([-5.0, -0.0, -5.0])) == -10.0

@@ -275,8 +275,9 @@ class _AgentRows:
 
 
 def _sequential_sum(values: npt.NDArray[np.float64]) -> float:
-    """The sum added up one value after another (as a running total would), not pairwise."""
-    return float(np.cumsum(values)[-1]) if len(values) else 0.0
+    """The sum added up one value after another (as a running total would), not pairwise; a sum of
+    penalties that were all zero is 0, not -0 (metrics.csv wrote "-0" for a run without hard brakes)."""
+    return float(np.cumsum(values)[-1]) + 0.0 if len(values) else 0.0
 
 
 def _episode_data(
