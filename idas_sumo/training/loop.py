@@ -649,8 +649,9 @@ def _train_stage(
     """Rounds until the stage's budget is spent, their rows written. Ctrl-C saves a checkpoint of the
     completed rounds, then re-raises KeyboardInterrupt."""
     stage_bar = _StageBar(bar, plan, state.episode)
+    fresh = state.global_episode == 0 and not run.latest.exists()
     try:
-        if state.global_episode == 0 and not run.latest.exists():
+        if fresh:
             # A fresh run's starting point is a checkpoint too: a kill (even SIGKILL) before the first
             # periodic one then resumes from here to the weights of an uninterrupted run.
             save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
@@ -662,8 +663,10 @@ def _train_stage(
         metrics.flush()
     except KeyboardInterrupt:
         metrics.flush()
-        save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
-        log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
+        if not (fresh and state.global_episode == 0):
+            save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
+            log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
+        # else: a fresh run stopped before its first round; its starting checkpoint says all there is.
         raise
     except Exception:
         with contextlib.suppress(Exception):  # the rows of the rounds done, as far as they can be
