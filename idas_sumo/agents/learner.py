@@ -343,7 +343,7 @@ def _sample_grouped(
     ``torch.multinomial(probs[rows], 1, generator=g)`` per group, draws and generator states alike.
 
     For one sample torch's CPU multinomial is argmax(p / q) with q ~ Exp(1) drawn into a tensor of
-    ``probs[rows]``'s shape (the Gumbel-max trick; ``test_learner_update.py`` checks the equality). Drawing
+    ``probs[rows]``'s shape (the Gumbel-max trick; ``test_agents_networks.py`` checks the equality). Drawing
     each group's q and dividing and taking the argmax once for all rows does the same arithmetic with a
     tenth of the small tensor operations, which cost more than the arithmetic at rollout batch sizes. A
     masked action (probability exactly 0) gives 0 / q = 0 and an allowed one a positive ratio, so it never
