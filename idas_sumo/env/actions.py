@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, get_args
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -41,6 +42,7 @@ MIN_ACCEL_MPS2 = -2.0  # kinematic range outside hard braking
 MAX_ACCEL_MPS2 = 2.0
 MERGE_EXEMPTION_M = 100.0  # the merge car may exceed its road's limit this close to the merge point
 _TOLERANCE = 1e-6
+_JERK_STEP_MPS2 = DELTA_ACCEL_MPS2[-1]  # the largest |Δa| per step
 _DELTAS = np.asarray(DELTA_ACCEL_MPS2)
 # Candidate accelerations lie on a 1e-6-rounded grid, so distances closer than this are the same.
 _TIE_TOLERANCE_MPS2 = 1e-9
@@ -105,12 +107,9 @@ def closest_allowed_action(
 
 def kinematic_mask(prev_accel: npt.ArrayLike, cand: FloatArray | None = None) -> BoolArray:
     """Δa actions keep a in [-2, 2] m/s²; release brake only directly after a hard brake."""
-    prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
+    prev = _as_rows(prev_accel)
     cand = candidate_accelerations(prev) if cand is None else cand
-    allowed = (cand >= MIN_ACCEL_MPS2 - _TOLERANCE) & (cand <= MAX_ACCEL_MPS2 + _TOLERANCE)
-    allowed[:, HARD_BRAKE] = True
-    allowed[:, RELEASE_BRAKE] = np.isclose(prev, HARD_BRAKE_MPS2)
-    return np.asarray(allowed, dtype=np.bool_)
+    return _masks(_KINEMATIC, prev, cand)
 
 
 def effective_speed_limit(
@@ -140,25 +139,31 @@ def rule_mask(
     with every Δa action then breaking the rule: the hard brake was its only action, and learned policies
     drove saw-tooth profiles of hard brakes at the limit (5-7 per two-car representative scenario).
     """
-    cand = candidate_accelerations(prev_accel) if cand is None else cand
-    v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))[:, None]
-    limit = np.atleast_1d(np.asarray(speed_limit_mps, dtype=np.float64))[:, None]
-    allowed = v + peak_speed_gain(cand) <= limit + _TOLERANCE
-    allowed[:, HARD_BRAKE] = True
-    return np.asarray(allowed, dtype=np.bool_)
+    prev = _as_rows(prev_accel)
+    cand = candidate_accelerations(prev) if cand is None else cand
+    return _masks(_RULE, prev, cand, speed=_as_rows(speed_mps), limit=_as_rows(speed_limit_mps))
 
 
-def peak_speed_gain(accel_mps2: npt.ArrayLike) -> FloatArray:
-    """Speed gained (m/s) from driving one step at ``accel`` and then easing off to 0 at the jerk limit.
+def _peak_speed_gain(a: float) -> float:
+    """Speed gained (m/s) from driving one step at ``a`` and then easing off to 0 at the jerk limit.
 
     a > 0: steps at a, a - 0.2, ..., down to the last positive value: dt·((m+1)·a - 0.2·m(m+1)/2) with
     m = floor(a / 0.2). a <= 0: the one step's a·dt.
     """
-    a = np.asarray(accel_mps2, dtype=np.float64)
-    step = DELTA_ACCEL_MPS2[-1]
-    m = np.floor(np.maximum(a, 0.0) / step + _TOLERANCE)
-    easing = (m + 1.0) * a - step * m * (m + 1.0) / 2.0
-    return np.asarray(np.where(a > 0.0, easing, a) * STEP_LENGTH_S, dtype=np.float64)
+    if a <= 0.0:
+        return a * STEP_LENGTH_S
+    step = _JERK_STEP_MPS2
+    m = np.floor(a / step + _TOLERANCE)
+    return ((m + 1.0) * a - step * m * (m + 1.0) / 2.0) * STEP_LENGTH_S
+
+
+_peak_speed_gain_one = numba.njit(cache=True, nogil=True)(_peak_speed_gain)
+_peak_speed_gain_ufunc = numba.vectorize(["float64(float64)"], cache=True)(_peak_speed_gain)
+
+
+def peak_speed_gain(accel_mps2: npt.ArrayLike) -> FloatArray:
+    """``_peak_speed_gain`` of each acceleration (m/s²), in m/s."""
+    return np.asarray(_peak_speed_gain_ufunc(np.asarray(accel_mps2, dtype=np.float64)), dtype=np.float64)
 
 
 def safety_bound(
@@ -197,21 +202,10 @@ def safety_mask(
     actions under the bound (and the hard brake) remain, except where ``ease_in`` is set: there the
     strongest Δa step stays allowed whatever the bound (see ``MaskInputs.ease_in``).
     """
-    cand = candidate_accelerations(prev_accel) if cand is None else cand
+    prev = _as_rows(prev_accel)
+    cand = candidate_accelerations(prev) if cand is None else cand
     bound = safety_bound(speed_mps, gap_m, leader_speed_mps, params)
-    allowed = cand <= bound[:, None] + _TOLERANCE
-    comfortable = bound >= -params.comfortable_decel_mps2 - _TOLERANCE
-    if ease_in is not None:
-        comfortable |= np.asarray(ease_in, dtype=np.bool_)
-    # The strongest Δa step that stays within the kinematic range: -0.2 normally, but 0 at a = -2, so a
-    # car already braking at -2 keeps braking instead of being left with the hard brake alone.
-    # During a hard brake (a = -4) no Δa step is within the range: the mask leaves those rows alone.
-    in_range = cand[:, :N_DELTA_ACTIONS] >= MIN_ACCEL_MPS2 - _TOLERANCE
-    rows = np.arange(cand.shape[0])
-    strongest = np.argmax(in_range, axis=1)
-    allowed[rows, strongest] |= comfortable & in_range[rows, strongest]
-    allowed[:, HARD_BRAKE] = True
-    return np.asarray(allowed, dtype=np.bool_)
+    return _masks(_SAFETY, prev, cand, bound=bound, ease_in=ease_in, params=params)
 
 
 @dataclass(frozen=True)
@@ -232,18 +226,92 @@ class MaskInputs:
 
 def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDArray[np.int8]:
     """(n_agents, 7) int8 mask: kinematic ∩ rule ∩ safety."""
-    cand = candidate_accelerations(inputs.prev_accel_mps2)
-    allowed = (
-        kinematic_mask(inputs.prev_accel_mps2, cand)
-        & rule_mask(inputs.prev_accel_mps2, inputs.speed_mps, inputs.speed_limit_mps, cand)
-        & safety_mask(
-            inputs.prev_accel_mps2,
-            inputs.speed_mps,
-            inputs.gap_m,
-            inputs.leader_speed_mps,
-            params,
-            cand,
-            inputs.ease_in,
-        )
+    prev = _as_rows(inputs.prev_accel_mps2)
+    allowed = _masks(
+        _KINEMATIC | _RULE | _SAFETY,
+        prev,
+        candidate_accelerations(prev),
+        speed=_as_rows(inputs.speed_mps),
+        limit=_as_rows(inputs.speed_limit_mps),
+        bound=safety_bound(inputs.speed_mps, inputs.gap_m, inputs.leader_speed_mps, params),
+        ease_in=inputs.ease_in,
+        params=params,
     )
     return allowed.astype(np.int8)
+
+
+_KINEMATIC, _RULE, _SAFETY = 1, 2, 4
+"""Which of the three masks ``_masks`` intersects (bit flags)."""
+
+
+def _as_rows(values: npt.ArrayLike) -> FloatArray:
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(values, dtype=np.float64)))
+
+
+def _masks(
+    which: int,
+    prev: FloatArray,
+    cand: FloatArray,
+    speed: FloatArray | None = None,
+    limit: FloatArray | None = None,
+    bound: FloatArray | None = None,
+    ease_in: BoolArray | None = None,
+    params: IDMParams = DEFAULT_IDM,
+) -> BoolArray:
+    """The intersection of the masks ``which`` names (the inputs of the others are unused)."""
+    n = cand.shape[0]
+
+    def per_row(values: npt.ArrayLike | None, dtype: type = np.float64) -> npt.NDArray[np.generic]:
+        # The kernel reads row i of each input unchecked: broadcast them to n rows first.
+        return np.ascontiguousarray(
+            np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
+        )
+
+    return np.asarray(
+        _masks_kernel(
+            which,
+            per_row(prev),
+            np.ascontiguousarray(np.broadcast_to(np.asarray(cand, dtype=np.float64), (n, N_ACTIONS))),
+            per_row(speed),
+            per_row(limit),
+            per_row(bound),
+            per_row(ease_in, np.bool_),
+            -params.comfortable_decel_mps2 - _TOLERANCE,
+        ),
+        dtype=np.bool_,
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _masks_kernel(which, prev, cand, speed, limit, bound, ease_in, comfortable_floor):
+    """One pass over every agent's seven actions; the masks as the docstrings of ``kinematic_mask``,
+    ``rule_mask`` and ``safety_mask`` say. Hard brake is never masked."""
+    n = cand.shape[0]
+    allowed = np.ones((n, N_ACTIONS), dtype=np.bool_)
+    for i in range(n):
+        # np.isclose(prev, HARD_BRAKE_MPS2) with its default tolerances: directly after a hard brake.
+        after_hard_brake = abs(prev[i] - HARD_BRAKE_MPS2) <= 1e-8 + 1e-5 * abs(HARD_BRAKE_MPS2)
+        # Safety: the strongest Δa step within the kinematic range (the first one; none during a hard
+        # brake) stays allowed while IDM asks for no more than the comfortable deceleration.
+        strongest = -1
+        for j in range(N_DELTA_ACTIONS):
+            if cand[i, j] >= MIN_ACCEL_MPS2 - _TOLERANCE:
+                strongest = j
+                break
+        comfortable = bound[i] >= comfortable_floor or ease_in[i]
+        for j in range(N_ACTIONS):
+            if j == HARD_BRAKE:
+                continue
+            a = cand[i, j]
+            ok = True
+            if which & _KINEMATIC:
+                if j == RELEASE_BRAKE:
+                    ok = after_hard_brake
+                else:
+                    ok = MIN_ACCEL_MPS2 - _TOLERANCE <= a <= MAX_ACCEL_MPS2 + _TOLERANCE
+            if which & _RULE:
+                ok = ok and speed[i] + _peak_speed_gain_one(a) <= limit[i] + _TOLERANCE
+            if which & _SAFETY:
+                ok = ok and (a <= bound[i] + _TOLERANCE or (j == strongest and comfortable))
+            allowed[i, j] = ok
+    return allowed

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -63,11 +64,12 @@ from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.env.snapshot import (
     MAIN,
     MERGE,
+    NO_LEADER,
     OUT,
     TrafficSnapshot,
-    lane_relations,
     leader_speeds,
     leaders,
+    nearest_ahead,
     other_road_leaders,
 )
 from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
@@ -1021,14 +1023,8 @@ def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArra
     copy): their rows in ``before`` (one per brake that has one)."""
     if len(brake_rows) == 0:
         return np.zeros(0, dtype=np.int64)
-    nb, same, other = lane_relations(before, brake_rows)
-    ahead = before.dist_to_merge_m[brake_rows][:, None] - before.dist_to_merge_m[nb.cols]
-    candidates = (same | other) & (ahead >= 0.0) & (ahead <= VISIBILITY_M)
-    distance = np.where(candidates, ahead, np.inf)
-    rows = np.arange(len(brake_rows))
-    col = np.argmin(distance, axis=1)
-    found = np.isfinite(distance[rows, col])
-    return np.asarray(nb.cols[rows, col][found], dtype=np.int64)
+    ahead, _ = nearest_ahead(before, brake_rows, any_lane=True, level_counts=True, max_ahead_m=VISIBILITY_M)
+    return np.asarray(ahead[ahead != NO_LEADER], dtype=np.int64)
 
 
 def geometric_collisions(
@@ -1058,29 +1054,43 @@ def geometric_collisions(
     d = snap.dist_to_merge_m
     copy = snap.copy if snap.copy is not None else np.zeros(n, dtype=np.int64)
     order = np.lexsort((d, copy))
-    d_sorted, copy_sorted = d[order], copy[order]
-    reach = float(snap.length_m.max())
-    found_i: list[IntArray] = []
-    found_j: list[IntArray] = []
-    for offset in range(1, n):
-        near = (copy_sorted[offset:] == copy_sorted[:-offset]) & (
-            d_sorted[offset:] - d_sorted[:-offset] <= reach
-        )
-        if not near.any():
-            break  # sorted: a farther offset has no nearer pair either
-        k = np.flatnonzero(near)
-        found_i.append(order[k])
-        found_j.append(order[k + offset])
-    if not found_i:
-        return []
-    i = np.concatenate(found_i)
-    j = np.concatenate(found_j)
-    joined = d < -np.broadcast_to(np.asarray(joined_past_m, dtype=np.float64), d.shape)
-    one_road = (origin[i] == origin[j]) | (joined[i] & joined[j])
-    overlap = (d[i] < d[j] + snap.length_m[j]) & (d[j] < d[i] + snap.length_m[i])
-    keep = one_road & overlap
-    lo, hi = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
-    return sorted(zip(lo.tolist(), hi.tolist(), strict=True))
+    joined_past = np.broadcast_to(np.asarray(joined_past_m, dtype=np.float64), d.shape)
+    pairs = _overlapping_pairs(
+        order,
+        np.ascontiguousarray(d, dtype=np.float64),
+        np.ascontiguousarray(copy, dtype=np.int64),
+        np.ascontiguousarray(snap.length_m, dtype=np.float64),
+        np.ascontiguousarray(origin, dtype=np.int64),
+        np.ascontiguousarray(joined_past),
+        float(snap.length_m.max()),
+    )
+    return sorted(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist(), strict=True))
+
+
+@numba.njit(cache=True, nogil=True)
+def _overlapping_pairs(order, d, copy, length, origin, joined_past, reach):
+    """(pairs, 2) rows (lower, higher) of ``geometric_collisions``' colliding pairs, in scan order. Sorted
+    by (copy, distance), each car only meets the next ones of its copy until one is farther than
+    ``reach`` (the longest car) ahead of it."""
+    n = order.shape[0]
+    found = np.empty((0, 2), dtype=np.int64)
+    for count_only in (True, False):
+        m = 0
+        for p in range(n):
+            i = order[p]
+            for q in range(p + 1, n):
+                j = order[q]
+                if copy[j] != copy[i] or d[j] - d[i] > reach:
+                    break
+                one_road = origin[i] == origin[j] or (d[i] < -joined_past[i] and d[j] < -joined_past[j])
+                if one_road and d[i] < d[j] + length[j] and d[j] < d[i] + length[i]:
+                    if not count_only:
+                        found[m, 0] = min(i, j)
+                        found[m, 1] = max(i, j)
+                    m += 1
+        if count_only:
+            found = np.empty((m, 2), dtype=np.int64)
+    return found
 
 
 def _empty_snapshot() -> TrafficSnapshot:

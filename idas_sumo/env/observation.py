@@ -1,7 +1,8 @@
-"""The paper's observation, built for all agents at once with numpy (layout in ``layout.py``)."""
+"""The paper's observation, built for all agents at once (layout in ``layout.py``)."""
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -17,7 +18,7 @@ from idas_sumo.env.layout import (
     SCALAR_SCALES,
     VISIBILITY_M,
 )
-from idas_sumo.env.snapshot import TrafficSnapshot, lane_relations
+from idas_sumo.env.snapshot import TrafficSnapshot, copy_spans, same_lane
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -39,31 +40,48 @@ def _draw_grids(
 ) -> None:
     """Draw the grids (``build_grids``' layout) of ego i into ``flat[i * row_size + offset:]``, zeroed.
 
-    One flat index per touched cell, written by 1-D fancy assignment (3-4x faster than indexing the 4-D
-    grid). Overlapping bodies write in (ego, vehicle) order, the last one winning.
+    One compiled loop over each ego's copy (``snapshot.copy_spans``), in (ego, vehicle) order:
+    overlapping bodies' speeds are written in that order, the last one winning.
     """
     if len(egos) == 0:
         return
-    nb, same, other = lane_relations(snapshot, egos)
-    dist = snapshot.dist_to_merge_m
-    ahead_front = dist[egos][:, None] - dist[nb.cols]  # (egos, neighbourhood)
-    ahead_rear = ahead_front - snapshot.length_m[nb.cols]
-    first = np.floor((ahead_rear + VISIBILITY_M) / CELL_M).astype(np.int64)
-    last = np.floor((ahead_front + VISIBILITY_M) / CELL_M).astype(np.int64)
-    e, v = np.nonzero((same | other) & (last >= 0) & (first < GRID_CELLS))
-    if len(e) == 0:
-        return
-    first_cell = np.clip(first[e, v], 0, GRID_CELLS - 1)
-    counts = np.clip(last[e, v], 0, GRID_CELLS - 1) - first_cell + 1  # cells each body touches
-    lane_base = np.where(other[e, v], N_CHANNELS * GRID_CELLS, 0)  # obs_ol after obs_cl's two channels
-    start = e * row_size + offset + lane_base + first_cell
-    # Consecutive cells per body: arange over all of them, shifted per body to its start.
-    ends = np.cumsum(counts)
-    index = np.arange(int(ends[-1])) + np.repeat(start - (ends - counts), counts)
-    speed = snapshot.speed_mps
-    rel_speed = (speed[nb.cols[e, v]] - speed[egos[e]]) / RELATIVE_SPEED_SCALE_MPS
-    flat[index] = 1.0
-    flat[index + GRID_CELLS] = np.repeat(rel_speed, counts)
+    egos = np.ascontiguousarray(egos, dtype=np.int64)
+    copy, lo, hi = copy_spans(snapshot, egos)
+    _draw_grids_kernel(
+        flat,
+        row_size,
+        offset,
+        snapshot.road,
+        snapshot.dist_to_merge_m,
+        snapshot.length_m,
+        snapshot.speed_mps,
+        copy,
+        lo,
+        hi,
+        egos,
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _draw_grids_kernel(flat, row_size, offset, road, dist, length, speed, copy, lo, hi, egos):
+    for r in range(egos.shape[0]):
+        e = egos[r]
+        for j in range(lo[r], hi[r]):
+            if j == e or copy[j] != copy[e]:
+                continue
+            # Cells are counted from VISIBILITY_M behind the ego's front bumper; a body touches
+            # [first, last], rear bumper to front bumper, and is drawn where that meets the grid.
+            ahead_front = dist[e] - dist[j]
+            first = np.floor((ahead_front - length[j] + VISIBILITY_M) / CELL_M)
+            last = np.floor((ahead_front + VISIBILITY_M) / CELL_M)
+            if last < 0.0 or first >= GRID_CELLS:
+                continue
+            lane_base = 0 if same_lane(road[e], road[j]) else N_CHANNELS * GRID_CELLS  # obs_ol after obs_cl
+            start = r * row_size + offset + lane_base
+            rel_speed = (speed[j] - speed[e]) / RELATIVE_SPEED_SCALE_MPS
+            for cell in range(int(max(first, 0.0)), int(min(last, GRID_CELLS - 1.0)) + 1):
+                flat[start + cell] = 1.0
+                flat[start + GRID_CELLS + cell] = rel_speed
 
 
 def build_observations(
