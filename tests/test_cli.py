@@ -349,7 +349,7 @@ def test_stopped_evaluate_exits_and_leaves_nothing(
 ) -> None:
     """Ctrl-C or SIGTERM mid-run: no CSV, no temp file, and no empty directory the run made (here the
     default results/<method>-<suite>-<seed> and results/ itself)."""
-    args = evaluate_args(tmp_path, net_path, "--scenarios", "200")
+    args = evaluate_args(tmp_path, net_path, "--scenarios", "5000")
     args = args[: args.index("--out")] + args[args.index("--out") + 2 :]  # the default --out
     proc = subprocess.Popen(
         [sys.executable, "-m", "idas_sumo.cli", *args],

@@ -55,18 +55,43 @@ def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> Floa
     )
     if np.any((act < 0) | (act >= N_ACTIONS)):
         raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
-    cand = candidate_accelerations(prev.ravel())
-    return np.asarray(cand[np.arange(cand.shape[0]), act.ravel()].reshape(act.shape), dtype=np.float64)
+    flat_prev, flat_act = np.ascontiguousarray(prev.ravel()), np.ascontiguousarray(act.ravel())
+    return np.asarray(_next_accelerations(flat_prev, flat_act).reshape(act.shape), dtype=np.float64)
 
 
 def candidate_accelerations(prev_accel: npt.ArrayLike) -> FloatArray:
     """(n_agents, 7) acceleration each action would produce."""
-    prev = np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))
+    return np.asarray(
+        _candidates(np.ascontiguousarray(np.atleast_1d(np.asarray(prev_accel, dtype=np.float64))))
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _candidate(prev: float, action: int) -> float:
+    """The acceleration (m/s²) ``action`` produces after ``prev``."""
+    if action == HARD_BRAKE:
+        return HARD_BRAKE_MPS2
+    if action == RELEASE_BRAKE:
+        return RELEASE_BRAKE_MPS2
+    # np.round(·, 6) as numpy computes it (·10⁶, rint, /10⁶): keeps the 0.1 grid exact.
+    return float(np.rint((prev + _DELTAS[action]) * 1e6) / 1e6)
+
+
+@numba.njit(cache=True, nogil=True)
+def _candidates(prev):
     cand = np.empty((prev.shape[0], N_ACTIONS))
-    cand[:, :N_DELTA_ACTIONS] = np.round(prev[:, None] + _DELTAS, 6)  # keep the 0.1 grid exact
-    cand[:, HARD_BRAKE] = HARD_BRAKE_MPS2
-    cand[:, RELEASE_BRAKE] = RELEASE_BRAKE_MPS2
+    for i in range(prev.shape[0]):
+        for j in range(N_ACTIONS):
+            cand[i, j] = _candidate(prev[i], j)
     return cand
+
+
+@numba.njit(cache=True, nogil=True)
+def _next_accelerations(prev, actions):
+    accel = np.empty(prev.shape[0])
+    for i in range(prev.shape[0]):
+        accel[i] = _candidate(prev[i], actions[i])
+    return accel
 
 
 def closest_allowed_action(
@@ -263,6 +288,8 @@ def _masks(
 
     def per_row(values: npt.ArrayLike | None, dtype: type = np.float64) -> npt.NDArray[np.generic]:
         # The kernel reads row i of each input unchecked: broadcast them to n rows first.
+        if isinstance(values, np.ndarray) and values.shape == (n,) and values.dtype == dtype:
+            return np.ascontiguousarray(values)
         return np.ascontiguousarray(
             np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
         )

@@ -850,11 +850,17 @@ class MergeEngine:
             collided[:] = [a in events.copies[k].collided for a, k in zip(batch.ids, copies, strict=True)]
         finished = np.zeros(n, dtype=np.bool_)
         finished[present] = after.dist_to_merge_m[new_row[present]] <= -FINISH_DISTANCE_PAST_MERGE_M
-        code = np.select(
-            [collided, ~present, finished],
-            [_REASON_CODE["collided"], _REASON_CODE["removed"], _REASON_CODE["finished"]],
-            default=_REASON_CODE["timeout" if self.timed_out() else ""],
-        )
+        code = np.where(  # the first reason that holds, in this order (np.select, at a third of its cost)
+            collided,
+            _REASON_CODE["collided"],
+            np.where(
+                ~present,
+                _REASON_CODE["removed"],
+                np.where(
+                    finished, _REASON_CODE["finished"], _REASON_CODE["timeout" if self.timed_out() else ""]
+                ),
+            ),
+        ).astype(np.int64)
         reasons = [_REASON_BY_CODE[c] for c in code.tolist()]
 
         parts = np.zeros((n, len(REWARD_PART_NAMES)))
