@@ -183,12 +183,22 @@ def _peak_speed_gain(a: float) -> float:
 
 
 _peak_speed_gain_one = numba.njit(cache=True, nogil=True)(_peak_speed_gain)
-_peak_speed_gain_ufunc = numba.vectorize(["float64(float64)"], cache=True)(_peak_speed_gain)
+
+
+@numba.njit(cache=True, nogil=True)
+def _peak_speed_gains(accel):
+    gain = np.empty(accel.shape[0])
+    for i in range(accel.shape[0]):
+        gain[i] = _peak_speed_gain_one(accel[i])
+    return gain
 
 
 def peak_speed_gain(accel_mps2: npt.ArrayLike) -> FloatArray:
     """``_peak_speed_gain`` of each acceleration (m/s²), in m/s."""
-    return np.asarray(_peak_speed_gain_ufunc(np.asarray(accel_mps2, dtype=np.float64)), dtype=np.float64)
+    accel = np.asarray(accel_mps2, dtype=np.float64)
+    return np.asarray(
+        _peak_speed_gains(np.ascontiguousarray(accel.ravel())).reshape(accel.shape), dtype=np.float64
+    )
 
 
 def safety_bound(
