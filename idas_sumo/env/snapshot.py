@@ -40,6 +40,9 @@ class TrafficSnapshot:
     """The limit the rule mask enforces for this vehicle now (merge exemption included)."""
     copy: IntArray | None = None
     """Which copy of the merge each vehicle drives in (None: all in one)."""
+    known_copy_bounds: IntArray | None = None
+    """``copy_bounds`` where the maker already has them (copy k's rows bounds[k]:bounds[k + 1]; there may
+    be entries for empty copies past the last vehicle's), to save working them out again."""
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -58,7 +61,9 @@ class TrafficSnapshot:
     @functools.cached_property
     def copy_bounds(self) -> IntArray | None:
         """Where each copy's vehicles start (K + 1 entries), if they come copy by copy; else None."""
-        return None if self.copy is None else _copy_bounds(self.copy)
+        if self.copy is None:
+            return None
+        return self.known_copy_bounds if self.known_copy_bounds is not None else _copy_bounds(self.copy)
 
 
 @dataclass(frozen=True)
