@@ -18,7 +18,7 @@ from idas_sumo.env.layout import (
     SCALAR_SCALES,
     VISIBILITY_M,
 )
-from idas_sumo.env.snapshot import TrafficSnapshot, copy_spans, same_lane
+from idas_sumo.env.snapshot import TrafficSnapshot, same_lane
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -40,13 +40,15 @@ def _draw_grids(
 ) -> None:
     """Draw the grids (``build_grids``' layout) of ego i into ``flat[i * row_size + offset:]``, zeroed.
 
-    One compiled loop over each ego's copy (``snapshot.copy_spans``), in (ego, vehicle) order:
-    overlapping bodies' speeds are written in that order, the last one winning.
+    One compiled loop over the egos. Each looks up the vehicles of its copy within sight in the
+    snapshot's distance order (``DistanceOrder``) and draws them in (ego, vehicle) order, snapshot
+    order within an ego: overlapping bodies' speeds are written in that order, the last one winning.
     """
     if len(egos) == 0:
         return
     egos = np.ascontiguousarray(egos, dtype=np.int64)
-    copy, lo, hi = copy_spans(snapshot, egos)
+    by_dist = snapshot.by_distance
+    lo, hi = by_dist.spans(snapshot, egos)
     _draw_grids_kernel(
         flat,
         row_size,
@@ -55,19 +57,33 @@ def _draw_grids(
         snapshot.dist_to_merge_m,
         snapshot.length_m,
         snapshot.speed_mps,
-        copy,
+        by_dist.order,
+        by_dist.sorted_dist,
         lo,
         hi,
         egos,
+        float(snapshot.length_m.max()),
     )
 
 
 @numba.njit(cache=True, nogil=True)
-def _draw_grids_kernel(flat, row_size, offset, road, dist, length, speed, copy, lo, hi, egos):
+def _draw_grids_kernel(
+    flat, row_size, offset, road, dist, length, speed, order, sorted_dist, lo, hi, egos, longest
+):
+    seen = np.empty(order.shape[0], dtype=np.int64)
     for r in range(egos.shape[0]):
         e = egos[r]
-        for j in range(lo[r], hi[r]):
-            if j == e or copy[j] != copy[e]:
+        # Every body that can touch the grid lies within sight plus the longest body (1 m to spare for
+        # rounding): the exact tests below decide, on the same numbers as before the window.
+        near = sorted_dist[lo[r] : hi[r]]
+        a = lo[r] + np.searchsorted(near, dist[e] - VISIBILITY_M - longest - 1.0, side="left")
+        b = lo[r] + np.searchsorted(near, dist[e] + VISIBILITY_M + 1.0, side="right")
+        m = b - a
+        seen[:m] = order[a:b]
+        seen[:m].sort()
+        for i in range(m):
+            j = seen[i]
+            if j == e:
                 continue
             # Cells are counted from VISIBILITY_M behind the ego's front bumper; a body touches
             # [first, last], rear bumper to front bumper, and is drawn where that meets the grid.

@@ -59,6 +59,11 @@ class TrafficSnapshot:
         return vehicle_id in self._lookup
 
     @functools.cached_property
+    def by_distance(self) -> DistanceOrder:
+        """The rows sorted by (copy, distance to the merge point), for searching relations."""
+        return DistanceOrder.of(self)
+
+    @functools.cached_property
     def copy_bounds(self) -> IntArray | None:
         """Where each copy's vehicles start (K + 1 entries), if they come copy by copy; else None."""
         if self.copy is None:
@@ -140,16 +145,19 @@ def nearest_ahead(
     NO_LEADER, how far ahead in m, inf without one). Ahead means by more than 0 m, or by 0 m too with
     ``level_counts``, and by at most ``max_ahead_m``. Ties go to the first vehicle in snapshot order.
 
-    The same relation as the (ego, neighbourhood) matrices of ``lane_relations``, as one compiled loop
-    over each ego's copy: the matrices cost a few dozen numpy calls per step, which at 8 cars a copy
-    cost more than SUMO's own step of those cars.
+    The same relation as the (ego, neighbourhood) matrices of ``lane_relations``, as a compiled walk
+    from the ego down its copy's vehicles sorted by distance (``DistanceOrder``), which stops at the
+    first candidate: the matrices cost a few dozen numpy calls per step (at 8 cars a copy more than
+    SUMO's own step of those cars) and grew as N x N in one world.
     """
     egos = np.ascontiguousarray(egos, dtype=np.int64)
-    copy, lo, hi = copy_spans(snapshot, egos)
+    by_dist = snapshot.by_distance
+    lo, hi = by_dist.spans(snapshot, egos)
     return _nearest_ahead_kernel(
         snapshot.road,
         snapshot.dist_to_merge_m,
-        copy,
+        by_dist.order,
+        by_dist.sorted_dist,
         lo,
         hi,
         egos,
@@ -159,19 +167,36 @@ def nearest_ahead(
     )
 
 
-def copy_spans(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, IntArray, IntArray]:
-    """(each vehicle's copy, and per ego the [lo, hi) span of snapshot rows to scan for its copy's
-    vehicles): the copy's own rows when copies come in order, else every row (the copy is checked)."""
-    n = len(snapshot)
-    if snapshot.copy is None:
-        copy = np.zeros(n, dtype=np.int64)
-        return copy, np.zeros(len(egos), dtype=np.int64), np.full(len(egos), n, dtype=np.int64)
-    copy = np.ascontiguousarray(snapshot.copy, dtype=np.int64)
-    bounds = snapshot.copy_bounds
-    if bounds is None:
-        return copy, np.zeros(len(egos), dtype=np.int64), np.full(len(egos), n, dtype=np.int64)
-    ego_copy = copy[egos]
-    return copy, bounds[ego_copy], bounds[ego_copy + 1]
+@dataclass(frozen=True)
+class DistanceOrder:
+    """The snapshot's rows sorted by (copy, distance to the merge point): copy k's vehicles are
+    ``order[starts[k]:starts[k + 1]]``, nearest the finish first. Relations search it instead of
+    scanning every vehicle of a copy."""
+
+    order: IntArray
+    sorted_dist: FloatArray
+    starts: IntArray
+
+    @staticmethod
+    def of(snapshot: TrafficSnapshot) -> DistanceOrder:
+        dist = np.ascontiguousarray(snapshot.dist_to_merge_m, dtype=np.float64)
+        if snapshot.copy is None:
+            order = np.argsort(dist, kind="stable")
+            starts = np.array([0, len(dist)], dtype=np.int64)
+        else:
+            copy = np.asarray(snapshot.copy, dtype=np.int64)
+            order = np.lexsort((dist, copy))
+            n_copies = int(copy.max()) + 1 if len(copy) else 0
+            starts = np.searchsorted(copy[order], np.arange(n_copies + 1)).astype(np.int64)
+        order = order.astype(np.int64)
+        return DistanceOrder(order=order, sorted_dist=dist[order], starts=starts)
+
+    def spans(self, snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, IntArray]:
+        """Per ego, where its copy's vehicles lie in ``order``: [lo, hi)."""
+        if snapshot.copy is None:
+            return np.zeros(len(egos), dtype=np.int64), np.full(len(egos), len(self.order), dtype=np.int64)
+        ego_copy = np.asarray(snapshot.copy, dtype=np.int64)[egos]
+        return self.starts[ego_copy], self.starts[ego_copy + 1]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -184,17 +209,25 @@ def same_lane(ego_road: int, road: int) -> bool:
 
 
 @numba.njit(cache=True, nogil=True)
-def _nearest_ahead_kernel(road, dist, copy, lo, hi, egos, any_lane, level_counts, max_ahead_m):
+def _nearest_ahead_kernel(road, dist, order, sorted_dist, lo, hi, egos, any_lane, level_counts, max_ahead_m):
     n_egos = egos.shape[0]
     nearest = np.full(n_egos, NO_LEADER, dtype=np.int64)
     best = np.full(n_egos, np.inf)
     for r in range(n_egos):
         e = egos[r]
-        for j in range(lo[r], hi[r]):
-            if j == e or copy[j] != copy[e] or not (any_lane or same_lane(road[e], road[j])):
+        # Down the copy's vehicles from the last one level with the ego: each is at least as far ahead as
+        # the one before (rounded subtraction is monotone), so the walk stops past the nearest, after any
+        # that tie with it (the first row wins a tie, as in a scan in snapshot order).
+        p = lo[r] + np.searchsorted(sorted_dist[lo[r] : hi[r]], dist[e], side="right") - 1
+        while p >= lo[r]:
+            j = order[p]
+            p -= 1
+            if j == e or not (any_lane or same_lane(road[e], road[j])):
                 continue
             ahead = dist[e] - dist[j]
-            if (ahead > 0.0 or (level_counts and ahead == 0.0)) and ahead <= max_ahead_m and ahead < best[r]:
+            if ahead > max_ahead_m or ahead > best[r]:
+                break
+            if (ahead > 0.0 or (level_counts and ahead == 0.0)) and (ahead < best[r] or j < nearest[r]):
                 best[r] = ahead
                 nearest[r] = j
     return nearest, best
