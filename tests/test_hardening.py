@@ -694,6 +694,38 @@ def test_non_finite_observation_names_the_agent(parallel_env: Any, monkeypatch: 
         parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
 
 
+@pytest.mark.parametrize("speed", [np.nan, np.inf, 1e40])
+def test_a_non_finite_relative_speed_in_a_grid_names_the_agent(speed: float) -> None:
+    """The observation check tests every entry only when the speeds could make a grid non-finite; a car in
+    sight with such a speed (NaN, inf, or a spread beyond float32) is caught there, not missed."""
+    from idas_sumo.env.engine import AgentBatch
+    from idas_sumo.env.snapshot import MAIN, TrafficSnapshot
+    from idas_sumo.errors import SimulationError
+
+    snapshot = TrafficSnapshot(
+        ids=("ego", "ahead"),
+        road=np.array([MAIN, MAIN]),
+        dist_to_merge_m=np.array([80.0, 60.0]),
+        speed_mps=np.array([10.0, speed]),
+        accel_mps2=np.zeros(2),
+        length_m=np.full(2, 5.0),
+        speed_limit_mps=np.full(2, 20.0),
+    )
+    batch = AgentBatch(
+        ids=("ego",),
+        copy=np.zeros(1, dtype=np.int64),
+        egos=np.array([0]),
+        prev_accel=np.zeros(1),
+        masks=np.ones((1, 7), dtype=np.int8),
+        snapshot=snapshot,
+        b_prio=np.zeros(1),
+        b_type=np.zeros(1),
+        time_s=3.0,
+    )
+    with pytest.raises(SimulationError, match=r"non-finite observation for agent 'ego' at t = 3.0 s"):
+        _ = batch.obs
+
+
 @pytest.mark.sumo
 def test_vehicle_removed_by_sumo_is_accounted_for(parallel_env: Any) -> None:
     parallel_env.sim.backend.raw_call("vehicle", "remove", "g0")

@@ -45,7 +45,9 @@ from idas_sumo.env.layout import (
     ACCEL_SCALE_MPS2,
     B_TYPE_SCALE,
     DIST_SCALE_M,
+    N_SCALARS,
     OBS_DIM,
+    RELATIVE_SPEED_SCALE_MPS,
     SPEED_SCALE_MPS,
     VISIBILITY_M,
 )
@@ -196,6 +198,10 @@ class EpisodeOutcome:
 # -- what the policies see -------------------------------------------------------------------------
 
 
+_FLOAT32_SAFE = 3e38
+"""Below float32's largest value (3.4e38) with room for rounding: a relative speed under it stays finite."""
+
+
 @dataclass
 class AgentBatch:
     """Every active agent of every copy at one step (row i: agent ``ids[i]`` of copy ``copy[i]``)."""
@@ -226,14 +232,17 @@ class AgentBatch:
         if not len(self.ids):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
         obs = build_observations(self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type)
-        # One sum finds a NaN or inf anywhere (its terms are far too small to overflow), at a fifth of
-        # the cost of testing every entry; only then is the culprit looked for.
-        if not np.isfinite(obs.sum()):
+        # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
+        # scalars or the speeds are not is every entry tested (a fifth of a step's observation time).
+        speed = self.snapshot.speed_mps
+        spread = float(np.ptp(speed)) if len(speed) else 0.0
+        if not (np.isfinite(obs[:, :N_SCALARS]).all() and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
-            bad = self.ids[int(np.argmin(finite))]
-            raise SimulationError(
-                f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
-            )
+            if not finite.all():
+                bad = self.ids[int(np.argmin(finite))]
+                raise SimulationError(
+                    f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
+                )
         return obs
 
     @functools.cached_property

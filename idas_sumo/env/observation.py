@@ -90,14 +90,15 @@ def _draw_grids_kernel(
             ahead_front = dist[e] - dist[j]
             first = np.floor((ahead_front - length[j] + VISIBILITY_M) / CELL_M)
             last = np.floor((ahead_front + VISIBILITY_M) / CELL_M)
-            if last < 0.0 or first >= GRID_CELLS:
+            if not (last >= 0.0 and first < GRID_CELLS):  # (written so that a NaN is never drawn)
                 continue
             lane_base = 0 if same_lane(road[e], road[j]) else N_CHANNELS * GRID_CELLS  # obs_ol after obs_cl
             start = r * row_size + offset + lane_base
             rel_speed = (speed[j] - speed[e]) / RELATIVE_SPEED_SCALE_MPS
-            for cell in range(int(max(first, 0.0)), int(min(last, GRID_CELLS - 1.0)) + 1):
-                flat[start + cell] = 1.0
-                flat[start + GRID_CELLS + cell] = rel_speed
+            cells_from = start + int(max(first, 0.0))
+            cells_to = start + int(min(last, GRID_CELLS - 1.0)) + 1
+            flat[cells_from:cells_to] = 1.0
+            flat[cells_from + GRID_CELLS : cells_to + GRID_CELLS] = rel_speed
 
 
 def build_observations(
