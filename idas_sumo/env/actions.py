@@ -13,10 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, get_args
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from idas_sumo.env.jit import kernel
 from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration
 from idas_sumo.sim.backend import STEP_LENGTH_S  # one decision per SUMO step (5 Hz)
 
@@ -66,7 +66,7 @@ def candidate_accelerations(prev_accel: npt.ArrayLike) -> FloatArray:
     )
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _candidate(prev: float, action: int) -> float:
     """The acceleration (m/s²) ``action`` produces after ``prev``."""
     if action == HARD_BRAKE:
@@ -77,7 +77,7 @@ def _candidate(prev: float, action: int) -> float:
     return float(np.rint((prev + _DELTAS[action]) * 1e6) / 1e6)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _candidates(prev):
     cand = np.empty((prev.shape[0], N_ACTIONS))
     for i in range(prev.shape[0]):
@@ -86,7 +86,7 @@ def _candidates(prev):
     return cand
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _next_accelerations(prev, actions):
     accel = np.empty(prev.shape[0])
     for i in range(prev.shape[0]):
@@ -182,10 +182,10 @@ def _peak_speed_gain(a: float) -> float:
     return ((m + 1.0) * a - step * m * (m + 1.0) / 2.0) * STEP_LENGTH_S
 
 
-_peak_speed_gain_one = numba.njit(cache=True, nogil=True)(_peak_speed_gain)
+_peak_speed_gain_one = kernel(_peak_speed_gain)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _peak_speed_gains(accel):
     gain = np.empty(accel.shape[0])
     for i in range(accel.shape[0]):
@@ -319,7 +319,7 @@ def _masks(
     )
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _masks_kernel(which, prev, cand, speed, limit, bound, ease_in, comfortable_floor):
     """One pass over every agent's seven actions; the masks as the docstrings of ``kinematic_mask``,
     ``rule_mask`` and ``safety_mask`` say. Hard brake is never masked."""

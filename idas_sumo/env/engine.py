@@ -22,7 +22,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -41,6 +40,7 @@ from idas_sumo.env.actions import (
     next_acceleration,
     safety_bound,
 )
+from idas_sumo.env.jit import kernel
 from idas_sumo.env.layout import (
     ACCEL_SCALE_MPS2,
     B_TYPE_SCALE,
@@ -1112,7 +1112,7 @@ def geometric_collisions(
     return sorted(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist(), strict=True))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _overlapping_pairs(order, d, copy, length, origin, joined_past, reach):
     """(pairs, 2) rows (lower, higher) of ``geometric_collisions``' colliding pairs, in scan order. Sorted
     by (copy, distance), each car only meets the next ones of its copy until one is farther than

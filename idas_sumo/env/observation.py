@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from idas_sumo.env.jit import kernel
 from idas_sumo.env.layout import (
     CELL_M,
     GRID_CELLS,
@@ -66,7 +66,7 @@ def _draw_grids(
     )
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _draw_grids_kernel(
     flat, row_size, offset, road, dist, length, speed, order, sorted_dist, lo, hi, egos, longest
 ):

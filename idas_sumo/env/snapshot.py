@@ -11,9 +11,10 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import numpy.typing as npt
+
+from idas_sumo.env.jit import kernel
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -199,7 +200,7 @@ class DistanceOrder:
         return self.starts[ego_copy], self.starts[ego_copy + 1]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def same_lane(ego_road: int, road: int) -> bool:
     """``lane_relations``' same lane, for one pair: an incoming road shares its lane with the outgoing
     road; the outgoing road only with itself. Every other vehicle of the copy is on the other lane."""
@@ -208,7 +209,7 @@ def same_lane(ego_road: int, road: int) -> bool:
     return road == OUT
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nearest_ahead_kernel(road, dist, order, sorted_dist, lo, hi, egos, any_lane, level_counts, max_ahead_m):
     n_egos = egos.shape[0]
     nearest = np.full(n_egos, NO_LEADER, dtype=np.int64)

@@ -1,0 +1,25 @@
+"""The engine's compiled loops: ``numba.njit``, with the machine code cached on disk where numba can write.
+
+numba compiles a kernel on its first call (about 2 s for all of the engine's) and, with ``cache=True``, keeps
+the machine code beside the source or in the user's cache directory, whichever it can write first, so later
+processes only load it. Where it can write neither (a read-only install and no writable home), ``cache=True``
+fails as the module is imported; ``kernel`` then compiles without a disk cache, once per process.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
+import numba
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def kernel(func: F) -> F:
+    """``func`` compiled by numba (nopython, releasing the GIL), cached on disk where possible."""
+    try:
+        compiled = numba.njit(cache=True, nogil=True)(func)
+    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+        compiled = numba.njit(nogil=True)(func)
+    return cast(F, compiled)
