@@ -1098,7 +1098,7 @@ def geometric_collisions(
         return []
     d = snap.dist_to_merge_m
     copy = snap.copy if snap.copy is not None else np.zeros(n, dtype=np.int64)
-    order = np.lexsort((d, copy))
+    order = snap.by_distance.order  # by (copy, distance), shared with the step's relations and grids
     joined_past = np.broadcast_to(np.asarray(joined_past_m, dtype=np.float64), d.shape)
     pairs = _overlapping_pairs(
         order,
