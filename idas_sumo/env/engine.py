@@ -853,8 +853,8 @@ class MergeEngine:
         # chose the hard brake, then SUMO-driven cars of acting copies that braked hard on their own.
         agent_brake = applied == HARD_BRAKE
         brake_rows = [int(r) for r in batch.egos[agent_brake]]
-        for i in np.flatnonzero(after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2).tolist():
-            k = int(self._copy_of(after, i))
+        braking = np.flatnonzero(after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2)
+        for i, k in zip(braking.tolist(), self._copy_of(after, braking).tolist(), strict=True):
             slot = self.slots[k]
             vid = after.ids[i]
             if k in acting_copies and vid not in slot.active and vid in rows_before[k]:
