@@ -187,8 +187,11 @@ class DistanceOrder:
         else:
             copy = np.asarray(snapshot.copy, dtype=np.int64)
             order = np.lexsort((dist, copy))
-            n_copies = int(copy.max()) + 1 if len(copy) else 0
-            starts = np.searchsorted(copy[order], np.arange(n_copies + 1)).astype(np.int64)
+            if snapshot.known_copy_bounds is not None:  # sorted by copy first: each copy keeps its row span
+                starts = np.asarray(snapshot.known_copy_bounds, dtype=np.int64)
+            else:
+                n_copies = int(copy.max()) + 1 if len(copy) else 0
+                starts = np.searchsorted(copy[order], np.arange(n_copies + 1)).astype(np.int64)
         order = order.astype(np.int64)
         return DistanceOrder(order=order, sorted_dist=dist[order], starts=starts)
 
