@@ -291,6 +291,45 @@ def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
 
 
 @pytest.mark.sumo
+def test_timeout_variant_charges_the_unearned_finish_and_ends_the_agent(net_path: Path) -> None:
+    """RewardConfig.timeout: under 'free' (the default) a car the time limit cuts off gets nothing and
+    bootstraps (done 0, a next observation); under 'forfeit_finish' the same episode, same actions, differs
+    only in those last rows: reward -(15·b_type + 50)/4 and done 1 (nothing to bootstrap)."""
+    from idas_sumo.agents.rollout import RolloutTask, collect_episodes
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
+    from idas_sumo.env.rewards import RewardConfig, finish_reward
+    from idas_sumo.env.scenario import Scenario, VehicleSpec
+
+    scenario = Scenario(  # far from the merge: in 3 s nobody finishes, every car times out
+        "far",
+        (
+            VehicleSpec("m0", "main", 20.0, 10.0, b_type=-2.0),
+            VehicleSpec("m1", "main", 60.0, 10.0, b_type=1.0),
+            VehicleSpec("r0", "merge", 30.0, 10.0, b_type=2.0),
+        ),
+    )
+    runs = {}
+    for price in ("free", "forfeit_finish"):
+        config = EnvConfig(max_episode_s=3.0, reward=RewardConfig(timeout=price))  # type: ignore[arg-type]
+        engine = MergeEngine(net_path, copies=1, config=config)
+        try:
+            runs[price] = collect_episodes(engine, Learner(LearnerConfig(), seed=0), [RolloutTask(scenario, 7)])[0]
+        finally:
+            engine.close()
+    free, forfeit = runs["free"], runs["forfeit_finish"]
+    assert free.stats.end_reasons == forfeit.stats.end_reasons == dict.fromkeys(("m0", "m1", "r0"), "timeout")
+    np.testing.assert_array_equal(free.action, forfeit.action)
+    last = free.next_row < 0
+    assert last.sum() == 3
+    assert (free.done[last] == 0).all() and (free.next_obs_index[last] >= 0).all()
+    assert (forfeit.done[last] == 1).all() and (forfeit.next_obs_index[last] == -1).all()
+    np.testing.assert_array_equal(free.reward[~last], forfeit.reward[~last])
+    charged = sorted((forfeit.reward[last] - free.reward[last]).tolist())
+    assert charged == sorted(-finish_reward([-2.0, 1.0, 2.0]))  # -5, -16.25, -20
+    assert forfeit.stats.reward_parts["finish"] == -41.25 and free.stats.reward_parts["finish"] == 0.0
+
+
+@pytest.mark.sumo
 def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
     from idas_sumo.training.loop import run_training
 

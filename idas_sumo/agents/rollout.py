@@ -47,7 +47,8 @@ __all__ = [
 ]
 
 DONE_REASONS = frozenset({"finished", "collided", "removed"})
-"""End reasons after which nothing is bootstrapped (a timeout is not one of them)."""
+"""End reasons after which nothing is bootstrapped (a timeout is not one of them, unless the reward variant
+``RewardConfig.timeout`` = 'forfeit_finish' makes it an end)."""
 
 
 @dataclass
@@ -228,7 +229,8 @@ class _EpisodeRecorder:
         self.collisions += collisions
 
     def finish(self, engine: MergeEngine, k: int, outcome: EpisodeOutcome) -> EpisodeData:
-        rows = _AgentRows.of(self.ids, self.reasons)
+        done_reasons = DONE_REASONS | {"timeout"} if engine.config.reward.timeout_ends_episode else DONE_REASONS
+        rows = _AgentRows.of(self.ids, self.reasons, done_reasons)
         bank = list(self.obs_rows)
         # Agents still pending were cut off (timeout): their final observation bootstraps V.
         cut = [(a, r) for a, r in rows.pending.items() if engine.row(k, a) is not None]
@@ -257,7 +259,7 @@ class _AgentRows:
     end_reasons: dict[str, str]
 
     @classmethod
-    def of(cls, ids: list[str], reasons: list[str]) -> _AgentRows:
+    def of(cls, ids: list[str], reasons: list[str], done_reasons: frozenset[str] = DONE_REASONS) -> _AgentRows:
         n = len(ids)
         first_seen = list(dict.fromkeys(ids))
         index = {a: i for i, a in enumerate(first_seen)}
@@ -266,11 +268,11 @@ class _AgentRows:
         next_row = np.full(n, -1, dtype=np.int64)
         same = agent[order[1:]] == agent[order[:-1]]
         next_row[order[:-1][same]] = order[1:][same]
-        done = np.fromiter((r in DONE_REASONS for r in reasons), dtype=np.float32, count=n)
+        done = np.fromiter((r in done_reasons for r in reasons), dtype=np.float32, count=n)
         end_reasons = {a: r for a, r in zip(ids, reasons, strict=True) if r}
         last = {a: i for i, a in enumerate(ids)}  # each agent's last row
         by_last = sorted(last.items(), key=lambda item: item[1])  # cut-off observations go in this order
-        pending = {a: r for a, r in by_last if reasons[r] not in DONE_REASONS}
+        pending = {a: r for a, r in by_last if reasons[r] not in done_reasons}
         return cls(next_row, done, first_seen, agent, pending, end_reasons)
 
 

@@ -916,6 +916,9 @@ class MergeEngine:
                 parts[i, _PART["collide"]] = float(collide_reward(prio, sign))
             won = code == _REASON_CODE["finished"]
             parts[won, _PART["finish"]] = finish_reward(batch.b_type[won])
+            if self.config.reward.timeout == "forfeit_finish":
+                cut = code == _REASON_CODE["timeout"]
+                parts[cut, _PART["finish"]] = -finish_reward(batch.b_type[cut])
         rewards = parts[:, _PART["finish"]] + parts[:, _PART["collide"]] + parts[:, _PART["impede"]]
         joint = np.bincount(batch.copy, weights=rewards, minlength=k_count) + flow
 

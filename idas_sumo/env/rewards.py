@@ -17,6 +17,7 @@ FINISH_DISTANCE_PAST_MERGE_M = 50.0  # ours: a vehicle finishes at the merging z
 CollisionSign = Literal["paper", "lower_priority_pays"]
 ImpedeBlame = Literal["car_ahead", "braker_if_unforced"]
 BrakeCount = Literal["step", "manoeuvre"]
+TimeoutPrice = Literal["free", "forfeit_finish"]
 
 
 def finish_reward(b_type: npt.ArrayLike) -> FloatArray:
@@ -66,3 +67,15 @@ class RewardConfig:
     brake"): every 0.2 s step a car brakes hard. 'manoeuvre' (ours, a labelled variant): only the step a hard
     brake begins (the car did not brake hard the step before), so a long brake costs what a short one does.
     The evaluation's hard-brake counts and perfect success count steps either way."""
+    timeout: TimeoutPrice = "free"
+    """What a car still driving when the time limit cuts the episode off gets. 'free' (the default; the
+    paper names no time limit): nothing, and training bootstraps its value from the state it was cut off
+    in. 'forfeit_finish' (ours, a labelled variant): it pays the r_finish it did not earn,
+    -(15·b_type + 50)/4, booked in the ``finish`` part, and its episode ends there (nothing is
+    bootstrapped). Under 'free' a car that stops short of the merge pays nothing at all, which is where
+    every full-budget stage-2 run ended (docs/results.md)."""
+
+    @property
+    def timeout_ends_episode(self) -> bool:
+        """Whether a timeout is an end with nothing to bootstrap (training), as a finish or collision is."""
+        return self.timeout == "forfeit_finish"
