@@ -1016,8 +1016,9 @@ class MergeEngine:
             for i in np.flatnonzero(first_action).tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
             cars.scored[agents.car] = True
-        for i in np.flatnonzero(rewards).tolist():
-            self.slots[copies[i]].outcome.returns[batch.ids[i]] += float(rewards[i])
+        scored = np.flatnonzero(rewards)
+        for i, r in zip(scored.tolist(), rewards[scored].tolist(), strict=True):
+            self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
         impedes = np.bincount(batch.copy[parts[:, _PART["impede"]] < 0], minlength=k_count).tolist()
         for i in np.flatnonzero(code).tolist():
             a, k, reason = batch.ids[i], copies[i], reasons[i]
@@ -1193,7 +1194,9 @@ def geometric_collisions(
     d = snap.dist_to_merge_m
     copy = snap.copy if snap.copy is not None else np.zeros(n, dtype=np.int64)
     order = snap.by_distance.order  # by (copy, distance), shared with the step's relations and grids
-    joined_past = np.broadcast_to(np.asarray(joined_past_m, dtype=np.float64), d.shape)
+    joined_past = np.asarray(joined_past_m, dtype=np.float64)
+    if joined_past.shape != d.shape:  # one value for every car
+        joined_past = np.broadcast_to(joined_past, d.shape)
     pairs = _overlapping_pairs(
         order,
         np.ascontiguousarray(d, dtype=np.float64),
