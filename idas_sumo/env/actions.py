@@ -50,13 +50,14 @@ _TIE_TOLERANCE_MPS2 = 1e-9
 
 def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> FloatArray:
     """Acceleration (m/s²) each agent drives with after taking ``actions`` (int array)."""
-    prev, act = np.broadcast_arrays(
-        np.asarray(prev_accel, dtype=np.float64), np.asarray(actions, dtype=np.int64)
-    )
-    if np.any((act < 0) | (act >= N_ACTIONS)):
-        raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
+    prev, act = np.asarray(prev_accel, dtype=np.float64), np.asarray(actions, dtype=np.int64)
+    if prev.shape != act.shape:  # (the engine's call, once per step, has equal shapes: no broadcast)
+        prev, act = np.broadcast_arrays(prev, act)
     flat_prev, flat_act = np.ascontiguousarray(prev.ravel()), np.ascontiguousarray(act.ravel())
-    return np.asarray(_next_accelerations(flat_prev, flat_act).reshape(act.shape), dtype=np.float64)
+    accel, bad = _next_accelerations(flat_prev, flat_act)
+    if bad >= 0:
+        raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
+    return np.asarray(accel.reshape(act.shape), dtype=np.float64)
 
 
 def candidate_accelerations(prev_accel: npt.ArrayLike) -> FloatArray:
@@ -88,10 +89,18 @@ def _candidates(prev):
 
 @kernel
 def _next_accelerations(prev, actions):
+    """(``_candidate`` per agent, the first agent whose action is out of range or -1): checked here, in
+    the one pass, rather than by a few numpy calls before it."""
     accel = np.empty(prev.shape[0])
+    bad = -1
     for i in range(prev.shape[0]):
-        accel[i] = _candidate(prev[i], actions[i])
-    return accel
+        if 0 <= actions[i] < N_ACTIONS:
+            accel[i] = _candidate(prev[i], actions[i])
+        else:
+            accel[i] = np.nan
+            if bad < 0:
+                bad = i
+    return accel, bad
 
 
 def closest_allowed_action(
@@ -304,11 +313,13 @@ def _masks(
             np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
         )
 
+    if not (cand.shape == (n, N_ACTIONS) and cand.dtype == np.float64):
+        cand = np.broadcast_to(np.asarray(cand, dtype=np.float64), (n, N_ACTIONS))
     return np.asarray(
         _masks_kernel(
             which,
             per_row(prev),
-            np.ascontiguousarray(np.broadcast_to(np.asarray(cand, dtype=np.float64), (n, N_ACTIONS))),
+            np.ascontiguousarray(cand),
             per_row(speed),
             per_row(limit),
             per_row(bound),

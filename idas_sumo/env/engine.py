@@ -17,6 +17,7 @@ or time ran out. ``EpisodeOutcome`` defines success once, for training, validati
 from __future__ import annotations
 
 import functools
+import itertools
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -296,11 +297,17 @@ class _SoloBackend:
 
     def __init__(self, backend: Backend) -> None:
         self._backend = backend
+        self._index: dict[str, int] = {}
+        """Vehicle id -> its index in the scenario."""
 
     def reset(self, scenarios: Sequence[Scenario], extra_args: Sequence[str] = ()) -> None:
         if len(scenarios) != 1:
             raise SimulationError(f"{len(scenarios)} scenarios for a single simulation (a bug)")
         self._backend.reset(scenarios[0], extra_args)
+        self._index = {v.id: i for i, v in enumerate(scenarios[0].vehicles)}
+
+    def global_id(self, copy: int, vehicle_id: str) -> str:
+        return vehicle_id
 
     def step(self) -> BatchStepEvents:
         events: StepEvents = self._backend.step()
@@ -313,6 +320,7 @@ class _SoloBackend:
         return BatchStates(
             s.ids,
             zeros,
+            np.fromiter(map(self._index.get, s.ids, itertools.repeat(-1)), np.int64, n),
             s.edge,
             zeros,
             s.lane_pos_m,
@@ -322,7 +330,9 @@ class _SoloBackend:
             s.lane_index,
         )
 
-    def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: npt.ArrayLike, copy: npt.ArrayLike) -> None:
+    def set_speeds(
+        self, vehicle_ids: Sequence[str], speeds_mps: npt.ArrayLike, copy: npt.ArrayLike | None = None
+    ) -> None:
         speeds = np.asarray(speeds_mps, dtype=np.float64).tolist()
         self._backend.set_speeds(dict(zip(vehicle_ids, speeds, strict=True)))
 
@@ -341,33 +351,79 @@ class _SoloBackend:
 
 @dataclass
 class _Slot:
-    """One copy's episode."""
+    """One copy's episode (its cars' per-step state is in the engine's ``_Cars``)."""
 
     scenario: Scenario
     spec: dict[str, VehicleSpec]
-    origin: dict[str, int]
     order: dict[str, int]
+    """Vehicle id -> its index in the scenario."""
     state_slot: dict[str, int]
     outcome: EpisodeOutcome
-    active: list[str] = field(default_factory=list)
-    accel: dict[str, float] = field(default_factory=dict)
-    done: dict[str, str] = field(default_factory=dict)
     over: bool = False
     started: bool = False
-    layout: _SlotRows | None = None
-    """Where the copy's cars were in the last snapshot; reused while they stay the same."""
+
+
+WAITING, ACTIVE, ENDED = 0, 1, 2
+"""A controlled car's part in its episode (``_Cars.state``): not entered yet, acting, or ended."""
+
+
+@dataclass
+class _Cars:
+    """Every vehicle of the slots' scenarios, slot by slot in scenario order (car ``first[k] + i`` is
+    vehicle i of slot k's scenario): what a step looks up per car, as arrays over all copies at once
+    instead of dictionaries per copy."""
+
+    ids: tuple[str, ...]
+    """Copy-local ids."""
+    global_ids: tuple[str, ...]
+    """The backend's ids (what ``set_speeds`` takes without a copy)."""
+    first: IntArray
+    """(K + 1,): slot k's cars are ``first[k]:first[k + 1]``."""
+    copy: IntArray
+    origin: IntArray
+    """MAIN or MERGE: the road the car starts on."""
+    controlled: BoolArray
+    b_type: FloatArray
+    state: npt.NDArray[np.int8]
+    """WAITING, ACTIVE or ENDED (SUMO's cars stay WAITING)."""
+    admitted: BoolArray
+    """Became an agent (``accel`` holds the acceleration it drives with)."""
+    accel: FloatArray
+    scored: BoolArray
+    """Has an entry in its outcome's ``returns`` (from its first action on)."""
+    row: IntArray
+    """Each car's row in the engine's snapshot (-1: not on the road); replaced, never changed, by a read."""
+
+    @staticmethod
+    def of(scenarios: Sequence[Scenario], global_id: Callable[[int, str], str]) -> _Cars:
+        vehicles = [(k, v) for k, s in enumerate(scenarios) for v in s.vehicles]
+        n = len(vehicles)
+        return _Cars(
+            ids=tuple(v.id for _, v in vehicles),
+            global_ids=tuple(global_id(k, v.id) for k, v in vehicles),
+            first=np.cumsum([0, *(len(s.vehicles) for s in scenarios)]).astype(np.int64),
+            copy=np.array([k for k, _ in vehicles], dtype=np.int64),
+            origin=np.array([MAIN if v.road == "main" else MERGE for _, v in vehicles], dtype=np.int64),
+            controlled=np.array([v.controlled for _, v in vehicles], dtype=np.bool_),
+            b_type=np.array([v.b_type for _, v in vehicles], dtype=np.float64),
+            state=np.full(n, WAITING, dtype=np.int8),
+            admitted=np.zeros(n, dtype=np.bool_),
+            accel=np.zeros(n, dtype=np.float64),
+            scored=np.zeros(n, dtype=np.bool_),
+            row=np.full(n, -1, dtype=np.int64),
+        )
 
 
 @dataclass(frozen=True)
-class _SlotRows:
-    """One copy's cars in a snapshot: their ids from row ``lo`` on, each id's row, origin and control."""
+class _Agents:
+    """The acting agents of every running slot, in slot then scenario order (``observe``'s batch rows):
+    kept until an agent enters or ends or a slot's episode ends."""
 
+    car: IntArray
     ids: tuple[str, ...]
-    lo: int
-    rows: dict[str, int]
-    """Never changed once made: ``step`` compares the rows before and after a step."""
-    origin: IntArray
-    controlled: npt.NDArray[np.bool_]
+    global_ids: tuple[str, ...]
+    copy: IntArray
+    b_type: FloatArray
 
 
 class MergeEngine:
@@ -420,8 +476,13 @@ class MergeEngine:
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
         self._origin = np.zeros(0, dtype=np.int64)
-        self._rows: list[dict[str, int]] = []
+        self._cars = _Cars.of((), lambda k, vid: vid)
+        self._car = np.zeros(0, dtype=np.int64)
+        """Each snapshot row's car (``_Cars``)."""
+        self._agents: _Agents | None = None
+        """``observe``'s agents while they stay the same (None: gather them again)."""
         self._batch: AgentBatch | None = None
+        self._batch_agents: _Agents | None = None
         self._time_s = 0.0
         self._closed = False
 
@@ -445,7 +506,6 @@ class MergeEngine:
                 _Slot(
                     scenario=s,
                     spec={v.id: v for v in s.vehicles},
-                    origin={v.id: MAIN if v.road == "main" else MERGE for v in s.vehicles},
                     order={v.id: i for i, v in enumerate(s.vehicles)},
                     state_slot={v.id: i for i, v in enumerate(s.vehicles) if i < STATE_SLOTS},
                     outcome=EpisodeOutcome(s),
@@ -459,6 +519,8 @@ class MergeEngine:
             ]
         )
         self._batch = None
+        self._cars = _Cars.of(scenarios, self._backend.global_id)
+        self._agents = None
         self._backend.reset(scenarios, sumo_args)
         events = self._backend.step()  # insertion step: vehicles appear where the scenarios put them
         self._time_s = events.time_s
@@ -467,8 +529,7 @@ class MergeEngine:
         for k, slot in enumerate(self.slots):
             ev = events.copies[k]
             slot.outcome.collisions += len(ev.collision_pairs)
-            self._admit(k, ev)
-            self._settle(k)
+            self._settle(k, self._admit(k, ev) > 0)
 
     @property
     def backend(self) -> BatchBackend | _SoloBackend:
@@ -505,16 +566,31 @@ class MergeEngine:
 
     def active_agents(self, k: int) -> list[str]:
         """Slot k's controlled cars on the road that still act (in scenario order)."""
-        return list(self.slots[k].active)
+        cars = self._cars
+        lo, hi = int(cars.first[k]), int(cars.first[k + 1])
+        return [cars.ids[c] for c in (lo + np.flatnonzero(cars.state[lo:hi] == ACTIVE)).tolist()]
 
     def finished_agents(self, k: int) -> dict[str, str]:
-        return dict(self.slots[k].done)
+        return dict(self.slots[k].outcome.end_reasons)
 
     def spec(self, k: int, vehicle_id: str) -> VehicleSpec:
         return self.slots[k].spec[vehicle_id]
 
+    def _car_of(self, k: int, vehicle_id: str) -> int:
+        """``vehicle_id``'s car (``_Cars``) in slot k (KeyError: not in its scenario)."""
+        return int(self._cars.first[k]) + self.slots[k].order[vehicle_id]
+
+    def admitted(self, k: int, vehicle_id: str) -> bool:
+        """Whether slot k's ``vehicle_id`` became an agent (it has a ``prev_accel``)."""
+        i = self.slots[k].order.get(vehicle_id)
+        return i is not None and bool(self._cars.admitted[int(self._cars.first[k]) + i])
+
     def prev_accel(self, k: int, agent_id: str) -> float:
-        return self.slots[k].accel[agent_id]
+        """The acceleration slot k's agent drives with (KeyError: it never became an agent)."""
+        c = self._car_of(k, agent_id)
+        if not self._cars.admitted[c]:
+            raise KeyError(agent_id)
+        return float(self._cars.accel[c])
 
     def rows_of(self, k: int) -> slice:
         """Slot k's vehicles in ``snapshot``."""
@@ -523,49 +599,63 @@ class MergeEngine:
 
     def row(self, k: int, vehicle_id: str) -> int | None:
         """``vehicle_id``'s row in ``snapshot`` (None: not on the road)."""
-        return self._rows[k].get(vehicle_id)
+        i = self.slots[k].order.get(vehicle_id)
+        if i is None:
+            return None
+        r = int(self._cars.row[int(self._cars.first[k]) + i])
+        return r if r >= 0 else None
 
-    def _waiting(self, slot: _Slot) -> bool:
-        """Controlled cars still to enter."""
-        return any(a not in slot.done and a not in slot.active for a in slot.scenario.controlled_ids)
+    def _waiting(self, k: int) -> bool:
+        """Controlled cars of slot k still to enter."""
+        cars = self._cars
+        lo, hi = int(cars.first[k]), int(cars.first[k + 1])
+        return bool(((cars.state[lo:hi] == WAITING) & cars.controlled[lo:hi]).any())
 
-    def _settle(self, k: int) -> None:
-        """After a step: mark the episode over, and the first step an agent can act."""
+    def _settle(self, k: int, active: bool) -> None:
+        """After a step: mark the episode over, and the first step an agent can act (``active``: slot k
+        has agents on the road)."""
         slot = self.slots[k]
-        if self.timed_out() or (not slot.active and not self._waiting(slot)):
+        if self.timed_out() or (not active and not self._waiting(k)):
             slot.over = True
+            self._agents = None
             slot.outcome.end_time_s = self._time_s
             slot.outcome.timed_out = self.timed_out()
             if not slot.started:
                 slot.outcome.start_time_s = self._time_s
                 slot.started = True
-        elif slot.active and not slot.started:
+        elif active and not slot.started:
             slot.outcome.start_time_s = self._time_s
             slot.started = True
 
-    def _admit(self, k: int, events: StepEvents) -> None:
+    def _admit(self, k: int, events: StepEvents) -> int:
         """Slot k's controlled cars that entered in this step start acting; one that collided as it
-        entered (a later departure onto a car, which SUMO then removed) or is gone already ends there."""
+        entered (a later departure onto a car, which SUMO then removed) or is gone already ends there.
+        Returns how many started acting."""
         slot = self.slots[k]
-        rows = self._rows[k]
-        added = False
+        cars = self._cars
+        first = int(cars.first[k])
+        added = 0
         for vid in events.departed:
-            spec = slot.spec.get(vid)
-            if spec is not None and spec.controlled and vid not in slot.done and vid not in slot.active:
-                if vid in events.collided or vid not in rows:
-                    reason = "collided" if vid in events.collided else "removed"
-                    slot.done[vid] = reason
-                    slot.outcome.end_reasons[vid] = reason
-                    if reason == "collided":
-                        prio = float(slot.scenario.prio(spec.road))
-                        reward = float(collide_reward(prio, self.config.reward.collision_sign))
-                        slot.outcome.returns[vid] = slot.outcome.returns.get(vid, 0.0) + reward
-                    continue
-                slot.active.append(vid)
-                slot.accel[vid] = 0.0
-                added = True
+            i = slot.order.get(vid)
+            if i is None or not cars.controlled[first + i] or cars.state[first + i] != WAITING:
+                continue
+            c = first + i
+            if vid in events.collided or cars.row[c] < 0:
+                reason = "collided" if vid in events.collided else "removed"
+                cars.state[c] = ENDED
+                slot.outcome.end_reasons[vid] = reason
+                if reason == "collided":
+                    prio = float(slot.scenario.prio(slot.spec[vid].road))
+                    reward = float(collide_reward(prio, self.config.reward.collision_sign))
+                    slot.outcome.returns[vid] = slot.outcome.returns.get(vid, 0.0) + reward
+                continue
+            cars.state[c] = ACTIVE
+            cars.admitted[c] = True
+            cars.accel[c] = 0.0
+            added += 1
         if added:
-            slot.active.sort(key=slot.order.__getitem__)
+            self._agents = None
+        return added
 
     @staticmethod
     def _brake_onsets(
@@ -624,29 +714,21 @@ class MergeEngine:
         n = len(states.ids)
         copy = states.copy
         bounds = states.bounds
-        origin = np.empty(n, dtype=np.int64)
-        controlled = np.zeros(n, dtype=np.bool_)
-        self._rows = []
-        for k in range(len(self.slots)):
-            lo, hi = int(bounds[k]), int(bounds[k + 1])
-            ids = states.ids[lo:hi]
-            slot = self.slots[k]
-            layout = slot.layout
-            if layout is None or layout.lo != lo or layout.ids != ids:  # else the same cars in the same rows
-                layout = slot.layout = _SlotRows(
-                    ids,
-                    lo,
-                    dict(zip(ids, range(lo, hi), strict=True)),
-                    np.array([slot.origin[v] for v in ids], dtype=np.int64),
-                    np.array([slot.spec[v].controlled for v in ids], dtype=np.bool_),
-                )
-            origin[lo:hi] = layout.origin
-            controlled[lo:hi] = layout.controlled
-            self._rows.append(layout.rows)
+        cars = self._cars
+        if n and int(states.vehicle.min()) < 0:
+            bad = states.ids[int(np.argmin(states.vehicle))]
+            raise SimulationError(f"vehicle {bad!r} on the road is from no scenario of the engine")
+        car = cars.first[copy] + states.vehicle
+        origin = cars.origin[car]
+        controlled = cars.controlled[car]
+        row = np.full(len(cars.ids), -1, dtype=np.int64)
+        row[car] = np.arange(n)
+        cars.row = row
+        self._car = car
         # Distances along each car's own route (engine docstring of ``_route_tables``): one code per edge,
         # then a table lookup by (origin, edge).
         unknown = self._start_by.shape[1] - 1
-        code = np.fromiter((self._edge_code.get(e, unknown) for e in states.edge), dtype=np.int64, count=n)
+        code = np.fromiter(map(self._edge_code.get, states.edge, itertools.repeat(unknown)), np.int64, n)
         if states.lane_index is not None and n:
             # On a lane drop a merging car that changed onto the main road's lane drives on as a main-road
             # car: the cars behind it in that lane see it in their own lane (the paper's mask keeps its
@@ -681,48 +763,60 @@ class MergeEngine:
     # -- observation ---------------------------------------------------------------------------
     def observe(self) -> AgentBatch:
         """Every active agent of every running slot, in slot then scenario order."""
-        ids: list[str] = []
-        copies: list[int] = []
-        egos: list[int] = []
-        prev: list[float] = []
-        b_type: list[float] = []
-        for k, slot in enumerate(self.slots):
-            active = slot.active
-            if slot.over or not active:
-                continue
-            ids += active
-            copies += [k] * len(active)
-            egos += map(self._rows[k].__getitem__, active)
-            prev += map(slot.accel.__getitem__, active)
-            b_type += [slot.spec[a].b_type for a in active]
-        ego_arr = np.array(egos, dtype=np.int64)
-        copy_arr = np.array(copies, dtype=np.int64)
-        prev_arr = np.array(prev, dtype=np.float64)
+        agents = self._agents
+        if agents is None:
+            agents = self._agents = self._gather_agents()
+        cars = self._cars
+        egos = cars.row[agents.car]
+        prev = cars.accel[agents.car]
         batch = AgentBatch(
-            ids=tuple(ids),
-            copy=copy_arr,
-            egos=ego_arr,
-            prev_accel=prev_arr,
-            masks=self._masks(ego_arr, prev_arr),
+            ids=agents.ids,
+            copy=agents.copy,
+            egos=egos,
+            prev_accel=prev,
+            masks=self._masks(egos, prev),
             snapshot=self.snapshot,
-            b_prio=self._prio_by_road[copy_arr, self.snapshot.road[ego_arr]],
-            b_type=np.array(b_type, dtype=np.float64),
+            b_prio=self._prio_by_road[agents.copy, self.snapshot.road[egos]],
+            b_type=agents.b_type,
             time_s=self._time_s,
         )
         self._batch = batch
+        self._batch_agents = agents
         return batch
+
+    def _gather_agents(self) -> _Agents:
+        cars = self._cars
+        running = np.array([not slot.over for slot in self.slots], dtype=np.bool_)
+        car = np.flatnonzero((cars.state == ACTIVE) & running[cars.copy])
+        picked = car.tolist()
+        copy = cars.copy[car]
+        b_type = cars.b_type[car]
+        for a in (car, copy, b_type):
+            a.flags.writeable = False  # shared by every batch until the agents change
+        return _Agents(
+            car=car,
+            ids=tuple(map(cars.ids.__getitem__, picked)),
+            global_ids=tuple(map(cars.global_ids.__getitem__, picked)),
+            copy=copy,
+            b_type=b_type,
+        )
 
     def observe_agents(self, k: int, agent_ids: Sequence[str]) -> npt.NDArray[np.float32]:
         """Observations of slot k's agents that are on the road now, acting or not (e.g. the state a
         timeout cut an agent off in, to bootstrap from)."""
         slot = self.slots[k]
-        egos = np.array([self._rows[k][a] for a in agent_ids], dtype=np.int64)
-        if not len(egos):
+        cars = self._cars
+        car = np.array([self._car_of(k, a) for a in agent_ids], dtype=np.int64)
+        if not len(car):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
+        egos = cars.row[car]
+        if (egos < 0).any() or not cars.admitted[car].all():
+            bad = agent_ids[int(np.argmax((egos < 0) | ~cars.admitted[car]))]
+            raise KeyError(f"{bad!r} is no agent on the road of slot {k}")
         return build_observations(
             self.snapshot,
             egos,
-            np.array([slot.accel[a] for a in agent_ids]),
+            cars.accel[car],
             self._prio_by_road[k, self.snapshot.road[egos]],
             np.array([slot.spec[a].b_type for a in agent_ids]),
         )
@@ -810,7 +904,7 @@ class MergeEngine:
                 snap.accel_mps2[i] / ACCEL_SCALE_MPS2,
                 table[road],
                 spec.b_type / B_TYPE_SCALE,
-                float(spec.controlled and vid in slot.active),
+                float(self._cars.state[self._car[i]] == ACTIVE),
             )
         return state.reshape(STATE_DIM)
 
@@ -819,10 +913,11 @@ class MergeEngine:
         """Apply one action per agent of the last ``observe()`` batch, advance SUMO one step, score it."""
         if self._closed:
             raise SimulationError("step() after close(); create a new engine")
-        batch = self._batch
-        if batch is None:
+        batch, agents = self._batch, self._batch_agents
+        if batch is None or agents is None:
             raise SimulationError("step() without observe() first")
-        self._batch = None
+        self._batch = self._batch_agents = None
+        cars = self._cars
         n = len(batch)
         requested = _checked_actions(batch, actions)
         before = self.snapshot
@@ -836,30 +931,26 @@ class MergeEngine:
                 applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
             new_accel = next_acceleration(prev, applied)
             next_speed = np.maximum(before.speed_mps[batch.egos] + new_accel * STEP_LENGTH_S, 0.0)
-            self.backend.set_speeds(batch.ids, next_speed, batch.copy)
-            accel = new_accel.tolist()
-            for k, lo, hi in batch.copy_runs:
-                self.slots[k].accel.update(zip(batch.ids[lo:hi], accel[lo:hi], strict=True))
+            self.backend.set_speeds(agents.global_ids, next_speed)
+            cars.accel[agents.car] = new_accel
         events = self.backend.step()
         self._time_s = events.time_s
-        rows_before = self._rows
+        rows_before = cars.row
         self._read_snapshot()
         self._cross_check(events)
         after = self.snapshot
         k_count = len(self.slots)
-        acting_copies = set(batch.copy.tolist())
+        acting = np.zeros(k_count, dtype=np.bool_)
+        acting[batch.copy] = True
 
         # Hard brakes, placed where the braking car was when it decided (the step's start): agents that
         # chose the hard brake, then SUMO-driven cars of acting copies that braked hard on their own.
         agent_brake = applied == HARD_BRAKE
-        brake_rows = [int(r) for r in batch.egos[agent_brake]]
-        braking = np.flatnonzero(after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2)
-        for i, k in zip(braking.tolist(), self._copy_of(after, braking).tolist(), strict=True):
-            slot = self.slots[k]
-            vid = after.ids[i]
-            if k in acting_copies and vid not in slot.active and vid in rows_before[k]:
-                brake_rows.append(rows_before[k][vid])
-        brakes = np.array(brake_rows, dtype=np.int64)
+        braking = self._car[after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2]
+        braking = braking[acting[cars.copy[braking]] & (cars.state[braking] != ACTIVE)]
+        sumo_brakes = rows_before[braking]
+        brakes = np.concatenate([batch.egos[agent_brake], sumo_brakes[sumo_brakes >= 0]])
+        brake_rows = brakes.tolist()
         brake_copy = self._copy_of(before, brakes)
         in_zone = np.abs(before.dist_to_merge_m[brakes]) <= MERGE_ZONE_RADIUS_M
         hard_brakes = np.bincount(brake_copy, minlength=k_count)
@@ -880,9 +971,7 @@ class MergeEngine:
 
         # End reasons: collided, removed, finished, else timeout (if time is up).
         copies = batch.copy.tolist()
-        new_row = np.array(
-            [self._rows[k].get(a, -1) for a, k in zip(batch.ids, copies, strict=True)], np.int64
-        )
+        new_row = cars.row[agents.car]
         present = new_row >= 0
         collided = np.zeros(n, dtype=np.bool_)
         if any(ev.collided for ev in events.copies):
@@ -923,25 +1012,30 @@ class MergeEngine:
         joint = np.bincount(batch.copy, weights=rewards, minlength=k_count) + flow
 
         # Book-keeping per slot: outcome, ended agents, new arrivals, episode over.
-        reward_list = rewards.tolist()
-        impeded = parts[:, _PART["impede"]] < 0
-        for k, lo, hi in batch.copy_runs:
-            out = self.slots[k].outcome
-            returns = out.returns
-            for a, r in zip(batch.ids[lo:hi], reward_list[lo:hi], strict=True):
-                returns[a] = returns.get(a, 0.0) + r
-            out.impedes += int(np.count_nonzero(impeded[lo:hi]))
+        # Returns: an agent's entry from its first action on, in batch order; a zero reward leaves a sum
+        # as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
+        first_action = ~cars.scored[agents.car]
+        if first_action.any():
+            for i in np.flatnonzero(first_action).tolist():
+                self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
+            cars.scored[agents.car] = True
+        scored = np.flatnonzero(rewards)
+        for i, r in zip(scored.tolist(), rewards[scored].tolist(), strict=True):
+            self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
+        impedes = np.bincount(batch.copy[parts[:, _PART["impede"]] < 0], minlength=k_count).tolist()
         for i in np.flatnonzero(code).tolist():
             a, k, reason = batch.ids[i], copies[i], reasons[i]
-            slot = self.slots[k]
-            out = slot.outcome
-            slot.done[a] = reason
+            out = self.slots[k].outcome
             out.end_reasons[a] = reason
-            slot.active.remove(a)
+            cars.state[agents.car[i]] = ENDED
+            self._agents = None
             if reason == "finished":
                 out.finish_times_s[a] = self._time_s
                 self.backend.release(a, k)
         agents_per_copy = np.bincount(batch.copy, minlength=k_count).tolist()
+        active_per_copy = np.bincount(cars.copy[cars.state == ACTIVE], minlength=k_count).tolist()
+        hard_brake_list, zone_brake_list = hard_brakes.tolist(), zone_brakes.tolist()
+        acting_list = acting.tolist()
         collisions: list[list[tuple[str, str]]] = []
         for k, slot in enumerate(self.slots):
             ev = events.copies[k]
@@ -949,15 +1043,16 @@ class MergeEngine:
             if slot.over:
                 continue
             # Collisions count in every running episode, also while it waits for its next car to enter.
-            slot.outcome.collisions += len(ev.collision_pairs)
-            if k in acting_copies:
-                out = slot.outcome
-                out.hard_brakes += int(hard_brakes[k])
-                out.hard_brakes_merge_zone += int(zone_brakes[k])
+            out = slot.outcome
+            out.collisions += len(ev.collision_pairs)
+            if acting_list[k]:
+                out.hard_brakes += hard_brake_list[k]
+                out.hard_brakes_merge_zone += zone_brake_list[k]
                 out.decision_steps += 1
                 out.agent_steps += agents_per_copy[k]
-            self._admit(k, ev)
-            self._settle(k)
+                out.impedes += impedes[k]
+            added = self._admit(k, ev) if ev.departed else 0
+            self._settle(k, active_per_copy[k] + added > 0)
         return StepResult(
             rewards=rewards,
             reward_parts=parts,
@@ -1102,7 +1197,9 @@ def geometric_collisions(
     d = snap.dist_to_merge_m
     copy = snap.copy if snap.copy is not None else np.zeros(n, dtype=np.int64)
     order = snap.by_distance.order  # by (copy, distance), shared with the step's relations and grids
-    joined_past = np.broadcast_to(np.asarray(joined_past_m, dtype=np.float64), d.shape)
+    joined_past = np.asarray(joined_past_m, dtype=np.float64)
+    if joined_past.shape != d.shape:  # one value for every car
+        joined_past = np.broadcast_to(joined_past, d.shape)
     pairs = _overlapping_pairs(
         order,
         np.ascontiguousarray(d, dtype=np.float64),

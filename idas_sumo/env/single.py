@@ -141,7 +141,8 @@ class SingleEpisode:
         snap = self.engine.snapshot
         i = self.engine.row(0, agent_id)
         if i is not None:
-            accel = self.engine.slots[0].accel.get(agent_id, float(snap.accel_mps2[i]))
+            engine = self.engine
+            accel = engine.prev_accel(0, agent_id) if engine.admitted(0, agent_id) else snap.accel_mps2[i]
             return {
                 "speed_mps": float(snap.speed_mps[i]),
                 "accel_mps2": float(accel),
