@@ -379,3 +379,68 @@ def test_an_update_without_agent_steps_changes_nothing() -> None:
     for net in ("actor", "value", "central", "value_target", "central_target"):
         for name, tensor in before[net].items():
             assert torch.equal(learner2.state_dict()[net][name], tensor), f"{net}.{name} moved"
+
+
+def test_state_value_head_hand_worked_targets_and_sgd_steps() -> None:
+    """``central_head = 'state_value'`` (ours, labelled): Q(s, a) = U(s) + D(s, a); U regresses to every
+    row's target, D(s, a) to target - U(s) on the rows that took a. One SGD step on the pinned biases,
+    worked out by hand; an action no row took keeps its D, so its Q follows U (the per-action head would
+    leave it where it was)."""
+    config = LearnerConfig(use_central_critic=True, central_head="state_value", max_grad_norm=NO_CLIP)
+    learner = Learner(config, seed=3)
+    learner.opt_central = torch.optim.SGD(learner.central.parameters(), lr=LR)
+    u_online, u_target = 1.5, 0.5
+    d_online = [0.1, -0.2, 0.0, 0.3, -0.1, 0.2, 0.05]
+    d_target = [0.0, 0.1, -0.1, 0.2, 0.0, -0.3, 0.4]
+    for net, u, d in ((learner.central, u_online, d_online), (learner.central_target, u_target, d_target)):
+        assert net.value_head is not None
+        pin_head(net.value_head, [u])
+        pin_head(net.head, d)
+    pin_head(learner.actor.head, [0.0] * N_ACTIONS)  # uniform over the allowed actions: pi()
+    q_online = [u_online + d for d in d_online]
+    learner.update(make_batch())
+    record = learner.last_update
+    assert record is not None and record.central is not None
+
+    # Targets: y = R + γ·(Û + D̂(a'))·(1 - done), no bootstrap where the batch holds no next step.
+    q_target = [
+        JOINT_REWARD[i]
+        + GAMMA * (1.0 - DONE[i]) * ((u_target + d_target[NEXT_ACTION[i]]) if NEXT_VALID[i] else 0.0)
+        for i in range(ROWS)
+    ]
+    assert q_target == approx([-0.46, -0.19, -0.55, -0.37, 12.5, 12.5])
+    assert floats(record.central.target) == approx(q_target)
+    assert floats(record.central.prediction) == approx([q_online[a] for a in ACTION])
+    # A2 is COMA's, on Q = U + D.
+    adv_q = [q_online[ACTION[i]] - sum(pi(i, a) * q_online[a] for a in range(N_ACTIONS)) for i in range(ROWS)]
+    assert floats(record.central.advantage) == approx(adv_q)
+
+    # U: ∂/∂b 0.5·mean((y - b)²) = mean(b - y), over every row.
+    u_bias = u_online - LR * sum(u_online - y for y in q_target) / ROWS
+    assert floats(learner.central.value_head.bias) == approx([u_bias])  # type: ignore[union-attr]
+    # D: ∂/∂b_a 0.5·mean((y - U - b_a)²) = mean over the rows that took a of (U + b_a - y); U held fixed.
+    d_bias = [
+        d_online[a]
+        - LR * sum(u_online + d_online[a] - q_target[i] for i in range(ROWS) if ACTION[i] == a) / ROWS
+        for a in range(N_ACTIONS)
+    ]
+    assert floats(learner.central.head.bias) == approx(d_bias)
+    untaken = [a for a in range(N_ACTIONS) if a not in ACTION]
+    assert untaken == [4] and floats(learner.central.head.bias)[4] == pytest.approx(d_online[4])
+
+
+def test_a_q_of_the_other_head_is_not_loaded() -> None:
+    """A checkpoint whose Q has the other head (a stage-1 run, where Q is never trained) starts a learner
+    with its actor and V, and leaves its Q as initialised."""
+    per_action = Learner(LearnerConfig(), seed=1)
+    state_value = Learner(LearnerConfig(central_head="state_value"), seed=2)
+    q_before = copy.deepcopy(state_value.central.state_dict())
+    state_value.load_state_dict(per_action.state_dict())
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(state_value.actor.parameters(), per_action.actor.parameters(), strict=True)
+    )
+    assert all(torch.equal(v, state_value.central.state_dict()[k]) for k, v in q_before.items())
+    same = Learner(LearnerConfig(central_head="state_value"), seed=3)
+    same.load_state_dict(state_value.state_dict())
+    assert all(torch.equal(v, same.central.state_dict()[k]) for k, v in q_before.items())

@@ -17,7 +17,7 @@ import dataclasses
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -32,6 +32,8 @@ from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
+
+CentralHead = Literal["per_action", "state_value"]
 
 __all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "PendingUpdate", "UpdateRecord"]
 
@@ -68,6 +70,13 @@ class LearnerConfig:
     the λ-return of the joint reward along each agent's own steps (needs ``Batch.next_row``)."""
     normalize_advantages: bool = False
     """Standardise A1 and A2 over each batch before the policy gradient (ours; the paper does not)."""
+    central_head: CentralHead = "per_action"
+    """How Q gives its per-action values. 'per_action' (the default, COMA's critic head): one output per
+    own action, each trained only on the rows where the agent took that action. 'state_value' (ours, a
+    labelled variant): Q(s, a) = U(s) + D(s, a), U trained on every row's target whatever the action,
+    D (starting near 0) on what is left, target - U(s). A per-action output the agents rarely take
+    stays near its initial value while the targets move, so COMA's advantage of a rare action carries
+    that lag (measured: docs/results.md); under 'state_value' it stays near U(s), an advantage near 0."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -216,6 +225,8 @@ class _CentralForward:
 
     q_all: torch.Tensor
     """Q(s, ·) (B, N_ACTIONS), with gradient."""
+    state_value: torch.Tensor | None
+    """U(s) (B,), with gradient, under ``central_head = 'state_value'``; else None."""
     advantage: torch.Tensor
     """A2 (COMA) from this Q and the policy before the actor's step."""
 
@@ -413,7 +424,7 @@ class Learner:
             torch.manual_seed(seed)
             self.actor = Actor().to(self.device)
             self.value = ValueCritic().to(self.device)
-            self.central = CentralCritic().to(self.device)
+            self.central = CentralCritic(state_value=config.central_head == "state_value").to(self.device)
         self.value_target = _frozen_copy(self.value)
         self.central_target = _frozen_copy(self.central)
         self.last_update: UpdateRecord | None = None
@@ -604,8 +615,11 @@ class Learner:
         state = _require(b.state, "state")
         others = _require(b.others_actions, "others_actions")
         slot = _require(b.slot, "slot").long()
-        q_all = self.central(state, others, slot)
-        return _CentralForward(q_all=q_all, advantage=coma_advantage(q_all.detach(), probs, b.action.long()))
+        value, differences = self.central.parts(state, others, slot)
+        q_all = differences if value is None else value.unsqueeze(1) + differences
+        return _CentralForward(
+            q_all=q_all, state_value=value, advantage=coma_advantage(q_all.detach(), probs, b.action.long())
+        )
 
     def _step_central_critic(self, b: Batch, forward: _CentralForward) -> CriticStep:
         """L(φ2): Q(s, a) regressed to R + γ·Q̂(s', a')·(1 - done), a' the action taken at t+1 (SARSA),
@@ -636,7 +650,14 @@ class Learner:
                 target = lambda_targets(
                     target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
                 )
-        loss = 0.5 * (target - q_taken).pow(2).mean()
+        if forward.state_value is None:
+            loss = 0.5 * (target - q_taken).pow(2).mean()
+        else:  # U(s) regresses to every row's target; D(s, a) to what U leaves (U held fixed there)
+            value = forward.state_value
+            loss = (
+                0.5 * (target - value).pow(2).mean()
+                + 0.5 * (target - value.detach() - (q_taken - value)).pow(2).mean()
+            )
         self.opt_central.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
@@ -724,10 +745,16 @@ class Learner:
         self.finish_critics()  # its step must not land on the loaded weights
         self.actor.load_state_dict(state["actor"])
         self.value.load_state_dict(state["value"])
-        self.central.load_state_dict(state["central"])
+        # A Q with another head (a stage-1 checkpoint, where Q is never trained, started under the other
+        # ``central_head``) is not this learner's: its Q stays as initialised.
+        same_central = state["central"].keys() == self.central.state_dict().keys()
+        if same_central:
+            self.central.load_state_dict(state["central"])
         self.value_target.load_state_dict(state["value_target"])
-        self.central_target.load_state_dict(state["central_target"])
+        if same_central:
+            self.central_target.load_state_dict(state["central_target"])
         if load_optimisers:
             self.opt_actor.load_state_dict(state["opt_actor"])
             self.opt_value.load_state_dict(state["opt_value"])
-            self.opt_central.load_state_dict(state["opt_central"])
+            if same_central:
+                self.opt_central.load_state_dict(state["opt_central"])

@@ -281,13 +281,28 @@ class CentralCritic(nn.Module):
     baseline needs one forward pass (COMA's critic head).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, state_value: bool = False) -> None:
         super().__init__()
         self.body = _mlp([CENTRAL_INPUT_DIM, CENTRAL_HIDDEN, CENTRAL_HIDDEN])
         self.head = nn.Linear(CENTRAL_HIDDEN, N_ACTIONS)
+        self.value_head: nn.Linear | None = None
+        """With ``state_value`` (``LearnerConfig.central_head``): U(s), and ``head`` gives D(s, ·), the
+        actions' differences from it, starting near 0: Q(s, a) = U(s) + D(s, a)."""
+        if state_value:
+            nn.init.orthogonal_(self.head.weight, gain=ACTOR_HEAD_GAIN)
+            nn.init.zeros_(self.head.bias)
+            self.value_head = nn.Linear(CENTRAL_HIDDEN, 1)
 
     def forward(self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
         """Q-values (B, N_ACTIONS); ``slot`` is (B,) int64 in [0, STATE_SLOTS)."""
+        value, differences = self.parts(state, others_actions, slot)
+        return differences if value is None else value.unsqueeze(1) + differences
+
+    def parts(
+        self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor
+    ) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """(U(s) (B,) or None without a value head, the action head's outputs (B, N_ACTIONS))."""
         slot_onehot = nn.functional.one_hot(slot.long(), STATE_SLOTS).to(state.dtype)
-        out: torch.Tensor = self.head(self.body(torch.cat([state, others_actions, slot_onehot], dim=1)))
-        return out
+        hidden = self.body(torch.cat([state, others_actions, slot_onehot], dim=1))
+        value = None if self.value_head is None else self.value_head(hidden).squeeze(-1)
+        return value, self.head(hidden)
