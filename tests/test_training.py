@@ -313,7 +313,9 @@ def test_timeout_variant_charges_the_unearned_finish_and_ends_the_agent(net_path
         config = EnvConfig(max_episode_s=3.0, reward=RewardConfig(timeout=price))  # type: ignore[arg-type]
         engine = MergeEngine(net_path, copies=1, config=config)
         try:
-            runs[price] = collect_episodes(engine, Learner(LearnerConfig(), seed=0), [RolloutTask(scenario, 7)])[0]
+            runs[price] = collect_episodes(
+                engine, Learner(LearnerConfig(), seed=0), [RolloutTask(scenario, 7)]
+            )[0]
         finally:
             engine.close()
     free, forfeit = runs["free"], runs["forfeit_finish"]

@@ -229,7 +229,9 @@ class _EpisodeRecorder:
         self.collisions += collisions
 
     def finish(self, engine: MergeEngine, k: int, outcome: EpisodeOutcome) -> EpisodeData:
-        done_reasons = DONE_REASONS | {"timeout"} if engine.config.reward.timeout_ends_episode else DONE_REASONS
+        done_reasons = (
+            DONE_REASONS | {"timeout"} if engine.config.reward.timeout_ends_episode else DONE_REASONS
+        )
         rows = _AgentRows.of(self.ids, self.reasons, done_reasons)
         bank = list(self.obs_rows)
         # Agents still pending were cut off (timeout): their final observation bootstraps V.
@@ -259,7 +261,9 @@ class _AgentRows:
     end_reasons: dict[str, str]
 
     @classmethod
-    def of(cls, ids: list[str], reasons: list[str], done_reasons: frozenset[str] = DONE_REASONS) -> _AgentRows:
+    def of(
+        cls, ids: list[str], reasons: list[str], done_reasons: frozenset[str] = DONE_REASONS
+    ) -> _AgentRows:
         n = len(ids)
         first_seen = list(dict.fromkeys(ids))
         index = {a: i for i, a in enumerate(first_seen)}
