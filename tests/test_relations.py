@@ -17,13 +17,15 @@ from idas_sumo.env.observation import build_grids
 from idas_sumo.env.snapshot import MAIN, NO_LEADER, OUT, TrafficSnapshot, leaders, nearest_ahead
 
 
-def random_snapshot(rng: np.random.Generator, layout: str, n_copies: int, per_copy: int) -> TrafficSnapshot:
+def random_snapshot(
+    rng: np.random.Generator, layout: str, n_copies: int, per_copy: int, stretch_m: float = 320.0
+) -> TrafficSnapshot:
     n = n_copies * per_copy
     copy = np.repeat(np.arange(n_copies), per_copy)
     if layout == "interleaved":
         copy = rng.permutation(copy)
-    # Whole metres on a short stretch: many cars level with each other, many bodies overlapping.
-    dist = np.round(rng.uniform(-60.0, 260.0, n))
+    # Whole metres (on the default, short stretch: many cars level with each other, many bodies overlapping).
+    dist = np.round(rng.uniform(-60.0, stretch_m - 60.0, n))
     return TrafficSnapshot(
         ids=tuple(f"v{i}" for i in range(n)),
         road=rng.integers(0, 3, n).astype(np.int64),
@@ -100,10 +102,15 @@ def test_nearest_ahead_and_leaders_match_every_pair(layout: str) -> None:
 
 
 @pytest.mark.parametrize("layout", ["one world", "copies in order", "interleaved"])
-def test_grids_match_every_pair(layout: str) -> None:
+@pytest.mark.parametrize("stretch_m", [320.0, 3000.0])
+def test_grids_match_every_pair(layout: str, stretch_m: float) -> None:
+    # On the short stretch most of a copy is within sight, and the kernel walks the copy's rows (copies in
+    # order); on the long one few cars are, and it sorts those (as it always does with interleaved copies).
     rng = np.random.default_rng(11)
     for trial in range(10):
-        snap = random_snapshot(rng, layout, n_copies=1 if layout == "one world" else 2, per_copy=60)
+        snap = random_snapshot(
+            rng, layout, n_copies=1 if layout == "one world" else 2, per_copy=60, stretch_m=stretch_m
+        )
         egos = rng.permutation(len(snap))[:20].astype(np.int64)
         grids = build_grids(snap, egos)
         for row, e in enumerate(egos):
