@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.env.jit import kernel
-from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration
+from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration_one
 from idas_sumo.sim.backend import STEP_LENGTH_S  # one decision per SUMO step (5 Hz)
 
 FloatArray = npt.NDArray[np.float64]
@@ -223,8 +223,45 @@ def safety_bound(
     """
     v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))
     gap = np.atleast_1d(np.asarray(gap_m, dtype=np.float64))
-    bound = idm_acceleration(v, np.inf, gap, v - np.asarray(leader_speed_mps), params)
-    return np.asarray(np.where(np.isinf(gap), np.inf, bound), dtype=np.float64)
+    leader = np.asarray(leader_speed_mps, dtype=np.float64)
+    if not (v.shape == gap.shape == leader.shape and v.ndim == 1):  # (the engine's calls: equal shapes)
+        v, gap, leader = np.broadcast_arrays(v, gap, leader)
+    bound = _safety_bounds(
+        np.ascontiguousarray(v.ravel()),
+        np.ascontiguousarray(gap.ravel()),
+        np.ascontiguousarray(leader.ravel()),
+        params.max_accel_mps2,
+        params.comfortable_decel_mps2,
+        params.min_gap_m,
+        params.time_headway_s,
+        params.delta,
+    )
+    return np.asarray(bound.reshape(v.shape), dtype=np.float64)
+
+
+_idm_acceleration_one = kernel(idm_acceleration_one)
+
+
+@kernel
+def _safety_bounds(speed, gap, leader_speed, max_accel, comfortable_decel, min_gap, time_headway, delta):
+    """``safety_bound`` per agent: IDM with no desired speed (inf), inf where there is no leader."""
+    bound = np.empty(speed.shape[0])
+    for i in range(speed.shape[0]):
+        if np.isinf(gap[i]):
+            bound[i] = np.inf
+        else:
+            bound[i] = _idm_acceleration_one(
+                speed[i],
+                np.inf,
+                gap[i],
+                speed[i] - leader_speed[i],
+                max_accel,
+                comfortable_decel,
+                min_gap,
+                time_headway,
+                delta,
+            )
+    return bound
 
 
 def safety_mask(
