@@ -946,18 +946,22 @@ class MergeEngine:
         # Hard brakes, placed where the braking car was when it decided (the step's start): agents that
         # chose the hard brake, then SUMO-driven cars of acting copies that braked hard on their own.
         agent_brake = applied == HARD_BRAKE
-        braking = self._car[after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2]
-        braking = braking[acting[cars.copy[braking]] & (cars.state[braking] != ACTIVE)]
-        sumo_brakes = rows_before[braking]
-        brakes = np.concatenate([batch.egos[agent_brake], sumo_brakes[sumo_brakes >= 0]])
-        brake_rows = brakes.tolist()
-        brake_copy = self._copy_of(before, brakes)
-        in_zone = np.abs(before.dist_to_merge_m[brakes]) <= MERGE_ZONE_RADIUS_M
-        hard_brakes = np.bincount(brake_copy, minlength=k_count)
+        brakes, brake_copy, in_zone, hard_brakes, zone_brakes = _hard_brakes(
+            batch.egos,
+            agent_brake,
+            after.accel_mps2,
+            self._car,
+            acting,
+            cars.copy,
+            cars.state,
+            rows_before,
+            self._row_copy(before),
+            before.dist_to_merge_m,
+            MERGE_ZONE_RADIUS_M,
+        )
         hard_brake_ids: list[list[str]] = [[] for _ in range(k_count)]
-        for r, k in zip(brake_rows, brake_copy.tolist(), strict=True):
+        for r, k in zip(brakes.tolist(), brake_copy.tolist(), strict=True):
             hard_brake_ids[k].append(before.ids[r])
-        zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
         # The brakes the rewards count (RewardConfig.brake_count); the statistics above count every step.
         priced_zone, priced_brakes, priced_agents = zone_brakes, brakes, agent_brake
         if self.config.reward.brake_count == "manoeuvre":
@@ -971,31 +975,31 @@ class MergeEngine:
 
         # End reasons: collided, removed, finished, else timeout (if time is up).
         copies = batch.copy.tolist()
-        new_row = cars.row[agents.car]
-        present = new_row >= 0
         collided = np.zeros(n, dtype=np.bool_)
         if any(ev.collided for ev in events.copies):
             collided[:] = [a in events.copies[k].collided for a, k in zip(batch.ids, copies, strict=True)]
-        finished = np.zeros(n, dtype=np.bool_)
-        finished[present] = after.dist_to_merge_m[new_row[present]] <= -FINISH_DISTANCE_PAST_MERGE_M
-        code = np.where(  # the first reason that holds, in this order (np.select, at a third of its cost)
+        code = _end_codes(
             collided,
-            _REASON_CODE["collided"],
-            np.where(
-                ~present,
-                _REASON_CODE["removed"],
-                np.where(
-                    finished, _REASON_CODE["finished"], _REASON_CODE["timeout" if self.timed_out() else ""]
-                ),
-            ),
-        ).astype(np.int64)
+            cars.row[agents.car],
+            after.dist_to_merge_m,
+            -FINISH_DISTANCE_PAST_MERGE_M,
+            _REASON_CODE["timeout" if self.timed_out() else ""],
+        )
         reasons = [_REASON_BY_CODE[c] for c in code.tolist()]
 
         parts = np.zeros((n, len(REWARD_PART_NAMES)))
         if n:
-            parts[:, _PART["flow"]] = flow[batch.copy]
-            culprits = np.bincount(impeded_by, minlength=len(before))
-            parts[:, _PART["impede"]] = IMPEDE_PENALTY * culprits[batch.egos]
+            _penalty_parts(
+                parts,
+                batch.copy,
+                batch.egos,
+                flow,
+                impeded_by,
+                len(before),
+                IMPEDE_PENALTY,
+                _PART["flow"],
+                _PART["impede"],
+            )
             sign = self.config.reward.collision_sign
             for i in np.flatnonzero(collided).tolist():
                 slot = self.slots[copies[i]]
@@ -1065,6 +1069,11 @@ class MergeEngine:
             hard_brake_ids=hard_brake_ids,
         )
 
+    @staticmethod
+    def _row_copy(snap: TrafficSnapshot) -> IntArray:
+        """Each row's copy (all 0 in a one-copy snapshot, which has none)."""
+        return snap.copy if snap.copy is not None else np.zeros(len(snap), dtype=np.int64)
+
     def _copy_of(self, snap: TrafficSnapshot, rows: npt.ArrayLike) -> IntArray:
         r = np.asarray(rows, dtype=np.int64)
         if snap.copy is None:
@@ -1117,6 +1126,7 @@ def _route_tables(site: MergeSite) -> tuple[dict[str, int], FloatArray, npt.NDAr
 
 _REASON_BY_CODE: tuple[str, ...] = ("", *END_REASONS)
 _REASON_CODE = {reason: code for code, reason in enumerate(_REASON_BY_CODE)}
+_COLLIDED, _REMOVED, _FINISHED = _REASON_CODE["collided"], _REASON_CODE["removed"], _REASON_CODE["finished"]
 
 
 def _copy_runs(copy: IntArray) -> list[tuple[int, int, int]]:
@@ -1159,6 +1169,82 @@ def _checked_actions(batch: AgentBatch, actions: npt.ArrayLike) -> IntArray:
             f"expected an int in [0, {N_ACTIONS})"
         )
     return out
+
+
+@kernel
+def _hard_brakes(
+    egos,
+    agent_brake,
+    accel,
+    car_of_row,
+    acting,
+    car_copy,
+    car_state,
+    rows_before,
+    copy_before,
+    dist_before,
+    zone_m,
+):
+    """The step's hard brakes as rows of the step's first snapshot: the agents' (``agent_brake``, batch
+    order), then those of the cars now braking at ``HARD_BRAKE_DETECT_MPS2`` or harder (rows of the new
+    snapshot, in order) that are no agents, drive in an acting copy and were on the road before.
+
+    Returns (rows, their copies, within ``zone_m`` of the merge point, brakes per copy, of those within
+    ``zone_m`` per copy); ``acting`` has one entry per copy."""
+    rows = np.empty(egos.shape[0] + accel.shape[0], dtype=np.int64)
+    m = 0
+    for i in range(egos.shape[0]):
+        if agent_brake[i]:
+            rows[m] = egos[i]
+            m += 1
+    for r in range(accel.shape[0]):
+        if accel[r] <= HARD_BRAKE_DETECT_MPS2:
+            c = car_of_row[r]
+            if acting[car_copy[c]] and car_state[c] != ACTIVE and rows_before[c] >= 0:
+                rows[m] = rows_before[c]
+                m += 1
+    rows = rows[:m].copy()
+    copy = np.empty(m, dtype=np.int64)
+    in_zone = np.empty(m, dtype=np.bool_)
+    per_copy = np.zeros(acting.shape[0], dtype=np.int64)
+    zone_per_copy = np.zeros(acting.shape[0], dtype=np.int64)
+    for i in range(m):
+        copy[i] = copy_before[rows[i]]
+        in_zone[i] = np.abs(dist_before[rows[i]]) <= zone_m
+        per_copy[copy[i]] += 1
+        if in_zone[i]:
+            zone_per_copy[copy[i]] += 1
+    return rows, copy, in_zone, per_copy, zone_per_copy
+
+
+@kernel
+def _end_codes(collided, row, dist, finish_below_m, otherwise):
+    """Each agent's end reason (``_REASON_CODE``), the first that holds: collided, removed (no ``row`` in
+    the new snapshot), finished (its distance to the merge point at or below ``finish_below_m``), else
+    ``otherwise`` (timeout, or going on)."""
+    code = np.empty(collided.shape[0], dtype=np.int64)
+    for i in range(collided.shape[0]):
+        if collided[i]:
+            code[i] = _COLLIDED
+        elif row[i] < 0:
+            code[i] = _REMOVED
+        elif dist[row[i]] <= finish_below_m:
+            code[i] = _FINISHED
+        else:
+            code[i] = otherwise
+    return code
+
+
+@kernel
+def _penalty_parts(parts, copy, egos, flow, impeded_by, n_rows, impede_penalty, flow_part, impede_part):
+    """Into ``parts`` (agents x reward parts): each agent's copy's ``flow`` penalty, and ``impede_penalty``
+    times the hard brakes it caused (``impeded_by``: the culprits' rows, one per brake)."""
+    culprits = np.zeros(n_rows, dtype=np.int64)
+    for r in impeded_by:
+        culprits[r] += 1
+    for i in range(copy.shape[0]):
+        parts[i, flow_part] = flow[copy[i]]
+        parts[i, impede_part] = impede_penalty * culprits[egos[i]]
 
 
 def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArray:
