@@ -161,6 +161,38 @@ def test_safety_bound_broadcasts_its_arguments() -> None:
     assert safety_bound(10.0, 12.0, 10.0).shape == (1,)
 
 
+@pytest.mark.parametrize("params", [IDMParams(), IDMParams(2.5, 3.0, 1.5, 1.2, 3.0)])
+def test_action_masks_are_the_three_masks_intersected(params: IDMParams) -> None:
+    """``action_masks`` (one compiled call) against the three masks computed apart, on random agents."""
+    rng = np.random.default_rng(9)
+    for trial in range(50):
+        n = int(rng.integers(0, 40))
+        prev = rng.choice([-4.0, -2.0, -1.9, -0.2, 0.0, 0.1, 1.9, 2.0], n) + rng.choice([0.0, 1e-7], n)
+        speed, limit = rng.uniform(0.0, 22.0, n), rng.choice([15.0, 20.0], n)
+        gap = np.where(rng.random(n) < 0.3, INF, rng.uniform(0.0, 60.0, n))
+        leader, ease_in = rng.uniform(0.0, 22.0, n), rng.random(n) < 0.2
+        masks = action_masks(MaskInputs(prev, speed, limit, gap, leader, ease_in), params)
+        expected = (
+            kinematic_mask(prev)
+            & rule_mask(prev, speed, limit)
+            & safety_mask(prev, speed, gap, leader, params, ease_in=ease_in)
+        )
+        assert masks.dtype == np.int8 and masks.shape == (n, N_ACTIONS)
+        assert masks.tolist() == expected.astype(np.int8).tolist(), trial
+    # Scalars broadcast to every agent, as the separate masks do.
+    one = action_masks(MaskInputs(np.array([0.0, 0.2]), 10.0, 20.0, 12.0, 10.0), params)  # type: ignore[arg-type]
+    assert (
+        one.tolist()
+        == (
+            kinematic_mask([0.0, 0.2])
+            & rule_mask([0.0, 0.2], 10.0, 20.0)
+            & safety_mask([0.0, 0.2], 10.0, 12.0, 10.0, params)
+        )
+        .astype(np.int8)
+        .tolist()
+    )
+
+
 def test_hard_brake_is_never_masked() -> None:
     # Emergency: v = 10, stopped leader 10 m ahead: s* = 2 + 10 + 10·10/(2·2) = 37,
     # bound = 2·(1 - (37/10)²) = -25.38 m/s², beyond the comfortable -2: every Δa action (a ∈ [-0.2, 0.2])

@@ -308,15 +308,43 @@ class MaskInputs:
 def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDArray[np.int8]:
     """(n_agents, 7) int8 mask: kinematic ∩ rule ∩ safety."""
     prev = _as_rows(inputs.prev_accel_mps2)
-    allowed = _masks(
+    n = prev.shape[0]
+    return np.asarray(
+        _action_masks_kernel(
+            prev,
+            _per_row(inputs.speed_mps, n),
+            _per_row(inputs.speed_limit_mps, n),
+            _per_row(inputs.gap_m, n),
+            _per_row(inputs.leader_speed_mps, n),
+            _per_row(inputs.ease_in, n, np.bool_),
+            params.max_accel_mps2,
+            params.comfortable_decel_mps2,
+            params.min_gap_m,
+            params.time_headway_s,
+            params.delta,
+        ),
+        dtype=np.int8,
+    )
+
+
+@kernel
+def _action_masks_kernel(
+    prev, speed, limit, gap, leader_speed, ease_in, max_accel, comfortable_decel, min_gap, time_headway, delta
+):
+    """``action_masks`` in one call: the candidates, the safety bound and the three masks' intersection
+    (what ``candidate_accelerations``, ``safety_bound`` and ``_masks`` compute, without their numpy around)."""
+    bound = _safety_bounds(
+        speed, gap, leader_speed, max_accel, comfortable_decel, min_gap, time_headway, delta
+    )
+    allowed = _masks_kernel(
         _KINEMATIC | _RULE | _SAFETY,
         prev,
-        candidate_accelerations(prev),
-        speed=_as_rows(inputs.speed_mps),
-        limit=_as_rows(inputs.speed_limit_mps),
-        bound=safety_bound(inputs.speed_mps, inputs.gap_m, inputs.leader_speed_mps, params),
-        ease_in=inputs.ease_in,
-        params=params,
+        _candidates(prev),
+        speed,
+        limit,
+        bound,
+        ease_in,
+        -comfortable_decel - _TOLERANCE,
     )
     return allowed.astype(np.int8)
 
@@ -341,29 +369,29 @@ def _masks(
 ) -> BoolArray:
     """The intersection of the masks ``which`` names (the inputs of the others are unused)."""
     n = cand.shape[0]
-
-    def per_row(values: npt.ArrayLike | None, dtype: type = np.float64) -> npt.NDArray[np.generic]:
-        # The kernel reads row i of each input unchecked: broadcast them to n rows first.
-        if isinstance(values, np.ndarray) and values.shape == (n,) and values.dtype == dtype:
-            return np.ascontiguousarray(values)
-        return np.ascontiguousarray(
-            np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
-        )
-
     if not (cand.shape == (n, N_ACTIONS) and cand.dtype == np.float64):
         cand = np.broadcast_to(np.asarray(cand, dtype=np.float64), (n, N_ACTIONS))
     return np.asarray(
         _masks_kernel(
             which,
-            per_row(prev),
+            _per_row(prev, n),
             np.ascontiguousarray(cand),
-            per_row(speed),
-            per_row(limit),
-            per_row(bound),
-            per_row(ease_in, np.bool_),
+            _per_row(speed, n),
+            _per_row(limit, n),
+            _per_row(bound, n),
+            _per_row(ease_in, n, np.bool_),
             -params.comfortable_decel_mps2 - _TOLERANCE,
         ),
         dtype=np.bool_,
+    )
+
+
+def _per_row(values: npt.ArrayLike | None, n: int, dtype: type = np.float64) -> npt.NDArray[np.generic]:
+    """``values`` (None: zeros) as n contiguous rows: the kernels read row i of each input unchecked."""
+    if isinstance(values, np.ndarray) and values.shape == (n,) and values.dtype == dtype:
+        return np.ascontiguousarray(values)
+    return np.ascontiguousarray(
+        np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
     )
 
 
