@@ -16,7 +16,7 @@ from typing import Literal, get_args
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.env.jit import kernel
+from idas_sumo.env.jit import kernel, per_row
 from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration_one
 from idas_sumo.sim.backend import STEP_LENGTH_S  # one decision per SUMO step (5 Hz)
 
@@ -312,11 +312,11 @@ def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDA
     return np.asarray(
         _action_masks_kernel(
             prev,
-            _per_row(inputs.speed_mps, n),
-            _per_row(inputs.speed_limit_mps, n),
-            _per_row(inputs.gap_m, n),
-            _per_row(inputs.leader_speed_mps, n),
-            _per_row(inputs.ease_in, n, np.bool_),
+            per_row(inputs.speed_mps, n),
+            per_row(inputs.speed_limit_mps, n),
+            per_row(inputs.gap_m, n),
+            per_row(inputs.leader_speed_mps, n),
+            per_row(inputs.ease_in, n, np.bool_),
             params.max_accel_mps2,
             params.comfortable_decel_mps2,
             params.min_gap_m,
@@ -374,24 +374,15 @@ def _masks(
     return np.asarray(
         _masks_kernel(
             which,
-            _per_row(prev, n),
+            per_row(prev, n),
             np.ascontiguousarray(cand),
-            _per_row(speed, n),
-            _per_row(limit, n),
-            _per_row(bound, n),
-            _per_row(ease_in, n, np.bool_),
+            per_row(speed, n),
+            per_row(limit, n),
+            per_row(bound, n),
+            per_row(ease_in, n, np.bool_),
             -params.comfortable_decel_mps2 - _TOLERANCE,
         ),
         dtype=np.bool_,
-    )
-
-
-def _per_row(values: npt.ArrayLike | None, n: int, dtype: type = np.float64) -> npt.NDArray[np.generic]:
-    """``values`` (None: zeros) as n contiguous rows: the kernels read row i of each input unchecked."""
-    if isinstance(values, np.ndarray) and values.shape == (n,) and values.dtype == dtype:
-        return np.ascontiguousarray(values)
-    return np.ascontiguousarray(
-        np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
     )
 
 

@@ -46,13 +46,12 @@ from idas_sumo.env.layout import (
     ACCEL_SCALE_MPS2,
     B_TYPE_SCALE,
     DIST_SCALE_M,
-    N_SCALARS,
     OBS_DIM,
     RELATIVE_SPEED_SCALE_MPS,
     SPEED_SCALE_MPS,
     VISIBILITY_M,
 )
-from idas_sumo.env.observation import build_observations
+from idas_sumo.env.observation import build_observations, build_observations_checked
 from idas_sumo.env.rewards import (
     FINISH_DISTANCE_PAST_MERGE_M,
     FLOW_PENALTY_PER_HARD_BRAKE,
@@ -71,7 +70,7 @@ from idas_sumo.env.snapshot import (
     OUT,
     TrafficSnapshot,
     leader_speeds,
-    leaders,
+    leaders_and_speeds,
     nearest_ahead,
     other_road_leaders,
 )
@@ -232,12 +231,14 @@ class AgentBatch:
         """(n, OBS_DIM) observations, built on first use (rule-based policies never need them)."""
         if not len(self.ids):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
-        obs = build_observations(self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type)
+        obs, scalars_finite = build_observations_checked(
+            self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type
+        )
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
         # scalars or the speeds are not is every entry tested (a fifth of a step's observation time).
         speed = self.snapshot.speed_mps
         spread = float(np.ptp(speed)) if len(speed) else 0.0
-        if not (np.isfinite(obs[:, :N_SCALARS]).all() and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
+        if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():
                 bad = self.ids[int(np.argmin(finite))]
@@ -854,9 +855,9 @@ class MergeEngine:
         IDAS (docs/design-notes.md).
         """
         snap = self.snapshot
-        leader, gap = leaders(snap, egos)
+        _, gap, leader_speed = leaders_and_speeds(snap, egos)
         if self.config.safety_mask == "own_lane":
-            return gap, leader_speeds(snap, egos, leader), np.zeros(len(egos), dtype=np.bool_)
+            return gap, leader_speed, np.zeros(len(egos), dtype=np.bool_)
         # SUMO's own cars on the merge road give way to every main-road car at the junction (stage 1's
         # "merge always yields"); counting them as front cars of main-road cars deadlocked both.
         sumo_yielding = (snap.road == MERGE) & ~self._controlled
@@ -869,7 +870,6 @@ class MergeEngine:
             never_leading=sumo_yielding,
         )
         speed = snap.speed_mps[egos]
-        leader_speed = leader_speeds(snap, egos, leader)
         merge_speed = leader_speeds(snap, egos, merge_leader)
         own_lane_bound = safety_bound(speed, gap, leader_speed)
         other_road = (merge_leader >= 0) & (safety_bound(speed, merge_gap, merge_speed) < own_lane_bound)
