@@ -15,8 +15,11 @@ from idas_sumo.env.engine import (
     ENDED,
     HARD_BRAKE_DETECT_MPS2,
     WAITING,
+    _all_allowed,
     _end_codes,
+    _first_outside,
     _hard_brakes,
+    _next_speeds,
     _penalty_parts,
 )
 
@@ -105,3 +108,28 @@ def test_penalty_parts_match_numpy(n_brakes: int) -> None:
     got = np.zeros((n, 4))
     _penalty_parts(got, copy, egos, flow, impeded_by, n_rows, -5.0, 3, 2)
     assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist()
+
+
+def test_action_checks_match_numpy() -> None:
+    rng = np.random.default_rng(6)
+    for trial in range(200):
+        n = int(rng.integers(0, 20))
+        actions = rng.integers(-1 if trial % 3 == 0 else 0, 8 if trial % 5 == 0 else 7, n).astype(np.int64)
+        wrong = (actions < 0) | (actions >= 7)
+        assert _first_outside(actions, 7) == (int(np.flatnonzero(wrong)[0]) if wrong.any() else -1), trial
+        if not wrong.any():
+            masks = (rng.random((n, 7)) < 0.9).astype(np.int8)
+            assert _all_allowed(masks, actions) == bool(masks[np.arange(n), actions].astype(bool).all()), (
+                trial
+            )
+
+
+def test_next_speeds_match_numpy() -> None:
+    rng = np.random.default_rng(8)
+    speed = np.concatenate([rng.uniform(0.0, 25.0, 40), [0.0, -0.0, 0.1, 0.8, np.nan, np.inf, 1e-17]])
+    for trial in range(100):
+        egos = rng.integers(0, len(speed), int(rng.integers(0, 30))).astype(np.int64)
+        accel = rng.choice([-4.0, -2.0, -0.5, -0.0, 0.0, 0.3, 2.0, np.nan], len(egos))
+        want = np.maximum(speed[egos] + accel * 0.2, 0.0)
+        got = _next_speeds(speed, egos, accel, 0.2)
+        assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist(), trial

@@ -924,13 +924,13 @@ class MergeEngine:
         applied = requested
         if n:
             masks, prev = batch.masks, batch.prev_accel
-            rows = np.arange(n)
-            allowed = masks[rows, requested].astype(bool)
-            if not allowed.all():
+            if not _all_allowed(masks, requested):
+                rows = np.arange(n)
+                allowed = masks[rows, requested].astype(bool)
                 wanted = candidate_accelerations(prev)[rows, requested]
                 applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
             new_accel = next_acceleration(prev, applied)
-            next_speed = np.maximum(before.speed_mps[batch.egos] + new_accel * STEP_LENGTH_S, 0.0)
+            next_speed = _next_speeds(before.speed_mps, batch.egos, new_accel, STEP_LENGTH_S)
             self.backend.set_speeds(agents.global_ids, next_speed)
             cars.accel[agents.car] = new_accel
         events = self.backend.step()
@@ -1161,13 +1161,41 @@ def _checked_actions(batch: AgentBatch, actions: npt.ArrayLike) -> IntArray:
                 f"expected an int in [0, {N_ACTIONS})"
             )
     out = raw.astype(np.int64)
-    wrong = (out < 0) | (out >= N_ACTIONS)
-    if wrong.any():
-        i = int(np.flatnonzero(wrong)[0])
+    i = _first_outside(out, N_ACTIONS)
+    if i >= 0:
         raise ValueError(
             f"invalid action {int(out[i])} for agent {batch.ids[i]!r} at t = {batch.time_s:.1f} s: "
             f"expected an int in [0, {N_ACTIONS})"
         )
+    return out
+
+
+@kernel
+def _first_outside(actions, n_actions):
+    """The first index whose action is not in [0, n_actions), or -1."""
+    for i in range(actions.shape[0]):
+        if not 0 <= actions[i] < n_actions:
+            return i
+    return -1
+
+
+@kernel
+def _all_allowed(masks, actions):
+    """Whether each agent's action (all in range: ``_checked_actions``) is allowed by its mask row."""
+    for i in range(actions.shape[0]):  # noqa: SIM110 (numba compiles the loop, not a generator in all())
+        if masks[i, actions[i]] == 0:
+            return False
+    return True
+
+
+@kernel
+def _next_speeds(speed, egos, accel, step_s):
+    """The speed (m/s) each agent is told to reach in this step: v + a·dt, at least 0, as
+    ``np.maximum(v + a * dt, 0.0)`` gives it (a NaN stays NaN, -0.0 becomes 0.0)."""
+    out = np.empty(egos.shape[0])
+    for i in range(egos.shape[0]):
+        v = speed[egos[i]] + accel[i] * step_s
+        out[i] = v if v > 0.0 or v != v else 0.0
     return out
 
 

@@ -82,19 +82,19 @@ def idm_acceleration_one(
     compiled loops call (env/actions.py). The same operations in the same order give the same numbers,
     except for ``** delta``, where numpy may take its SIMD power (AVX-512), which can differ from libm's in
     the last bit. Without a free-road term (desired_speed = inf: 0 ** delta, as in the safety bound) they
-    agree bit for bit but for the sign of a NaN. Each ``np.maximum`` is written out with its NaN
-    propagation (``max`` would not pass on a NaN second argument)."""
-    s = gap if gap >= _GAP_FLOOR_M or gap != gap else _GAP_FLOOR_M
-    v = speed if speed >= 0.0 or speed != speed else 0.0
+    agree bit for bit but for the sign of a NaN. Each ``np.maximum(x, floor)`` is written out as numpy
+    computes it: x where x > floor or x is NaN, else floor (so -0.0 against 0.0 gives 0.0)."""
+    s = gap if gap > _GAP_FLOOR_M or gap != gap else _GAP_FLOOR_M
+    v = speed if speed > 0.0 or speed != speed else 0.0
     v0 = (
         desired_speed
-        if desired_speed >= _DESIRED_SPEED_FLOOR_MPS or desired_speed != desired_speed
+        if desired_speed > _DESIRED_SPEED_FLOOR_MPS or desired_speed != desired_speed
         else _DESIRED_SPEED_FLOOR_MPS
     )
     free_road = (v / v0) ** delta
     dynamic_gap = speed * time_headway + speed * approach_rate / (
         2.0 * math.sqrt(max_accel * comfortable_decel)
     )
-    s_star = min_gap + (dynamic_gap if dynamic_gap >= 0.0 or dynamic_gap != dynamic_gap else 0.0)
+    s_star = min_gap + (dynamic_gap if dynamic_gap > 0.0 or dynamic_gap != dynamic_gap else 0.0)
     interaction = 0.0 if math.isinf(s) else (s_star / s) ** 2
     return max_accel * (1.0 - free_road - interaction)
