@@ -473,6 +473,8 @@ class MergeEngine:
         for edge_id, lane_index in self.site.shared_lanes.items():
             self._merged_lane[self._edge_code[edge_id]] = lane_index
         self._via_length_by_code = np.array([self.site.main.via_length_m, self.site.merge.via_length_m])
+        self._code_by_edge_index: IntArray | None = None
+        """The edge codes by ``BatchStates.edge_index``, where the backend numbers its edges (``_make_backend``)."""
         self.slots: list[_Slot] = []
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
@@ -491,7 +493,14 @@ class MergeEngine:
     def _make_backend(self) -> BatchBackend | _SoloBackend:
         if self.copies == 1:
             return _SoloBackend(make_backend(self.site, seed=self._seed, gui=self._gui))
-        return BatchBackend(self.site, copies=self.copies, seed=self._seed)
+        backend = BatchBackend(self.site, copies=self.copies, seed=self._seed)
+        # Its states number each edge (``BatchStates.edge_index``, -1: none of the net's): the edge codes by
+        # that number, the last entry for -1, spare a dictionary lookup per car and step.
+        unknown = self._start_by.shape[1] - 1
+        self._code_by_edge_index = np.array(
+            [*(self._edge_code.get(e, unknown) for e in backend.net.edge_ids), unknown], dtype=np.int64
+        )
+        return backend
 
     def reset(self, scenarios: Sequence[Scenario], sumo_args: Sequence[str] = ()) -> None:
         """Start one episode per scenario (at most ``copies``), scenario k in slot k."""
@@ -728,8 +737,11 @@ class MergeEngine:
         self._car = car
         # Distances along each car's own route (engine docstring of ``_route_tables``): one code per edge,
         # then a table lookup by (origin, edge).
-        unknown = self._start_by.shape[1] - 1
-        code = np.fromiter(map(self._edge_code.get, states.edge, itertools.repeat(unknown)), np.int64, n)
+        if self._code_by_edge_index is not None:
+            code = self._code_by_edge_index[states.edge_index]
+        else:
+            unknown = self._start_by.shape[1] - 1
+            code = np.fromiter(map(self._edge_code.get, states.edge, itertools.repeat(unknown)), np.int64, n)
         if states.lane_index is not None and n:
             # On a lane drop a merging car that changed onto the main road's lane drives on as a main-road
             # car: the cars behind it in that lane see it in their own lane (the paper's mask keeps its
