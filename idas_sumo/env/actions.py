@@ -53,8 +53,12 @@ def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> Floa
     prev, act = np.asarray(prev_accel, dtype=np.float64), np.asarray(actions, dtype=np.int64)
     if prev.shape != act.shape:  # (the engine's call, once per step, has equal shapes: no broadcast)
         prev, act = np.broadcast_arrays(prev, act)
-    flat_prev, flat_act = np.ascontiguousarray(prev.ravel()), np.ascontiguousarray(act.ravel())
-    accel, bad = _next_accelerations(flat_prev, flat_act)
+    if act.ndim == 1 and prev.flags.c_contiguous and act.flags.c_contiguous:  # (the engine's call again)
+        accel, bad = _next_accelerations(prev, act)
+    else:
+        accel, bad = _next_accelerations(
+            np.ascontiguousarray(prev.ravel()), np.ascontiguousarray(act.ravel())
+        )
     if bad >= 0:
         raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
     return np.asarray(accel.reshape(act.shape), dtype=np.float64)

@@ -1333,7 +1333,7 @@ def geometric_collisions(
         np.ascontiguousarray(snap.length_m, dtype=np.float64),
         np.ascontiguousarray(origin, dtype=np.int64),
         np.ascontiguousarray(joined_past),
-        float(snap.length_m.max()),
+        snap.longest_m,
     )
     return sorted(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist(), strict=True))
 

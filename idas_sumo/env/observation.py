@@ -65,7 +65,7 @@ def _draw_grids(
         lo,
         hi,
         egos,
-        float(snapshot.length_m.max()),
+        snapshot.longest_m,
         rows_by_copy,
     )
 

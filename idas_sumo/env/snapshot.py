@@ -60,6 +60,11 @@ class TrafficSnapshot:
         return vehicle_id in self._lookup
 
     @functools.cached_property
+    def longest_m(self) -> float:
+        """The longest vehicle's length (m; 0 without vehicles): how far a body reaches past its front."""
+        return float(self.length_m.max()) if len(self.length_m) else 0.0
+
+    @functools.cached_property
     def by_distance(self) -> DistanceOrder:
         """The rows sorted by (copy, distance to the merge point), for searching relations."""
         return DistanceOrder.of(self)
