@@ -23,7 +23,7 @@ from idas_sumo.env.actions import (
     kinematic_mask,
 )
 from idas_sumo.env.snapshot import MAIN, MERGE, NO_LEADER, OUT, TrafficSnapshot
-from idas_sumo.physics.idm import IDMParams, idm_acceleration
+from idas_sumo.physics.idm import IDMParams, idm_acceleration, idm_acceleration_one
 
 # Default IDM throughout: a = 2, b = 2 (so 2·sqrt(ab) = 4), s0 = 2 m, T = 1 s, delta = 4.
 IDM = IDMParams()
@@ -85,6 +85,30 @@ def test_idm_opening_gap_clamps_dynamic_term() -> None:
     # v = 10, leader at 20 m/s (dv = −10), gap 30: v·T + v·dv/4 = 10 − 25 < 0 -> clamped, s* = 2,
     # a = 2·(1 − 0.0625 − (2/30)^2) = 1.866111…
     assert idm_acceleration(10.0, 20.0, 30.0, -10.0, IDM) == pytest.approx(2.0 * (1 - 0.0625 - 1 / 225))
+
+
+def test_idm_of_one_vehicle_is_the_array_function() -> None:
+    """``idm_acceleration_one`` (what the env's kernels compile) against the array function: bit for bit
+    without a free-road term (desired speed inf), within rounding of the power with one."""
+    rng = np.random.default_rng(5)
+    n = 2000
+    speed, gap, rate = rng.uniform(-1.0, 35.0, n), rng.uniform(-5.0, 200.0, n), rng.uniform(-20.0, 20.0, n)
+    gap[::7] = np.inf
+    speed[::5] = 0.0
+    desired = rng.uniform(5.0, 30.0, n)
+    scalars = (IDM.max_accel_mps2, IDM.comfortable_decel_mps2, IDM.min_gap_m, IDM.time_headway_s, IDM.delta)
+    for v0, exact in ((np.full(n, np.inf), True), (desired, False)):
+        one = np.array(
+            [idm_acceleration_one(*case, *scalars) for case in zip(speed, v0, gap, rate, strict=True)]
+        )
+        array = idm_acceleration(speed, v0, gap, rate, IDM)
+        if exact:
+            assert one.view(np.uint64).tolist() == array.view(np.uint64).tolist()
+        else:
+            np.testing.assert_allclose(one, array, rtol=1e-14, atol=1e-14)
+    assert idm_acceleration_one(10.0, 20.0, 30.0, 4.0, *scalars) == pytest.approx(
+        2.0 * (1.0 - 0.0625 - (22.0 / 30.0) ** 2)
+    )
 
 
 # ----------------------------------------------------------------------------- FSM+IDM leader choice

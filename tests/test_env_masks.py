@@ -20,6 +20,7 @@ from idas_sumo.env.actions import (
     safety_bound,
     safety_mask,
 )
+from idas_sumo.physics.idm import IDMParams, idm_acceleration
 
 INF = np.inf
 
@@ -106,6 +107,90 @@ def test_idm_safety_bound_hand_worked() -> None:
     np.testing.assert_allclose(safety_bound([10.0], [20.0], [5.0]), [-1.00125])
     # No leader: no bound.
     assert safety_bound([10.0], [INF], [0.0])[0] == INF
+
+
+def numpy_safety_bound(
+    speed: np.ndarray, gap: np.ndarray, leader_speed: np.ndarray, params: IDMParams
+) -> np.ndarray:
+    """The safety bound as numpy's IDM computes it (the compiled ``safety_bound`` must match it bit for bit)."""
+    bound = idm_acceleration(speed, np.inf, gap, speed - leader_speed, params)
+    return np.where(np.isinf(gap), np.inf, bound)
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's warnings on the inf and NaN inputs
+@pytest.mark.parametrize("params", [IDMParams(), IDMParams(2.5, 3.0, 1.5, 1.2, 3.0)])
+def test_compiled_safety_bound_is_numpys_idm_bit_for_bit(params: IDMParams) -> None:
+    rng = np.random.default_rng(3)
+    special = [0.0, -0.0, 0.01, 0.005, 1e-300, 1e300, -3.0, INF, -INF, np.nan]
+    # Hand-picked: every pair of special values for speed and gap, leader speeds around the speed.
+    grid_v, grid_gap = (a.ravel() for a in np.meshgrid(special, special))
+    cases = [
+        (grid_v, grid_gap, grid_v),
+        (grid_v, grid_gap, np.zeros_like(grid_v)),
+        (grid_v, grid_gap, grid_gap),
+    ]
+    for _ in range(20):
+        n = 5000
+        speed, gap, leader = (
+            rng.uniform(-1.0, 35.0, n),
+            rng.uniform(-5.0, 200.0, n),
+            rng.uniform(-1.0, 35.0, n),
+        )
+        for values in (speed, gap, leader):
+            odd = rng.random(n) < 0.1
+            values[odd] = rng.choice(special, int(odd.sum()))
+        speed[rng.random(n) < 0.1] = 0.0
+        gap[rng.random(n) < 0.2] = INF
+        cases.append((speed, gap, leader))
+    for speed, gap, leader in cases:
+        compiled = safety_bound(speed, gap, leader, params)
+        expected = numpy_safety_bound(speed, gap, leader, params)
+        # NaN where numpy has NaN (the sign of a NaN from ``** delta`` differs between libm and numpy's SIMD
+        # power), every other value bit for bit (signed zeros included).
+        nan = np.isnan(expected)
+        assert np.isnan(compiled).tolist() == nan.tolist()
+        assert compiled[~nan].view(np.uint64).tolist() == expected[~nan].view(np.uint64).tolist()
+
+
+def test_safety_bound_broadcasts_its_arguments() -> None:
+    bound = safety_bound(np.array([[10.0], [5.0]]), np.array([12.0, 20.0, INF]), 10.0)
+    expected = numpy_safety_bound(
+        np.array([[10.0], [5.0]]), np.array([12.0, 20.0, INF]), np.array(10.0), IDMParams()
+    )
+    assert bound.shape == (2, 3) and bound.tolist() == expected.tolist()
+    assert safety_bound(10.0, 12.0, 10.0).shape == (1,)
+
+
+@pytest.mark.parametrize("params", [IDMParams(), IDMParams(2.5, 3.0, 1.5, 1.2, 3.0)])
+def test_action_masks_are_the_three_masks_intersected(params: IDMParams) -> None:
+    """``action_masks`` (one compiled call) against the three masks computed apart, on random agents."""
+    rng = np.random.default_rng(9)
+    for trial in range(50):
+        n = int(rng.integers(0, 40))
+        prev = rng.choice([-4.0, -2.0, -1.9, -0.2, 0.0, 0.1, 1.9, 2.0], n) + rng.choice([0.0, 1e-7], n)
+        speed, limit = rng.uniform(0.0, 22.0, n), rng.choice([15.0, 20.0], n)
+        gap = np.where(rng.random(n) < 0.3, INF, rng.uniform(0.0, 60.0, n))
+        leader, ease_in = rng.uniform(0.0, 22.0, n), rng.random(n) < 0.2
+        masks = action_masks(MaskInputs(prev, speed, limit, gap, leader, ease_in), params)
+        expected = (
+            kinematic_mask(prev)
+            & rule_mask(prev, speed, limit)
+            & safety_mask(prev, speed, gap, leader, params, ease_in=ease_in)
+        )
+        assert masks.dtype == np.int8 and masks.shape == (n, N_ACTIONS)
+        assert masks.tolist() == expected.astype(np.int8).tolist(), trial
+    # Scalars broadcast to every agent, as the separate masks do.
+    one = action_masks(MaskInputs(np.array([0.0, 0.2]), 10.0, 20.0, 12.0, 10.0), params)  # type: ignore[arg-type]
+    assert (
+        one.tolist()
+        == (
+            kinematic_mask([0.0, 0.2])
+            & rule_mask([0.0, 0.2], 10.0, 20.0)
+            & safety_mask([0.0, 0.2], 10.0, 12.0, 10.0, params)
+        )
+        .astype(np.int8)
+        .tolist()
+    )
 
 
 def test_hard_brake_is_never_masked() -> None:

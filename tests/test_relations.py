@@ -7,23 +7,43 @@ distances: the first row wins) and overlapping bodies (the last one drawn wins) 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from idas_sumo.env.layout import CELL_M, GRID_CELLS, N_CHANNELS, RELATIVE_SPEED_SCALE_MPS, VISIBILITY_M
-from idas_sumo.env.observation import build_grids
-from idas_sumo.env.snapshot import MAIN, NO_LEADER, OUT, TrafficSnapshot, leaders, nearest_ahead
+from idas_sumo.env.layout import (
+    CELL_M,
+    GRID_CELLS,
+    N_CHANNELS,
+    N_SCALARS,
+    RELATIVE_SPEED_SCALE_MPS,
+    SCALAR_SCALES,
+    VISIBILITY_M,
+)
+from idas_sumo.env.observation import build_grids, build_observations_checked
+from idas_sumo.env.snapshot import (
+    MAIN,
+    NO_LEADER,
+    OUT,
+    TrafficSnapshot,
+    leader_speeds,
+    leaders,
+    leaders_and_speeds,
+    nearest_ahead,
+)
 
 
-def random_snapshot(rng: np.random.Generator, layout: str, n_copies: int, per_copy: int) -> TrafficSnapshot:
+def random_snapshot(
+    rng: np.random.Generator, layout: str, n_copies: int, per_copy: int, stretch_m: float = 320.0
+) -> TrafficSnapshot:
     n = n_copies * per_copy
     copy = np.repeat(np.arange(n_copies), per_copy)
     if layout == "interleaved":
         copy = rng.permutation(copy)
-    # Whole metres on a short stretch: many cars level with each other, many bodies overlapping.
-    dist = np.round(rng.uniform(-60.0, 260.0, n))
+    # Whole metres (on the default, short stretch: many cars level with each other, many bodies overlapping).
+    dist = np.round(rng.uniform(-60.0, stretch_m - 60.0, n))
     return TrafficSnapshot(
         ids=tuple(f"v{i}" for i in range(n)),
         road=rng.integers(0, 3, n).astype(np.int64),
@@ -97,13 +117,21 @@ def test_nearest_ahead_and_leaders_match_every_pair(layout: str) -> None:
         own_ahead = snap.dist_to_merge_m[egos[has]] - snap.dist_to_merge_m[leader[has]]
         assert gap[has].tolist() == (own_ahead - snap.length_m[leader[has]]).tolist()
         assert np.all(np.isinf(gap[~has]))
+        same_leader, same_gap, speed = leaders_and_speeds(snap, egos)
+        assert same_leader.tolist() == leader.tolist() and same_gap.tolist() == gap.tolist()
+        assert speed.tolist() == leader_speeds(snap, egos, leader).tolist()
 
 
 @pytest.mark.parametrize("layout", ["one world", "copies in order", "interleaved"])
-def test_grids_match_every_pair(layout: str) -> None:
+@pytest.mark.parametrize("stretch_m", [320.0, 3000.0])
+def test_grids_match_every_pair(layout: str, stretch_m: float) -> None:
+    # On the short stretch most of a copy is within sight, and the kernel walks the copy's rows (copies in
+    # order); on the long one few cars are, and it sorts those (as it always does with interleaved copies).
     rng = np.random.default_rng(11)
     for trial in range(10):
-        snap = random_snapshot(rng, layout, n_copies=1 if layout == "one world" else 2, per_copy=60)
+        snap = random_snapshot(
+            rng, layout, n_copies=1 if layout == "one world" else 2, per_copy=60, stretch_m=stretch_m
+        )
         egos = rng.permutation(len(snap))[:20].astype(np.int64)
         grids = build_grids(snap, egos)
         for row, e in enumerate(egos):
@@ -125,3 +153,35 @@ def test_a_leader_level_with_the_ego_counts_only_when_asked() -> None:
     assert nearest_ahead(snap, np.array([2]), False, False, np.inf)[0].tolist() == [
         0
     ]  # the first of two level
+
+
+def test_scalars_are_numpys_columns_and_their_finiteness_is_reported() -> None:
+    """The compiled scalar columns against numpy's float64 division rounded to float32, huge and
+    non-finite inputs included (float64 values beyond float32's range become inf)."""
+    rng = np.random.default_rng(13)
+    odd = [0.0, -0.0, 1e-40, 3.5e39, -1e300, np.inf, np.nan]
+    for trial in range(40):
+        snap = random_snapshot(rng, "copies in order", n_copies=2, per_copy=10)
+        if trial % 2:
+            speed = snap.speed_mps.copy()
+            speed[rng.integers(0, len(speed))] = rng.choice(odd)
+            snap = dataclasses.replace(snap, speed_mps=speed)
+        egos = rng.permutation(len(snap))[: int(rng.integers(0, len(snap)))].astype(np.int64)
+        n = len(egos)
+        columns = [rng.uniform(-4.0, 4.0, n), rng.integers(0, 2, n).astype(float), rng.uniform(-2.0, 2.0, n)]
+        for values in columns:
+            if trial % 3 == 0 and n:
+                values[rng.integers(0, n)] = rng.choice(odd)
+        prev, b_prio, b_type = columns
+        with np.errstate(over="ignore", invalid="ignore"):
+            expected = np.zeros((n, N_SCALARS), dtype=np.float32)
+            for j, values in enumerate(
+                (snap.speed_mps[egos], prev, snap.dist_to_merge_m[egos], b_prio, b_type)
+            ):
+                expected[:, j] = values / SCALAR_SCALES[j]
+        obs, finite = build_observations_checked(snap, egos, prev, b_prio, b_type)
+        assert obs[:, :N_SCALARS].view(np.uint32).tolist() == expected.view(np.uint32).tolist(), trial
+        assert finite == bool(np.isfinite(expected).all()), trial
+        np.testing.assert_array_equal(
+            obs[:, N_SCALARS:].reshape(-1, 2, 2, GRID_CELLS), build_grids(snap, egos)
+        )

@@ -16,8 +16,8 @@ from typing import Literal, get_args
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.env.jit import kernel
-from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration
+from idas_sumo.env.jit import kernel, per_row
+from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams, idm_acceleration_one
 from idas_sumo.sim.backend import STEP_LENGTH_S  # one decision per SUMO step (5 Hz)
 
 FloatArray = npt.NDArray[np.float64]
@@ -53,8 +53,12 @@ def next_acceleration(prev_accel: npt.ArrayLike, actions: npt.ArrayLike) -> Floa
     prev, act = np.asarray(prev_accel, dtype=np.float64), np.asarray(actions, dtype=np.int64)
     if prev.shape != act.shape:  # (the engine's call, once per step, has equal shapes: no broadcast)
         prev, act = np.broadcast_arrays(prev, act)
-    flat_prev, flat_act = np.ascontiguousarray(prev.ravel()), np.ascontiguousarray(act.ravel())
-    accel, bad = _next_accelerations(flat_prev, flat_act)
+    if act.ndim == 1 and prev.flags.c_contiguous and act.flags.c_contiguous:  # (the engine's call again)
+        accel, bad = _next_accelerations(prev, act)
+    else:
+        accel, bad = _next_accelerations(
+            np.ascontiguousarray(prev.ravel()), np.ascontiguousarray(act.ravel())
+        )
     if bad >= 0:
         raise ValueError(f"actions must lie in [0, {N_ACTIONS}), got {act.tolist()}")
     return np.asarray(accel.reshape(act.shape), dtype=np.float64)
@@ -223,8 +227,45 @@ def safety_bound(
     """
     v = np.atleast_1d(np.asarray(speed_mps, dtype=np.float64))
     gap = np.atleast_1d(np.asarray(gap_m, dtype=np.float64))
-    bound = idm_acceleration(v, np.inf, gap, v - np.asarray(leader_speed_mps), params)
-    return np.asarray(np.where(np.isinf(gap), np.inf, bound), dtype=np.float64)
+    leader = np.asarray(leader_speed_mps, dtype=np.float64)
+    if not (v.shape == gap.shape == leader.shape and v.ndim == 1):  # (the engine's calls: equal shapes)
+        v, gap, leader = np.broadcast_arrays(v, gap, leader)
+    bound = _safety_bounds(
+        np.ascontiguousarray(v.ravel()),
+        np.ascontiguousarray(gap.ravel()),
+        np.ascontiguousarray(leader.ravel()),
+        params.max_accel_mps2,
+        params.comfortable_decel_mps2,
+        params.min_gap_m,
+        params.time_headway_s,
+        params.delta,
+    )
+    return np.asarray(bound.reshape(v.shape), dtype=np.float64)
+
+
+_idm_acceleration_one = kernel(idm_acceleration_one)
+
+
+@kernel
+def _safety_bounds(speed, gap, leader_speed, max_accel, comfortable_decel, min_gap, time_headway, delta):
+    """``safety_bound`` per agent: IDM with no desired speed (inf), inf where there is no leader."""
+    bound = np.empty(speed.shape[0])
+    for i in range(speed.shape[0]):
+        if np.isinf(gap[i]):
+            bound[i] = np.inf
+        else:
+            bound[i] = _idm_acceleration_one(
+                speed[i],
+                np.inf,
+                gap[i],
+                speed[i] - leader_speed[i],
+                max_accel,
+                comfortable_decel,
+                min_gap,
+                time_headway,
+                delta,
+            )
+    return bound
 
 
 def safety_mask(
@@ -271,15 +312,43 @@ class MaskInputs:
 def action_masks(inputs: MaskInputs, params: IDMParams = DEFAULT_IDM) -> npt.NDArray[np.int8]:
     """(n_agents, 7) int8 mask: kinematic ∩ rule ∩ safety."""
     prev = _as_rows(inputs.prev_accel_mps2)
-    allowed = _masks(
+    n = prev.shape[0]
+    return np.asarray(
+        _action_masks_kernel(
+            prev,
+            per_row(inputs.speed_mps, n),
+            per_row(inputs.speed_limit_mps, n),
+            per_row(inputs.gap_m, n),
+            per_row(inputs.leader_speed_mps, n),
+            per_row(inputs.ease_in, n, np.bool_),
+            params.max_accel_mps2,
+            params.comfortable_decel_mps2,
+            params.min_gap_m,
+            params.time_headway_s,
+            params.delta,
+        ),
+        dtype=np.int8,
+    )
+
+
+@kernel
+def _action_masks_kernel(
+    prev, speed, limit, gap, leader_speed, ease_in, max_accel, comfortable_decel, min_gap, time_headway, delta
+):
+    """``action_masks`` in one call: the candidates, the safety bound and the three masks' intersection
+    (what ``candidate_accelerations``, ``safety_bound`` and ``_masks`` compute, without their numpy around)."""
+    bound = _safety_bounds(
+        speed, gap, leader_speed, max_accel, comfortable_decel, min_gap, time_headway, delta
+    )
+    allowed = _masks_kernel(
         _KINEMATIC | _RULE | _SAFETY,
         prev,
-        candidate_accelerations(prev),
-        speed=_as_rows(inputs.speed_mps),
-        limit=_as_rows(inputs.speed_limit_mps),
-        bound=safety_bound(inputs.speed_mps, inputs.gap_m, inputs.leader_speed_mps, params),
-        ease_in=inputs.ease_in,
-        params=params,
+        _candidates(prev),
+        speed,
+        limit,
+        bound,
+        ease_in,
+        -comfortable_decel - _TOLERANCE,
     )
     return allowed.astype(np.int8)
 
@@ -304,26 +373,17 @@ def _masks(
 ) -> BoolArray:
     """The intersection of the masks ``which`` names (the inputs of the others are unused)."""
     n = cand.shape[0]
-
-    def per_row(values: npt.ArrayLike | None, dtype: type = np.float64) -> npt.NDArray[np.generic]:
-        # The kernel reads row i of each input unchecked: broadcast them to n rows first.
-        if isinstance(values, np.ndarray) and values.shape == (n,) and values.dtype == dtype:
-            return np.ascontiguousarray(values)
-        return np.ascontiguousarray(
-            np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
-        )
-
     if not (cand.shape == (n, N_ACTIONS) and cand.dtype == np.float64):
         cand = np.broadcast_to(np.asarray(cand, dtype=np.float64), (n, N_ACTIONS))
     return np.asarray(
         _masks_kernel(
             which,
-            per_row(prev),
+            per_row(prev, n),
             np.ascontiguousarray(cand),
-            per_row(speed),
-            per_row(limit),
-            per_row(bound),
-            per_row(ease_in, np.bool_),
+            per_row(speed, n),
+            per_row(limit, n),
+            per_row(bound, n),
+            per_row(ease_in, n, np.bool_),
             -params.comfortable_decel_mps2 - _TOLERANCE,
         ),
         dtype=np.bool_,

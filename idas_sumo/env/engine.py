@@ -46,13 +46,12 @@ from idas_sumo.env.layout import (
     ACCEL_SCALE_MPS2,
     B_TYPE_SCALE,
     DIST_SCALE_M,
-    N_SCALARS,
     OBS_DIM,
     RELATIVE_SPEED_SCALE_MPS,
     SPEED_SCALE_MPS,
     VISIBILITY_M,
 )
-from idas_sumo.env.observation import build_observations
+from idas_sumo.env.observation import build_observations, build_observations_checked
 from idas_sumo.env.rewards import (
     FINISH_DISTANCE_PAST_MERGE_M,
     FLOW_PENALTY_PER_HARD_BRAKE,
@@ -71,7 +70,7 @@ from idas_sumo.env.snapshot import (
     OUT,
     TrafficSnapshot,
     leader_speeds,
-    leaders,
+    leaders_and_speeds,
     nearest_ahead,
     other_road_leaders,
 )
@@ -232,12 +231,14 @@ class AgentBatch:
         """(n, OBS_DIM) observations, built on first use (rule-based policies never need them)."""
         if not len(self.ids):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
-        obs = build_observations(self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type)
+        obs, scalars_finite = build_observations_checked(
+            self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type
+        )
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
         # scalars or the speeds are not is every entry tested (a fifth of a step's observation time).
         speed = self.snapshot.speed_mps
         spread = float(np.ptp(speed)) if len(speed) else 0.0
-        if not (np.isfinite(obs[:, :N_SCALARS]).all() and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
+        if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():
                 bad = self.ids[int(np.argmin(finite))]
@@ -472,6 +473,8 @@ class MergeEngine:
         for edge_id, lane_index in self.site.shared_lanes.items():
             self._merged_lane[self._edge_code[edge_id]] = lane_index
         self._via_length_by_code = np.array([self.site.main.via_length_m, self.site.merge.via_length_m])
+        self._code_by_edge_index: IntArray | None = None
+        """The edge codes by ``BatchStates.edge_index``, where the backend numbers its edges (``_make_backend``)."""
         self.slots: list[_Slot] = []
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
@@ -490,7 +493,14 @@ class MergeEngine:
     def _make_backend(self) -> BatchBackend | _SoloBackend:
         if self.copies == 1:
             return _SoloBackend(make_backend(self.site, seed=self._seed, gui=self._gui))
-        return BatchBackend(self.site, copies=self.copies, seed=self._seed)
+        backend = BatchBackend(self.site, copies=self.copies, seed=self._seed)
+        # Its states number each edge (``BatchStates.edge_index``, -1: none of the net's): the edge codes by
+        # that number, the last entry for -1, spare a dictionary lookup per car and step.
+        unknown = self._start_by.shape[1] - 1
+        self._code_by_edge_index = np.array(
+            [*(self._edge_code.get(e, unknown) for e in backend.net.edge_ids), unknown], dtype=np.int64
+        )
+        return backend
 
     def reset(self, scenarios: Sequence[Scenario], sumo_args: Sequence[str] = ()) -> None:
         """Start one episode per scenario (at most ``copies``), scenario k in slot k."""
@@ -727,8 +737,11 @@ class MergeEngine:
         self._car = car
         # Distances along each car's own route (engine docstring of ``_route_tables``): one code per edge,
         # then a table lookup by (origin, edge).
-        unknown = self._start_by.shape[1] - 1
-        code = np.fromiter(map(self._edge_code.get, states.edge, itertools.repeat(unknown)), np.int64, n)
+        if self._code_by_edge_index is not None:
+            code = self._code_by_edge_index[states.edge_index]
+        else:
+            unknown = self._start_by.shape[1] - 1
+            code = np.fromiter(map(self._edge_code.get, states.edge, itertools.repeat(unknown)), np.int64, n)
         if states.lane_index is not None and n:
             # On a lane drop a merging car that changed onto the main road's lane drives on as a main-road
             # car: the cars behind it in that lane see it in their own lane (the paper's mask keeps its
@@ -854,9 +867,9 @@ class MergeEngine:
         IDAS (docs/design-notes.md).
         """
         snap = self.snapshot
-        leader, gap = leaders(snap, egos)
+        _, gap, leader_speed = leaders_and_speeds(snap, egos)
         if self.config.safety_mask == "own_lane":
-            return gap, leader_speeds(snap, egos, leader), np.zeros(len(egos), dtype=np.bool_)
+            return gap, leader_speed, np.zeros(len(egos), dtype=np.bool_)
         # SUMO's own cars on the merge road give way to every main-road car at the junction (stage 1's
         # "merge always yields"); counting them as front cars of main-road cars deadlocked both.
         sumo_yielding = (snap.road == MERGE) & ~self._controlled
@@ -869,7 +882,6 @@ class MergeEngine:
             never_leading=sumo_yielding,
         )
         speed = snap.speed_mps[egos]
-        leader_speed = leader_speeds(snap, egos, leader)
         merge_speed = leader_speeds(snap, egos, merge_leader)
         own_lane_bound = safety_bound(speed, gap, leader_speed)
         other_road = (merge_leader >= 0) & (safety_bound(speed, merge_gap, merge_speed) < own_lane_bound)
@@ -924,13 +936,13 @@ class MergeEngine:
         applied = requested
         if n:
             masks, prev = batch.masks, batch.prev_accel
-            rows = np.arange(n)
-            allowed = masks[rows, requested].astype(bool)
-            if not allowed.all():
+            if not _all_allowed(masks, requested):
+                rows = np.arange(n)
+                allowed = masks[rows, requested].astype(bool)
                 wanted = candidate_accelerations(prev)[rows, requested]
                 applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
             new_accel = next_acceleration(prev, applied)
-            next_speed = np.maximum(before.speed_mps[batch.egos] + new_accel * STEP_LENGTH_S, 0.0)
+            next_speed = _next_speeds(before.speed_mps, batch.egos, new_accel, STEP_LENGTH_S)
             self.backend.set_speeds(agents.global_ids, next_speed)
             cars.accel[agents.car] = new_accel
         events = self.backend.step()
@@ -946,18 +958,22 @@ class MergeEngine:
         # Hard brakes, placed where the braking car was when it decided (the step's start): agents that
         # chose the hard brake, then SUMO-driven cars of acting copies that braked hard on their own.
         agent_brake = applied == HARD_BRAKE
-        braking = self._car[after.accel_mps2 <= HARD_BRAKE_DETECT_MPS2]
-        braking = braking[acting[cars.copy[braking]] & (cars.state[braking] != ACTIVE)]
-        sumo_brakes = rows_before[braking]
-        brakes = np.concatenate([batch.egos[agent_brake], sumo_brakes[sumo_brakes >= 0]])
-        brake_rows = brakes.tolist()
-        brake_copy = self._copy_of(before, brakes)
-        in_zone = np.abs(before.dist_to_merge_m[brakes]) <= MERGE_ZONE_RADIUS_M
-        hard_brakes = np.bincount(brake_copy, minlength=k_count)
+        brakes, brake_copy, in_zone, hard_brakes, zone_brakes = _hard_brakes(
+            batch.egos,
+            agent_brake,
+            after.accel_mps2,
+            self._car,
+            acting,
+            cars.copy,
+            cars.state,
+            rows_before,
+            self._row_copy(before),
+            before.dist_to_merge_m,
+            MERGE_ZONE_RADIUS_M,
+        )
         hard_brake_ids: list[list[str]] = [[] for _ in range(k_count)]
-        for r, k in zip(brake_rows, brake_copy.tolist(), strict=True):
+        for r, k in zip(brakes.tolist(), brake_copy.tolist(), strict=True):
             hard_brake_ids[k].append(before.ids[r])
-        zone_brakes = np.bincount(brake_copy[in_zone], minlength=k_count)
         # The brakes the rewards count (RewardConfig.brake_count); the statistics above count every step.
         priced_zone, priced_brakes, priced_agents = zone_brakes, brakes, agent_brake
         if self.config.reward.brake_count == "manoeuvre":
@@ -971,31 +987,31 @@ class MergeEngine:
 
         # End reasons: collided, removed, finished, else timeout (if time is up).
         copies = batch.copy.tolist()
-        new_row = cars.row[agents.car]
-        present = new_row >= 0
         collided = np.zeros(n, dtype=np.bool_)
         if any(ev.collided for ev in events.copies):
             collided[:] = [a in events.copies[k].collided for a, k in zip(batch.ids, copies, strict=True)]
-        finished = np.zeros(n, dtype=np.bool_)
-        finished[present] = after.dist_to_merge_m[new_row[present]] <= -FINISH_DISTANCE_PAST_MERGE_M
-        code = np.where(  # the first reason that holds, in this order (np.select, at a third of its cost)
+        code = _end_codes(
             collided,
-            _REASON_CODE["collided"],
-            np.where(
-                ~present,
-                _REASON_CODE["removed"],
-                np.where(
-                    finished, _REASON_CODE["finished"], _REASON_CODE["timeout" if self.timed_out() else ""]
-                ),
-            ),
-        ).astype(np.int64)
+            cars.row[agents.car],
+            after.dist_to_merge_m,
+            -FINISH_DISTANCE_PAST_MERGE_M,
+            _REASON_CODE["timeout" if self.timed_out() else ""],
+        )
         reasons = [_REASON_BY_CODE[c] for c in code.tolist()]
 
         parts = np.zeros((n, len(REWARD_PART_NAMES)))
         if n:
-            parts[:, _PART["flow"]] = flow[batch.copy]
-            culprits = np.bincount(impeded_by, minlength=len(before))
-            parts[:, _PART["impede"]] = IMPEDE_PENALTY * culprits[batch.egos]
+            _penalty_parts(
+                parts,
+                batch.copy,
+                batch.egos,
+                flow,
+                impeded_by,
+                len(before),
+                IMPEDE_PENALTY,
+                _PART["flow"],
+                _PART["impede"],
+            )
             sign = self.config.reward.collision_sign
             for i in np.flatnonzero(collided).tolist():
                 slot = self.slots[copies[i]]
@@ -1065,6 +1081,11 @@ class MergeEngine:
             hard_brake_ids=hard_brake_ids,
         )
 
+    @staticmethod
+    def _row_copy(snap: TrafficSnapshot) -> IntArray:
+        """Each row's copy (all 0 in a one-copy snapshot, which has none)."""
+        return snap.copy if snap.copy is not None else np.zeros(len(snap), dtype=np.int64)
+
     def _copy_of(self, snap: TrafficSnapshot, rows: npt.ArrayLike) -> IntArray:
         r = np.asarray(rows, dtype=np.int64)
         if snap.copy is None:
@@ -1117,6 +1138,7 @@ def _route_tables(site: MergeSite) -> tuple[dict[str, int], FloatArray, npt.NDAr
 
 _REASON_BY_CODE: tuple[str, ...] = ("", *END_REASONS)
 _REASON_CODE = {reason: code for code, reason in enumerate(_REASON_BY_CODE)}
+_COLLIDED, _REMOVED, _FINISHED = _REASON_CODE["collided"], _REASON_CODE["removed"], _REASON_CODE["finished"]
 
 
 def _copy_runs(copy: IntArray) -> list[tuple[int, int, int]]:
@@ -1151,14 +1173,118 @@ def _checked_actions(batch: AgentBatch, actions: npt.ArrayLike) -> IntArray:
                 f"expected an int in [0, {N_ACTIONS})"
             )
     out = raw.astype(np.int64)
-    wrong = (out < 0) | (out >= N_ACTIONS)
-    if wrong.any():
-        i = int(np.flatnonzero(wrong)[0])
+    i = _first_outside(out, N_ACTIONS)
+    if i >= 0:
         raise ValueError(
             f"invalid action {int(out[i])} for agent {batch.ids[i]!r} at t = {batch.time_s:.1f} s: "
             f"expected an int in [0, {N_ACTIONS})"
         )
     return out
+
+
+@kernel
+def _first_outside(actions, n_actions):
+    """The first index whose action is not in [0, n_actions), or -1."""
+    for i in range(actions.shape[0]):
+        if not 0 <= actions[i] < n_actions:
+            return i
+    return -1
+
+
+@kernel
+def _all_allowed(masks, actions):
+    """Whether each agent's action (all in range: ``_checked_actions``) is allowed by its mask row."""
+    for i in range(actions.shape[0]):  # noqa: SIM110 (numba compiles the loop, not a generator in all())
+        if masks[i, actions[i]] == 0:
+            return False
+    return True
+
+
+@kernel
+def _next_speeds(speed, egos, accel, step_s):
+    """The speed (m/s) each agent is told to reach in this step: v + a·dt, at least 0, as
+    ``np.maximum(v + a * dt, 0.0)`` gives it (a NaN stays NaN, -0.0 becomes 0.0)."""
+    out = np.empty(egos.shape[0])
+    for i in range(egos.shape[0]):
+        v = speed[egos[i]] + accel[i] * step_s
+        out[i] = v if v > 0.0 or v != v else 0.0
+    return out
+
+
+@kernel
+def _hard_brakes(
+    egos,
+    agent_brake,
+    accel,
+    car_of_row,
+    acting,
+    car_copy,
+    car_state,
+    rows_before,
+    copy_before,
+    dist_before,
+    zone_m,
+):
+    """The step's hard brakes as rows of the step's first snapshot: the agents' (``agent_brake``, batch
+    order), then those of the cars now braking at ``HARD_BRAKE_DETECT_MPS2`` or harder (rows of the new
+    snapshot, in order) that are no agents, drive in an acting copy and were on the road before.
+
+    Returns (rows, their copies, within ``zone_m`` of the merge point, brakes per copy, of those within
+    ``zone_m`` per copy); ``acting`` has one entry per copy."""
+    rows = np.empty(egos.shape[0] + accel.shape[0], dtype=np.int64)
+    m = 0
+    for i in range(egos.shape[0]):
+        if agent_brake[i]:
+            rows[m] = egos[i]
+            m += 1
+    for r in range(accel.shape[0]):
+        if accel[r] <= HARD_BRAKE_DETECT_MPS2:
+            c = car_of_row[r]
+            if acting[car_copy[c]] and car_state[c] != ACTIVE and rows_before[c] >= 0:
+                rows[m] = rows_before[c]
+                m += 1
+    rows = rows[:m].copy()
+    copy = np.empty(m, dtype=np.int64)
+    in_zone = np.empty(m, dtype=np.bool_)
+    per_copy = np.zeros(acting.shape[0], dtype=np.int64)
+    zone_per_copy = np.zeros(acting.shape[0], dtype=np.int64)
+    for i in range(m):
+        copy[i] = copy_before[rows[i]]
+        in_zone[i] = np.abs(dist_before[rows[i]]) <= zone_m
+        per_copy[copy[i]] += 1
+        if in_zone[i]:
+            zone_per_copy[copy[i]] += 1
+    return rows, copy, in_zone, per_copy, zone_per_copy
+
+
+@kernel
+def _end_codes(collided, row, dist, finish_below_m, otherwise):
+    """Each agent's end reason (``_REASON_CODE``), the first that holds: collided, removed (no ``row`` in
+    the new snapshot), finished (its distance to the merge point at or below ``finish_below_m``), else
+    ``otherwise`` (timeout, or going on)."""
+    code = np.empty(collided.shape[0], dtype=np.int64)
+    for i in range(collided.shape[0]):
+        if collided[i]:
+            code[i] = _COLLIDED
+        elif row[i] < 0:
+            code[i] = _REMOVED
+        elif dist[row[i]] <= finish_below_m:
+            code[i] = _FINISHED
+        else:
+            code[i] = otherwise
+    return code
+
+
+@kernel
+def _penalty_parts(parts, copy, egos, flow, impeded_by, n_rows, impede_penalty, flow_part, impede_part):
+    """Into ``parts`` (agents x reward parts): each agent's copy's ``flow`` penalty, and ``impede_penalty``
+    times the hard brakes it caused (``impeded_by``: the culprits' rows, one per brake)."""
+    culprits = np.zeros(n_rows, dtype=np.int64)
+    for r in impeded_by:
+        culprits[r] += 1
+    for i in range(copy.shape[0]):
+        parts[i, flow_part] = flow[copy[i]]
+        parts[i, impede_part] = impede_penalty * culprits[egos[i]]
 
 
 def _impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArray:
@@ -1207,7 +1333,7 @@ def geometric_collisions(
         np.ascontiguousarray(snap.length_m, dtype=np.float64),
         np.ascontiguousarray(origin, dtype=np.int64),
         np.ascontiguousarray(joined_past),
-        float(snap.length_m.max()),
+        snap.longest_m,
     )
     return sorted(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist(), strict=True))
 

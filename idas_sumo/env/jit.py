@@ -12,6 +12,8 @@ from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
 import numba
+import numpy as np
+import numpy.typing as npt
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -23,3 +25,13 @@ def kernel(func: F) -> F:
     except RuntimeError:  # numba: "cannot cache function ...: no locator available"
         compiled = numba.njit(nogil=True)(func)
     return cast(F, compiled)
+
+
+def per_row(values: npt.ArrayLike | None, n: int, dtype: type = np.float64) -> npt.NDArray[Any]:
+    """``values`` (None: zeros) as n contiguous rows of ``dtype``: a kernel reads row i of each input
+    unchecked, so a scalar or a shorter input is broadcast first (an input that is already right passes)."""
+    if isinstance(values, np.ndarray) and values.shape == (n,) and values.dtype == dtype:
+        return np.ascontiguousarray(values)
+    return np.ascontiguousarray(
+        np.broadcast_to(np.asarray(0 if values is None else values, dtype=dtype), (n,))
+    )

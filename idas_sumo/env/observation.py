@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.env.jit import kernel
+from idas_sumo.env.jit import kernel, per_row
 from idas_sumo.env.layout import (
     CELL_M,
     GRID_CELLS,
@@ -15,6 +15,7 @@ from idas_sumo.env.layout import (
     N_SCALARS,
     OBS_DIM,
     RELATIVE_SPEED_SCALE_MPS,
+    SCALAR_NAMES,
     SCALAR_SCALES,
     VISIBILITY_M,
 )
@@ -49,6 +50,8 @@ def _draw_grids(
     egos = np.ascontiguousarray(egos, dtype=np.int64)
     by_dist = snapshot.by_distance
     lo, hi = by_dist.spans(snapshot, egos)
+    # Copy by copy (or one world), a copy's span in the distance order is also its span of rows.
+    rows_by_copy = snapshot.copy is None or snapshot.copy_bounds is not None
     _draw_grids_kernel(
         flat,
         row_size,
@@ -62,25 +65,42 @@ def _draw_grids(
         lo,
         hi,
         egos,
-        float(snapshot.length_m.max()),
+        snapshot.longest_m,
+        rows_by_copy,
     )
+
+
+_WALK_ROWS_PER_NEAR_CAR = 4
+"""A copy's rows are walked in order (each a comparison) rather than its cars within sight sorted (a few
+comparisons and moves each) while it has at most this many rows per car within sight: at 32 cars a copy
+the sort took half of the kernel's time."""
 
 
 @kernel
 def _draw_grids_kernel(
-    flat, row_size, offset, road, dist, length, speed, order, sorted_dist, lo, hi, egos, longest
+    flat, row_size, offset, road, dist, length, speed, order, sorted_dist, lo, hi, egos, longest, rows_by_copy
 ):
     seen = np.empty(order.shape[0], dtype=np.int64)
     for r in range(egos.shape[0]):
         e = egos[r]
         # Every body that can touch the grid lies within sight plus the longest body (1 m to spare for
         # rounding): the exact tests below decide, on the same numbers as before the window.
+        near_from = dist[e] - VISIBILITY_M - longest - 1.0
+        near_to = dist[e] + VISIBILITY_M + 1.0
         near = sorted_dist[lo[r] : hi[r]]
-        a = lo[r] + np.searchsorted(near, dist[e] - VISIBILITY_M - longest - 1.0, side="left")
-        b = lo[r] + np.searchsorted(near, dist[e] + VISIBILITY_M + 1.0, side="right")
+        a = lo[r] + np.searchsorted(near, near_from, side="left")
+        b = lo[r] + np.searchsorted(near, near_to, side="right")
         m = b - a
-        seen[:m] = order[a:b]
-        seen[:m].sort()
+        if rows_by_copy and hi[r] - lo[r] <= _WALK_ROWS_PER_NEAR_CAR * m:
+            # [lo, hi) are the copy's rows: those within the window, in order, are order[a:b] sorted.
+            m = 0
+            for j in range(lo[r], hi[r]):
+                if near_from <= dist[j] <= near_to:
+                    seen[m] = j
+                    m += 1
+        else:
+            seen[:m] = order[a:b]
+            seen[:m].sort()
         for i in range(m):
             j = seen[i]
             if j == e:
@@ -109,11 +129,53 @@ def build_observations(
     b_type: FloatArray,
 ) -> npt.NDArray[np.float32]:
     """(n_egos, OBS_DIM) float32 observations; ``prev_accel`` is the acceleration the agent drives with."""
-    obs = np.zeros((len(egos), OBS_DIM), dtype=np.float32)
-    scalars = (snapshot.speed_mps[egos], prev_accel_mps2, snapshot.dist_to_merge_m[egos], b_prio, b_type)
-    for j, (values, scale) in enumerate(zip(scalars, SCALAR_SCALES, strict=True)):
-        # Divided in float64, then rounded to float32: column by column, the same numbers as one (n, 5)
-        # division (which cost a stack and a copy more).
-        obs[:, j] = np.asarray(values, dtype=np.float64) / scale
+    return build_observations_checked(snapshot, egos, prev_accel_mps2, b_prio, b_type)[0]
+
+
+def build_observations_checked(
+    snapshot: TrafficSnapshot,
+    egos: IntArray,
+    prev_accel_mps2: FloatArray,
+    b_prio: FloatArray,
+    b_type: FloatArray,
+) -> tuple[npt.NDArray[np.float32], bool]:
+    """``build_observations``, and whether every scalar entry came out finite (a caller's check of the
+    observations then only has to look at the grids)."""
+    n = len(egos)
+    obs = np.zeros((n, OBS_DIM), dtype=np.float32)
+    egos = np.ascontiguousarray(egos, dtype=np.int64)
+    finite = _write_scalars(
+        obs,
+        snapshot.speed_mps,
+        snapshot.dist_to_merge_m,
+        egos,
+        per_row(prev_accel_mps2, n),
+        per_row(b_prio, n),
+        per_row(b_type, n),
+        _SCALES,
+    )
     _draw_grids(obs.reshape(-1), OBS_DIM, N_SCALARS, snapshot, egos)  # straight into the rows
-    return obs
+    return obs, bool(finite)
+
+
+_SCALES = np.asarray(SCALAR_SCALES, dtype=np.float64)
+_SCALES.flags.writeable = False
+if SCALAR_NAMES != ("speed", "accel", "dist_to_merge", "b_prio", "b_type"):  # ``_write_scalars``' columns
+    raise ImportError(f"the observation's scalars changed to {SCALAR_NAMES}: update _write_scalars")
+
+
+@kernel
+def _write_scalars(obs, speed, dist, egos, prev_accel, b_prio, b_type, scales):
+    """The scalar columns (``SCALAR_NAMES``' order), each divided by its scale in float64 and rounded to
+    float32 as numpy's column assignment does; returns whether all of them are finite."""
+    finite = True
+    for i in range(egos.shape[0]):
+        e = egos[i]
+        obs[i, 0] = speed[e] / scales[0]
+        obs[i, 1] = prev_accel[i] / scales[1]
+        obs[i, 2] = dist[e] / scales[2]
+        obs[i, 3] = b_prio[i] / scales[3]
+        obs[i, 4] = b_type[i] / scales[4]
+        for j in range(scales.shape[0]):
+            finite = finite and np.isfinite(obs[i, j])
+    return finite

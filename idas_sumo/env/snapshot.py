@@ -60,6 +60,11 @@ class TrafficSnapshot:
         return vehicle_id in self._lookup
 
     @functools.cached_property
+    def longest_m(self) -> float:
+        """The longest vehicle's length (m; 0 without vehicles): how far a body reaches past its front."""
+        return float(self.length_m.max()) if len(self.length_m) else 0.0
+
+    @functools.cached_property
     def by_distance(self) -> DistanceOrder:
         """The rows sorted by (copy, distance to the merge point), for searching relations."""
         return DistanceOrder.of(self)
@@ -132,10 +137,27 @@ def lane_relations(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[Neighbour
 
 def leaders(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatArray]:
     """Nearest car ahead in each ego's current lane: (index or NO_LEADER, bumper gap in m or inf)."""
-    leader, ahead_by = nearest_ahead(snapshot, egos, any_lane=False, level_counts=False, max_ahead_m=np.inf)
-    has = leader != NO_LEADER
-    gap = np.where(has, ahead_by - snapshot.length_m[np.where(has, leader, 0)], np.inf)
-    return leader, gap.astype(np.float64)
+    leader, gap, _ = leaders_and_speeds(snapshot, egos)
+    return leader, gap
+
+
+def leaders_and_speeds(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatArray, FloatArray]:
+    """``leaders`` and their ``leader_speeds`` (the ego's own speed where it has none), in one compiled call
+    (what the safety mask needs every step)."""
+    egos = np.ascontiguousarray(egos, dtype=np.int64)
+    by_dist = snapshot.by_distance
+    lo, hi = by_dist.spans(snapshot, egos)
+    return _leaders_kernel(
+        snapshot.road,
+        snapshot.dist_to_merge_m,
+        snapshot.length_m,
+        snapshot.speed_mps,
+        by_dist.order,
+        by_dist.sorted_dist,
+        lo,
+        hi,
+        egos,
+    )
 
 
 def nearest_ahead(
@@ -235,6 +257,23 @@ def _nearest_ahead_kernel(road, dist, order, sorted_dist, lo, hi, egos, any_lane
                 best[r] = ahead
                 nearest[r] = j
     return nearest, best
+
+
+@kernel
+def _leaders_kernel(road, dist, length, speed, order, sorted_dist, lo, hi, egos):
+    leader, ahead_by = _nearest_ahead_kernel(
+        road, dist, order, sorted_dist, lo, hi, egos, False, False, np.inf
+    )
+    gap = np.empty(egos.shape[0])
+    leader_speed = np.empty(egos.shape[0])
+    for r in range(egos.shape[0]):
+        if leader[r] != NO_LEADER:
+            gap[r] = ahead_by[r] - length[leader[r]]
+            leader_speed[r] = speed[leader[r]]
+        else:
+            gap[r] = np.inf
+            leader_speed[r] = speed[egos[r]]
+    return leader, gap, leader_speed
 
 
 def _nearest_ahead(

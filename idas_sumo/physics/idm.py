@@ -10,6 +10,7 @@ the car drives towards v0. The paper's safety mask uses the same formula with s0
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +36,9 @@ class IDMParams:
 
 
 DEFAULT_IDM = IDMParams()
+_GAP_FLOOR_M = 0.01
+"""Gaps are clipped here: a touching leader gives a very large braking demand, not a division by zero."""
+_DESIRED_SPEED_FLOOR_MPS = 1e-6
 
 
 def idm_acceleration(
@@ -52,12 +56,45 @@ def idm_acceleration(
     """
     v = np.asarray(speed, dtype=np.float64)
     v0 = np.asarray(desired_speed, dtype=np.float64)
-    s = np.maximum(np.asarray(gap, dtype=np.float64), 0.01)
+    s = np.maximum(np.asarray(gap, dtype=np.float64), _GAP_FLOOR_M)
     dv = np.asarray(approach_rate, dtype=np.float64)
-    free_road = (np.maximum(v, 0.0) / np.maximum(v0, 1e-6)) ** params.delta
+    free_road = (np.maximum(v, 0.0) / np.maximum(v0, _DESIRED_SPEED_FLOOR_MPS)) ** params.delta
     dynamic_gap = v * params.time_headway_s + v * dv / (
         2.0 * np.sqrt(params.max_accel_mps2 * params.comfortable_decel_mps2)
     )
     s_star = params.min_gap_m + np.maximum(dynamic_gap, 0.0)
     interaction = np.where(np.isinf(s), 0.0, (s_star / s) ** 2)
     return np.asarray(params.max_accel_mps2 * (1.0 - free_road - interaction), dtype=np.float64)
+
+
+def idm_acceleration_one(
+    speed: float,
+    desired_speed: float,
+    gap: float,
+    approach_rate: float,
+    max_accel: float,
+    comfortable_decel: float,
+    min_gap: float,
+    time_headway: float,
+    delta: float,
+) -> float:
+    """``idm_acceleration`` of one vehicle, the parameters spelled out: plain arithmetic that the env's
+    compiled loops call (env/actions.py). The same operations in the same order give the same numbers,
+    except for ``** delta``, where numpy may take its SIMD power (AVX-512), which can differ from libm's in
+    the last bit. Without a free-road term (desired_speed = inf: 0 ** delta, as in the safety bound) they
+    agree bit for bit but for the sign of a NaN. Each ``np.maximum(x, floor)`` is written out as numpy
+    computes it: x where x > floor or x is NaN, else floor (so -0.0 against 0.0 gives 0.0)."""
+    s = gap if gap > _GAP_FLOOR_M or gap != gap else _GAP_FLOOR_M
+    v = speed if speed > 0.0 or speed != speed else 0.0
+    v0 = (
+        desired_speed
+        if desired_speed > _DESIRED_SPEED_FLOOR_MPS or desired_speed != desired_speed
+        else _DESIRED_SPEED_FLOOR_MPS
+    )
+    free_road = (v / v0) ** delta
+    dynamic_gap = speed * time_headway + speed * approach_rate / (
+        2.0 * math.sqrt(max_accel * comfortable_decel)
+    )
+    s_star = min_gap + (dynamic_gap if dynamic_gap > 0.0 or dynamic_gap != dynamic_gap else 0.0)
+    interaction = 0.0 if math.isinf(s) else (s_star / s) ** 2
+    return max_accel * (1.0 - free_road - interaction)

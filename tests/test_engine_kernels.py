@@ -1,0 +1,135 @@
+"""The engine's compiled step loops against the numpy they replaced, on hand-picked and random inputs."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from idas_sumo.env.engine import (
+    _COLLIDED,
+    _FINISHED,
+    _REMOVED,
+    ACTIVE,
+    ENDED,
+    HARD_BRAKE_DETECT_MPS2,
+    WAITING,
+    _all_allowed,
+    _end_codes,
+    _first_outside,
+    _hard_brakes,
+    _next_speeds,
+    _penalty_parts,
+)
+
+
+def numpy_hard_brakes(*args: Any) -> tuple[np.ndarray, ...]:
+    """What the step computed before ``_hard_brakes`` (its arguments, in its order)."""
+    egos, agent_brake, accel, car_of_row, acting, car_copy, car_state, rows_before, copy, dist, zone_m = args
+    braking = car_of_row[accel <= HARD_BRAKE_DETECT_MPS2]
+    braking = braking[acting[car_copy[braking]] & (car_state[braking] != ACTIVE)]
+    sumo_brakes = rows_before[braking]
+    brakes = np.concatenate([egos[agent_brake], sumo_brakes[sumo_brakes >= 0]])
+    brake_copy = copy[brakes]
+    in_zone = np.abs(dist[brakes]) <= zone_m
+    k = len(acting)
+    return (
+        brakes,
+        brake_copy,
+        in_zone,
+        np.bincount(brake_copy, minlength=k),
+        np.bincount(brake_copy[in_zone], minlength=k),
+    )
+
+
+def test_hard_brakes_match_numpy() -> None:
+    rng = np.random.default_rng(2)
+    for trial in range(200):
+        k, n_cars = int(rng.integers(1, 5)), int(rng.integers(0, 40))
+        car_copy = np.sort(rng.integers(0, k, n_cars))
+        car_state = rng.choice(np.array([WAITING, ACTIVE, ENDED], dtype=np.int8), n_cars)
+        rows_before = np.where(rng.random(n_cars) < 0.8, rng.permutation(n_cars), -1).astype(np.int64)
+        n_before = n_cars
+        on_road = np.flatnonzero(rng.random(n_cars) < 0.9)
+        car_of_row = rng.permutation(on_road).astype(np.int64)
+        accel = rng.choice([-4.5, -3.0, -3.0 + 1e-12, -2.0, 0.5, np.nan], len(car_of_row))
+        egos = rng.permutation(n_before)[: int(rng.integers(0, n_before + 1))].astype(np.int64)
+        agent_brake = rng.random(len(egos)) < 0.3
+        acting = rng.random(k) < 0.7
+        copy = rng.integers(0, k, n_before).astype(np.int64)
+        dist = rng.choice([-60.0, -50.0, -49.9, 0.0, 50.0, 50.1, 120.0], n_before)
+        args = (
+            egos,
+            agent_brake,
+            accel,
+            car_of_row,
+            acting,
+            car_copy,
+            car_state,
+            rows_before,
+            copy,
+            dist,
+            50.0,
+        )
+        for got, want in zip(_hard_brakes(*args), numpy_hard_brakes(*args), strict=True):
+            assert got.dtype == want.dtype and got.tolist() == want.tolist(), trial
+
+
+def test_end_codes_match_numpy() -> None:
+    rng = np.random.default_rng(4)
+    for trial in range(200):
+        n, rows = int(rng.integers(0, 30)), int(rng.integers(1, 30))
+        collided = rng.random(n) < 0.1
+        row = np.where(rng.random(n) < 0.9, rng.integers(0, rows, n), -1).astype(np.int64)
+        dist = rng.choice([-50.1, -50.0, -49.9, 0.0, 80.0, np.nan], rows)
+        otherwise = int(rng.choice([0, 4]))
+        present = row >= 0
+        finished = np.zeros(n, dtype=np.bool_)
+        finished[present] = dist[row[present]] <= -50.0
+        want = np.where(
+            collided, _COLLIDED, np.where(~present, _REMOVED, np.where(finished, _FINISHED, otherwise))
+        )
+        got = _end_codes(collided, row, dist, -50.0, otherwise)
+        assert got.dtype == np.int64 and got.tolist() == want.tolist(), trial
+
+
+@pytest.mark.parametrize("n_brakes", [0, 1, 7])
+def test_penalty_parts_match_numpy(n_brakes: int) -> None:
+    rng = np.random.default_rng(n_brakes)
+    n, n_rows, k = 12, 20, 3
+    copy = np.sort(rng.integers(0, k, n))
+    egos = rng.permutation(n_rows)[:n].astype(np.int64)
+    flow = -1.0 * rng.integers(0, 3, k)
+    impeded_by = rng.integers(0, n_rows, n_brakes).astype(np.int64)
+    want = np.zeros((n, 4))
+    want[:, 3] = flow[copy]
+    want[:, 2] = -5.0 * np.bincount(impeded_by, minlength=n_rows)[egos]
+    got = np.zeros((n, 4))
+    _penalty_parts(got, copy, egos, flow, impeded_by, n_rows, -5.0, 3, 2)
+    assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist()
+
+
+def test_action_checks_match_numpy() -> None:
+    rng = np.random.default_rng(6)
+    for trial in range(200):
+        n = int(rng.integers(0, 20))
+        actions = rng.integers(-1 if trial % 3 == 0 else 0, 8 if trial % 5 == 0 else 7, n).astype(np.int64)
+        wrong = (actions < 0) | (actions >= 7)
+        assert _first_outside(actions, 7) == (int(np.flatnonzero(wrong)[0]) if wrong.any() else -1), trial
+        if not wrong.any():
+            masks = (rng.random((n, 7)) < 0.9).astype(np.int8)
+            assert _all_allowed(masks, actions) == bool(masks[np.arange(n), actions].astype(bool).all()), (
+                trial
+            )
+
+
+def test_next_speeds_match_numpy() -> None:
+    rng = np.random.default_rng(8)
+    speed = np.concatenate([rng.uniform(0.0, 25.0, 40), [0.0, -0.0, 0.1, 0.8, np.nan, np.inf, 1e-17]])
+    for trial in range(100):
+        egos = rng.integers(0, len(speed), int(rng.integers(0, 30))).astype(np.int64)
+        accel = rng.choice([-4.0, -2.0, -0.5, -0.0, 0.0, 0.3, 2.0, np.nan], len(egos))
+        want = np.maximum(speed[egos] + accel * 0.2, 0.0)
+        got = _next_speeds(speed, egos, accel, 0.2)
+        assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist(), trial
