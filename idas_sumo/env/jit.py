@@ -4,6 +4,11 @@ numba compiles a kernel on its first call (about 2 s for all of the engine's) an
 the machine code beside the source or in the user's cache directory, whichever it can write first, so later
 processes only load it. Where it can write neither (a read-only install and no writable home), ``cache=True``
 fails as the module is imported; ``kernel`` then compiles without a disk cache, once per process.
+
+numba tells a stale cache by the kernel's own source file only. A kernel that calls a kernel of another module
+(the masks call ``physics/idm.py``'s ``idm_acceleration_one``; the grids call ``snapshot.same_lane``) keeps the
+old machine code when only that other module changes: after editing such a callee, delete the ``*.nbi`` and
+``*.nbc`` files under ``idas_sumo/`` (a fresh checkout or install has none).
 """
 
 from __future__ import annotations
