@@ -76,7 +76,8 @@ class LearnerConfig:
     labelled variant): Q(s, a) = U(s) + D(s, a), U trained on every row's target whatever the action,
     D (starting near 0) on what is left, target - U(s). A per-action output the agents rarely take
     stays near its initial value while the targets move, so COMA's advantage of a rare action carries
-    that lag (measured: docs/results.md); under 'state_value' it stays near U(s), an advantage near 0."""
+    that lag; under 'state_value' it stays near U(s), an advantage near 0. Measured (docs/results.md): it
+    removed that early bias but not stage 2's drift into collisions and stalls."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -616,7 +617,7 @@ class Learner:
         others = _require(b.others_actions, "others_actions")
         slot = _require(b.slot, "slot").long()
         value, differences = self.central.parts(state, others, slot)
-        q_all = differences if value is None else value.unsqueeze(1) + differences
+        q_all = self.central.q_values(value, differences)
         return _CentralForward(
             q_all=q_all, state_value=value, advantage=coma_advantage(q_all.detach(), probs, b.action.long())
         )

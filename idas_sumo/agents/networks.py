@@ -295,7 +295,11 @@ class CentralCritic(nn.Module):
 
     def forward(self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
         """Q-values (B, N_ACTIONS); ``slot`` is (B,) int64 in [0, STATE_SLOTS)."""
-        value, differences = self.parts(state, others_actions, slot)
+        return self.q_values(*self.parts(state, others_actions, slot))
+
+    @staticmethod
+    def q_values(value: torch.Tensor | None, differences: torch.Tensor) -> torch.Tensor:
+        """Q(s, ·) (B, N_ACTIONS) from ``parts``: the action head's outputs, plus U(s) where there is one."""
         return differences if value is None else value.unsqueeze(1) + differences
 
     def parts(

@@ -261,9 +261,7 @@ class _AgentRows:
     end_reasons: dict[str, str]
 
     @classmethod
-    def of(
-        cls, ids: list[str], reasons: list[str], done_reasons: frozenset[str] = DONE_REASONS
-    ) -> _AgentRows:
+    def of(cls, ids: list[str], reasons: list[str], done_reasons: frozenset[str]) -> _AgentRows:
         n = len(ids)
         first_seen = list(dict.fromkeys(ids))
         index = {a: i for i, a in enumerate(first_seen)}
