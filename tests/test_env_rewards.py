@@ -18,6 +18,7 @@ from idas_sumo.env.rewards import (
 from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.env.single import SingleEpisode
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot
+from idas_sumo.errors import InputError
 
 
 @pytest.mark.parametrize(("b_type", "expected"), [(-2.0, 5.0), (0.0, 12.5), (2.0, 20.0)])
@@ -164,15 +165,21 @@ def test_merge_zone_hard_brakes_are_counted_not_read_off_the_flow_penalty(
 
 @pytest.mark.sumo
 def test_collision_sign_config_is_used(net_path) -> None:  # type: ignore[no-untyped-def]
-    # A fast car runs into a stopped one on the main road (prio 1): paper -10, other sign -5.
+    # A fast car runs into a stopped one on the main road (prio 1): paper -10, other sign -5; the labelled
+    # price variant (collide_scale) multiplies either.
     scenario = Scenario(
         "crash",
         (VehicleSpec("fast", "main", 100.0, 20.0), VehicleSpec("stopped", "main", 112.0, 0.0)),
         main_prio=1,
         merge_prio=0,
     )
-    for sign, expected in (("paper", -10.0), ("lower_priority_pays", -5.0)):
-        sim = SingleEpisode(net_path, config=EnvConfig(reward=RewardConfig(collision_sign=sign)))  # type: ignore[arg-type]
+    for sign, scale, expected in (
+        ("paper", 1.0, -10.0),
+        ("lower_priority_pays", 1.0, -5.0),
+        ("paper", 4.0, -40.0),
+    ):
+        reward = RewardConfig(collision_sign=sign, collide_scale=scale)  # type: ignore[arg-type]
+        sim = SingleEpisode(net_path, config=EnvConfig(reward=reward))
         try:
             sim.reset(scenario)
             collided = {}
@@ -186,6 +193,12 @@ def test_collision_sign_config_is_used(net_path) -> None:  # type: ignore[no-unt
             assert collided == {"fast": expected, "stopped": expected}
         finally:
             sim.close()
+
+
+@pytest.mark.parametrize("scale", [0.0, -1.0, float("nan"), float("inf")])
+def test_collide_scale_must_be_a_positive_number(scale: float) -> None:
+    with pytest.raises(InputError, match="collide_scale"):
+        RewardConfig(collide_scale=scale)
 
 
 @pytest.mark.sumo

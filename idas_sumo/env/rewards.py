@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
+
+from idas_sumo.errors import InputError
 
 FloatArray = npt.NDArray[np.float64]
 REWARD_PART_NAMES: tuple[str, ...] = ("finish", "collide", "impede", "flow")
@@ -25,8 +28,9 @@ def finish_reward(b_type: npt.ArrayLike) -> FloatArray:
     return np.asarray((15.0 * np.asarray(b_type, dtype=np.float64) + 50.0) / 4.0)
 
 
-def collide_reward(b_prio: npt.ArrayLike, sign: CollisionSign = "paper") -> FloatArray:
-    """r_collide = -5·b_prio - 5 as printed in the paper (the higher-priority car pays more).
+def collide_reward(b_prio: npt.ArrayLike, sign: CollisionSign = "paper", scale: float = 1.0) -> FloatArray:
+    """r_collide = -5·b_prio - 5 as printed in the paper (the higher-priority car pays more), times ``scale``
+    (1 in the paper; ``RewardConfig.collide_scale``).
 
     The paper's text says the lower-priority car should take more responsibility; ``lower_priority_pays``
     implements that reading: -5·(1 - b_prio) - 5.
@@ -34,7 +38,7 @@ def collide_reward(b_prio: npt.ArrayLike, sign: CollisionSign = "paper") -> Floa
     prio = np.asarray(b_prio, dtype=np.float64)
     if sign == "lower_priority_pays":
         prio = 1.0 - prio
-    return np.asarray(-5.0 * prio - 5.0)
+    return np.asarray(scale * (-5.0 * prio - 5.0))
 
 
 def hard_brakes_in_merge_zone(hard_brake_dist_to_merge_m: npt.ArrayLike) -> int:
@@ -74,6 +78,15 @@ class RewardConfig:
     -(15·b_type + 50)/4, booked in the ``finish`` part, and its episode ends there (nothing is
     bootstrapped). Under 'free' a car that stops short of the merge pays nothing at all, which is where
     every full-budget stage-2 run ended (docs/results.md)."""
+    collide_scale: float = 1.0
+    """r_collide times this (1: the paper's price). Ours, a labelled variant: with the paper's price a
+    collision costs the joint reward about what four hard-brake steps do, and every stage-2 run traded brakes
+    for collisions (docs/results.md, "Declared: a collision priced above the brakes it saves"). Scales both
+    sign readings; the evaluation's collision counts do not depend on it."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.collide_scale) and self.collide_scale > 0.0):
+            raise InputError(f"collide_scale must be a positive number, got {self.collide_scale}")
 
     @property
     def timeout_ends_episode(self) -> bool:
