@@ -19,6 +19,7 @@ from idas_sumo.agents.networks import (
     Actor,
     CentralCritic,
     GridEncoder,
+    ObsWindows,
     ValueCritic,
 )
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
@@ -153,6 +154,28 @@ def test_encoder_in_row_slices_matches_conv2d_and_each_slice_alone() -> None:
     torch.testing.assert_close(whole, slices, rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(whole[-3:], enc(obs[-3:]), rtol=1e-6, atol=1e-6)
     _assert_matches_conv2d(enc, obs)
+
+
+@pytest.mark.parametrize("rows", [5, ENCODER_CHUNK_ROWS + 7])
+def test_networks_on_shared_windows_give_the_bits_of_their_own_cut(rows: int) -> None:
+    """The learner cuts a batch into windows once (ObsWindows) for the actor, V and V̂: each network's output
+    and parameter gradients are exactly those it computes from the observations themselves, on a batch with
+    empty, partly and fully occupied grids, in one chunk and in several."""
+    torch.manual_seed(3)
+    obs = torch.zeros(rows, OBS_DIM)
+    obs[:, :N_SCALARS] = torch.randn(rows, N_SCALARS)
+    obs[1::3, N_SCALARS + 40 : N_SCALARS + 51] = 0.6  # one car near the start of obs_cl
+    obs[2::3, N_SCALARS:] = torch.randn(len(range(2, rows, 3)), 4 * GRID_CELLS)  # every window occupied
+    shared = ObsWindows(obs)
+    assert len(shared.chunks) == (1 if rows <= ENCODER_CHUNK_ROWS else 2)
+    for net in (Actor(), ValueCritic()):
+        own, cut = net(obs), net(shared)
+        assert torch.equal(own, cut)
+        weights = torch.randn_like(own)
+        grads = [torch.autograd.grad((out * weights).sum(), list(net.parameters())) for out in (own, cut)]
+        assert all(torch.equal(a, b) for a, b in zip(*grads, strict=True))
+    with pytest.raises(ValueError, match="features"):
+        ObsWindows(torch.zeros(2, OBS_DIM - 1))
 
 
 def test_frozen_conv_operands_follow_every_weight_change() -> None:

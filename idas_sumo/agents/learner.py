@@ -26,7 +26,7 @@ from torch import nn
 
 from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
-from idas_sumo.agents.networks import Actor, CentralCritic, ValueCritic
+from idas_sumo.agents.networks import Actor, CentralCritic, ObsWindows, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
@@ -212,6 +212,8 @@ class UpdateRecord:
 class _ValueForward:
     """V's forward pass on a batch: what the actor needs from it (A1) and what V's own step reuses."""
 
+    obs: ObsWindows
+    """The batch's observations, cut into the encoder's windows once for V, V̂ and the actor."""
     values: torch.Tensor
     """V(o) (B,), with gradient."""
     advantage: torch.Tensor
@@ -507,7 +509,7 @@ class Learner:
         """V steps, then Q, then the actor, each on its forward pass of the batch."""
         value_forward = self._value_forward(b)
         value_step = self._step_value_critic(b, value_forward)
-        policy = self._policy(b)
+        policy = self._policy(b, value_forward.obs)
         central_forward, central_step = None, None
         if self.config.use_central_critic:
             central_forward = self._central_forward(b, policy.probs.detach())
@@ -524,7 +526,7 @@ class Learner:
         needs only the critics' forward passes (the advantages), and nothing the actor does reads a
         critic. The same operations on the same tensors, so the same bits, in another order."""
         value_forward = self._value_forward(b)
-        policy = self._policy(b)
+        policy = self._policy(b, value_forward.obs)
         central_forward = (
             self._central_forward(b, policy.probs.detach()) if self.config.use_central_critic else None
         )
@@ -553,7 +555,8 @@ class Learner:
         ∇J1): the TD error, or GAE over it."""
         cfg = self.config
         reward, done = b.reward.float(), b.done.float()
-        values = self.value(b.obs)
+        obs = ObsWindows(b.obs)
+        values = self.value(obs)
         next_index = None if b.next_row is None else self._next_index(b)
         with torch.no_grad():
             if next_index is None:
@@ -569,7 +572,7 @@ class Learner:
                 advantage = gae_advantages(
                     advantage, _require(b.next_row, "next_row"), cfg.gamma, cfg.gae_lambda
                 )
-        return _ValueForward(values=values, advantage=advantage, next_index=next_index)
+        return _ValueForward(obs=obs, values=values, advantage=advantage, next_index=next_index)
 
     def _step_value_critic(self, b: Batch, forward: _ValueForward) -> CriticStep:
         """L(φ1): V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the λ-return."""
@@ -586,7 +589,7 @@ class Learner:
                 else:
                     where, ended, cut_off = forward.next_index
                     target_bank = torch.cat(
-                        [self.value_target(b.obs), self.value_target(_cut_off_obs(b, cut_off))]
+                        [self.value_target(forward.obs), self.value_target(_cut_off_obs(b, cut_off))]
                     )
                     next_target_values = _gather_next(target_bank, where, ended)
                 target = td_targets(b.reward.float(), next_target_values, b.done.float(), cfg.gamma)
@@ -667,9 +670,10 @@ class Learner:
             prediction=q_taken.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
         )
 
-    def _policy(self, b: Batch) -> _Policy:
-        """The masked policy before the actor's step, as both the COMA baseline and ∇J need it."""
-        dist = self.actor.distribution(b.obs, b.mask.bool())
+    def _policy(self, b: Batch, obs: ObsWindows) -> _Policy:
+        """The masked policy before the actor's step, as both the COMA baseline and ∇J need it (``obs``:
+        the batch's observations, as V cut them)."""
+        dist = self.actor.distribution(obs, b.mask.bool())
         # Built in this order (log π, entropy, then the probabilities the entropy created): autograd
         # sums gradients in creation order, and this one keeps the float results bit for bit.
         log_prob = dist.log_prob(b.action.long())

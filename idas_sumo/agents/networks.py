@@ -28,6 +28,7 @@ __all__ = [
     "Actor",
     "CentralCritic",
     "GridEncoder",
+    "ObsWindows",
     "ValueCritic",
 ]
 
@@ -128,6 +129,51 @@ class _ConvOperands:
     """The first joint layer's weight for the conv features, transposed, rows in block order."""
 
 
+@dataclass(frozen=True)
+class _WindowChunk:
+    """Up to ``ENCODER_CHUNK_ROWS`` observations and the conv's input windows of their grids."""
+
+    obs: torch.Tensor
+    """The rows (B, OBS_DIM); the scalars are read from here."""
+    windows: torch.Tensor
+    """The occupied windows (n, 4·82), in (row, block) order; every window when ``occupied`` is None."""
+    occupied: torch.Tensor | None
+    """Where ``windows`` sit among the B·7 windows; None when every window is occupied."""
+
+    @classmethod
+    def of(cls, obs: torch.Tensor) -> _WindowChunk:
+        b = obs.shape[0]
+        # layout.py orders the grid lane-major, [cl occ, cl rel, ol occ, ol rel]: (lane, channel) rows.
+        rows = obs[:, N_SCALARS:].reshape(b, _ROWS_IN, GRID_CELLS)
+        windows = (
+            rows.unfold(2, _BLOCK_IN, BLOCK_CELLS).transpose(1, 2).reshape(b * _BLOCKS, _ROWS_IN * _BLOCK_IN)
+        )
+        # Most windows of a grid are empty road (in the intelligent world about 40 %): their conv output is
+        # the bias alone, exactly, so only the others go through the GEMM. Empty rows add nothing to the
+        # weight gradient either; the bias still receives every row's gradient.
+        occupied = torch.nonzero(windows.ne(0).any(dim=1)).squeeze(1)
+        if occupied.numel() == b * _BLOCKS:
+            return cls(obs=obs, windows=windows, occupied=None)
+        return cls(obs=obs, windows=windows.index_select(0, occupied), occupied=occupied)
+
+
+class ObsWindows:
+    """A batch of observations cut into the conv's windows once, for every encoder that reads it.
+
+    The learner runs the actor, V and (with one-step targets) V̂ on the same rows; cutting a batch (a copy of
+    its grids, the occupancy test and the gather of the occupied windows) was about a sixth of each encoder
+    pass. The cut depends on the observations only, so the networks compute what they would from ``obs``,
+    bit for bit. Batches above ``ENCODER_CHUNK_ROWS`` are cut in chunks of that many rows.
+    """
+
+    def __init__(self, obs: torch.Tensor) -> None:
+        if obs.ndim != 2 or obs.shape[-1] != OBS_DIM:
+            raise ValueError(f"observation must have {OBS_DIM} features, got {tuple(obs.shape)}")
+        self.obs = obs
+        parts = (obs,) if obs.shape[0] <= ENCODER_CHUNK_ROWS else obs.split(ENCODER_CHUNK_ROWS)
+        self.chunks = tuple(_WindowChunk.of(part) for part in parts)
+
+
 class GridEncoder(nn.Module):
     """Observation (B, OBS_DIM) -> features (B, JOINT_HIDDEN).
 
@@ -154,16 +200,15 @@ class GridEncoder(nn.Module):
         self.register_buffer("_feature_order", _feature_order() + SCALAR_HIDDEN, persistent=False)
         self._frozen: tuple[tuple[object, ...], _ConvOperands] | None = None
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        if obs.shape[-1] != OBS_DIM:
-            raise ValueError(f"observation must have {OBS_DIM} features, got {tuple(obs.shape)}")
+    def forward(self, obs: torch.Tensor | ObsWindows) -> torch.Tensor:
+        """``obs`` (B, OBS_DIM), or the same rows already cut into windows (``ObsWindows``: the learner's
+        networks share one cut)."""
+        windows = obs if isinstance(obs, ObsWindows) else ObsWindows(obs)
         operands = self._operands()
-        if obs.shape[0] <= ENCODER_CHUNK_ROWS:
-            first = self._joint_input_layer(obs, operands)
+        if len(windows.chunks) == 1:
+            first = self._joint_input_layer(windows.chunks[0], operands)
         else:
-            first = torch.cat(
-                [self._joint_input_layer(part, operands) for part in obs.split(ENCODER_CHUNK_ROWS)]
-            )
+            first = torch.cat([self._joint_input_layer(chunk, operands) for chunk in windows.chunks])
         return self.joint[1:](first)
 
     def reference_forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -197,33 +242,26 @@ class GridEncoder(nn.Module):
         self._frozen = (key, operands) if key else None
         return operands
 
-    def _conv_blocks(self, obs: torch.Tensor, operands: _ConvOperands) -> torch.Tensor:
+    @staticmethod
+    def _conv_blocks(chunk: _WindowChunk, operands: _ConvOperands) -> torch.Tensor:
         """ReLU(conv) (B, CONV_FEATURES) in block order (block, filter, row, cell)."""
-        b = obs.shape[0]
-        # layout.py orders the grid lane-major, [cl occ, cl rel, ol occ, ol rel]: (lane, channel) rows.
-        rows = obs[:, N_SCALARS:].reshape(b, _ROWS_IN, GRID_CELLS)
-        windows = (
-            rows.unfold(2, _BLOCK_IN, BLOCK_CELLS).transpose(1, 2).reshape(b * _BLOCKS, _ROWS_IN * _BLOCK_IN)
-        )
-        # Most windows of a grid are empty road (in the intelligent world about 40 %): their conv output is
-        # the bias alone, exactly, so only the others go through the GEMM. Empty rows add nothing to the
-        # weight gradient either; the bias still receives every row's gradient.
-        occupied = torch.nonzero(windows.ne(0).any(dim=1)).squeeze(1)
-        if occupied.numel() == b * _BLOCKS:
-            conv = torch.addmm(operands.bias, windows, operands.toeplitz)
-        else:
-            conv = operands.bias.expand(b * _BLOCKS, -1).index_copy(
-                0, occupied, torch.addmm(operands.bias, windows.index_select(0, occupied), operands.toeplitz)
-            )
-        return torch.relu(conv).reshape(b, CONV_FEATURES)
+        b = chunk.obs.shape[0]
+        conv = torch.relu(torch.addmm(operands.bias, chunk.windows, operands.toeplitz))
+        if chunk.occupied is not None:
+            # An empty window's output is ReLU(bias) exactly. The ReLU runs on the occupied rows and the bias
+            # only (its backward too), which gives the bits of one ReLU over every row: the gradient reaching
+            # the bias from the empty rows is the same column sums, masked once instead of per row.
+            empty = torch.relu(operands.bias).expand(b * _BLOCKS, -1)
+            conv = empty.index_copy(0, chunk.occupied, conv)
+        return conv.reshape(b, CONV_FEATURES)
 
-    def _joint_input_layer(self, obs: torch.Tensor, operands: _ConvOperands) -> torch.Tensor:
+    def _joint_input_layer(self, chunk: _WindowChunk, operands: _ConvOperands) -> torch.Tensor:
         """The first joint layer on cat(scalar features, conv features), without building the cat."""
         first = self.joint[0]
         assert isinstance(first, nn.Linear)
         w_scalars = first.weight[:, :SCALAR_HIDDEN]
-        out = torch.addmm(first.bias, self.scalars(obs[:, :N_SCALARS]), w_scalars.t())
-        return out.addmm_(self._conv_blocks(obs, operands), operands.joint_conv_weight)
+        out = torch.addmm(first.bias, self.scalars(chunk.obs[:, :N_SCALARS]), w_scalars.t())
+        return out.addmm_(self._conv_blocks(chunk, operands), operands.joint_conv_weight)
 
 
 # Ours: the initial policy's prior over actions. With uniform logits a fresh policy hard-brakes on one
@@ -244,16 +282,16 @@ class Actor(nn.Module):
         with torch.no_grad():
             self.head.bias.copy_(torch.tensor(INITIAL_ACTION_BIAS))
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor | ObsWindows) -> torch.Tensor:
         """Unmasked logits (B, N_ACTIONS)."""
         out: torch.Tensor = self.head(self.encoder(obs))
         return out
 
-    def masked_logits(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def masked_logits(self, obs: torch.Tensor | ObsWindows, mask: torch.Tensor) -> torch.Tensor:
         """Logits with disallowed actions (mask false/0) set to MASKED_LOGIT."""
         return self(obs).masked_fill(~mask.bool(), MASKED_LOGIT)
 
-    def distribution(self, obs: torch.Tensor, mask: torch.Tensor) -> Categorical:
+    def distribution(self, obs: torch.Tensor | ObsWindows, mask: torch.Tensor) -> Categorical:
         """The masked policy; masked actions get probability exactly 0."""
         return Categorical(logits=self.masked_logits(obs, mask))
 
@@ -266,7 +304,7 @@ class ValueCritic(nn.Module):
         self.encoder = GridEncoder()
         self.head = nn.Linear(JOINT_HIDDEN, 1)
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor | ObsWindows) -> torch.Tensor:
         """Values (B,)."""
         out: torch.Tensor = self.head(self.encoder(obs)).squeeze(-1)
         return out
