@@ -21,10 +21,11 @@ from idas_sumo.agents.networks import (
     GridEncoder,
     ObsWindows,
     ValueCritic,
+    ego_first_slots,
 )
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
-from idas_sumo.env.state_layout import STATE_SLOTS
+from idas_sumo.env.state_layout import STATE_FEATURE_NAMES, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.errors import InputError
 
 B = 16
@@ -394,3 +395,50 @@ def test_normalised_advantages_change_the_step_but_not_the_direction_of_a_single
         _standardised(adv), torch.tensor([-0.9258, -0.4629, 0.0, 1.3887]), atol=1e-4, rtol=0
     )
     torch.testing.assert_close(_standardised(torch.tensor([5.0])), torch.tensor([0.0]))
+
+
+def _vehicles(dists: list[float]) -> torch.Tensor:
+    """One state row: the given vehicles present at these (scaled) distances to the merge point, random other
+    features, the remaining slots empty."""
+    g = torch.Generator().manual_seed(4)
+    rows = torch.zeros(STATE_SLOTS, STATE_FEATURES)
+    rows[: len(dists)] = torch.rand(len(dists), STATE_FEATURES, generator=g)
+    rows[: len(dists), STATE_FEATURE_NAMES.index("present")] = 1.0
+    rows[: len(dists), STATE_FEATURE_NAMES.index("dist_to_merge")] = torch.tensor(dists)
+    return rows.reshape(1, STATE_DIM)
+
+
+def test_ego_first_slots_by_hand() -> None:
+    """Own slot 2 at 0.5: the others lie 0.3 (slot 0), 0.4 (slot 1) and 0.7 (slot 3) from it, so the order is
+    2, 0, 1, 3, then the empty slots as they were; the others' actions move with their vehicles."""
+    state = _vehicles([0.8, 0.1, 0.5, -0.2])
+    others = torch.zeros(1, STATE_SLOTS, N_ACTIONS)
+    for slot_index, action in ((0, 1), (1, 5), (3, 6)):
+        others[0, slot_index, action] = 1.0
+    new_state, new_others, new_slot = ego_first_slots(state, others.reshape(1, -1), torch.tensor([2]))
+    order = [2, 0, 1, 3, *range(4, STATE_SLOTS)]
+    rows = state.reshape(STATE_SLOTS, STATE_FEATURES)
+    assert torch.equal(new_state.reshape(STATE_SLOTS, STATE_FEATURES), rows[order])
+    assert torch.equal(new_others.reshape(STATE_SLOTS, N_ACTIONS), others[0, order])
+    assert new_slot.tolist() == [0]
+
+
+def test_ego_first_critic_does_not_depend_on_the_scenario_order() -> None:
+    """Under central_input = 'ego_first' Q(s, ·) is the same whatever order the scenario listed its vehicles
+    in (the slot and the others' actions permuted with them); under the scenario's order it is not."""
+    torch.manual_seed(5)
+    state = _vehicles([0.9, 0.35, 0.6, -0.1, 0.2])
+    others = (torch.rand(1, STATE_SLOTS, N_ACTIONS) < 0.2).float()
+    others[0, 1] = 0.0  # the agent's own block (slot 1), which COMA zeroes
+    perm = torch.tensor([3, 1, 4, 0, 2, *range(5, STATE_SLOTS)])  # new slot i holds old slot perm[i]
+    shuffled_state = state.reshape(STATE_SLOTS, STATE_FEATURES)[perm].reshape(1, STATE_DIM)
+    shuffled_others = others[0, perm].reshape(1, -1)
+    own_after = torch.tensor([int((perm == 1).nonzero())])
+    for ego_first, same in ((True, True), (False, False)):
+        critic = CentralCritic(ego_first=ego_first)
+        with torch.no_grad():
+            q = critic(state, others.reshape(1, -1), torch.tensor([1]))
+            q_shuffled = critic(shuffled_state, shuffled_others, own_after)
+        assert torch.equal(q, q_shuffled) is same
+    assert Learner(LearnerConfig(central_input="ego_first")).central.ego_first
+    assert not Learner(LearnerConfig()).central.ego_first

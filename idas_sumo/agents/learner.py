@@ -34,6 +34,7 @@ from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
 CentralHead = Literal["per_action", "state_value"]
+CentralInput = Literal["scenario_slots", "ego_first"]
 
 __all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "PendingUpdate", "UpdateRecord"]
 
@@ -78,6 +79,12 @@ class LearnerConfig:
     stays near its initial value while the targets move, so COMA's advantage of a rare action carries
     that lag; under 'state_value' it stays near U(s), an advantage near 0. Measured (docs/results.md): it
     removed that early bias but not stage 2's drift into collisions and stalls."""
+    central_input: CentralInput = "scenario_slots"
+    """The order of the vehicle slots Q reads. 'scenario_slots' (the default): the scenario's order, the agent's
+    own slot one-hot. 'ego_first' (ours, a labelled variant; ``networks.ego_first_slots``): per row the
+    agent's own slot first, then the others by how far their distance to the merge point is from its own.
+    The input's size is the same, so a checkpoint loads under either; its Q only means something under the
+    order it was trained with."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -427,7 +434,10 @@ class Learner:
             torch.manual_seed(seed)
             self.actor = Actor().to(self.device)
             self.value = ValueCritic().to(self.device)
-            self.central = CentralCritic(state_value=config.central_head == "state_value").to(self.device)
+            self.central = CentralCritic(
+                state_value=config.central_head == "state_value",
+                ego_first=config.central_input == "ego_first",
+            ).to(self.device)
         self.value_target = _frozen_copy(self.value)
         self.central_target = _frozen_copy(self.central)
         self.last_update: UpdateRecord | None = None

@@ -17,7 +17,7 @@ from torch.distributions import Categorical
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import GRID_CELLS, N_CHANNELS, N_LANES, N_SCALARS, OBS_DIM
-from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURE_NAMES, STATE_FEATURES, STATE_SLOTS
 
 __all__ = [
     "CENTRAL_INPUT_DIM",
@@ -30,6 +30,7 @@ __all__ = [
     "GridEncoder",
     "ObsWindows",
     "ValueCritic",
+    "ego_first_slots",
 ]
 
 CONV_FILTERS = 2
@@ -319,8 +320,10 @@ class CentralCritic(nn.Module):
     baseline needs one forward pass (COMA's critic head).
     """
 
-    def __init__(self, state_value: bool = False) -> None:
+    def __init__(self, state_value: bool = False, ego_first: bool = False) -> None:
         super().__init__()
+        self.ego_first = ego_first
+        """Reorder each row's slots before the body (``ego_first_slots``; ``LearnerConfig.central_input``)."""
         self.body = _mlp([CENTRAL_INPUT_DIM, CENTRAL_HIDDEN, CENTRAL_HIDDEN])
         self.head = nn.Linear(CENTRAL_HIDDEN, N_ACTIONS)
         self.value_head: nn.Linear | None = None
@@ -344,7 +347,39 @@ class CentralCritic(nn.Module):
         self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
         """(U(s) (B,) or None without a value head, the action head's outputs (B, N_ACTIONS))."""
+        if self.ego_first:
+            state, others_actions, slot = ego_first_slots(state, others_actions, slot)
         slot_onehot = nn.functional.one_hot(slot.long(), STATE_SLOTS).to(state.dtype)
         hidden = self.body(torch.cat([state, others_actions, slot_onehot], dim=1))
         value = None if self.value_head is None else self.value_head(hidden).squeeze(-1)
         return value, self.head(hidden)
+
+
+_PRESENT = STATE_FEATURE_NAMES.index("present")
+_DIST = STATE_FEATURE_NAMES.index("dist_to_merge")
+
+
+def ego_first_slots(
+    state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each row's vehicle slots reordered around its agent: its own first, then the other vehicles by how far
+    their distance to the merge point lies from its own (the car it meets at the merge comes next), then the
+    empty slots; ties keep the scenario's order. The others' actions move with their slots, and the own slot
+    becomes 0. Returns (state, others_actions, slot) with the shapes given.
+
+    Ours (``LearnerConfig.central_input = "ego_first"``): the paper gives Q "full information of all agents"
+    without an order. In the scenario's order a conflict at the merge can sit in any pair of slots, and Q must
+    find it among all of them.
+    """
+    b = state.shape[0]
+    vehicles = state.reshape(b, STATE_SLOTS, STATE_FEATURES)
+    dist = vehicles[:, :, _DIST]
+    own = slot.long().unsqueeze(1)
+    key = (dist - dist.gather(1, own)).abs()
+    key = torch.where(vehicles[:, :, _PRESENT] > 0, key, torch.full_like(key, torch.inf))
+    key = key.scatter(1, own, -1.0)  # the own slot first, present or not
+    order = torch.argsort(key, dim=1, stable=True)
+    vehicles = vehicles.gather(1, order.unsqueeze(2).expand(-1, -1, STATE_FEATURES))
+    actions = others_actions.reshape(b, STATE_SLOTS, N_ACTIONS)
+    actions = actions.gather(1, order.unsqueeze(2).expand(-1, -1, N_ACTIONS))
+    return vehicles.reshape(b, STATE_DIM), actions.reshape(b, -1), torch.zeros_like(slot)
