@@ -27,8 +27,9 @@ from idas_sumo.physics.idm import IDMParams
 IntArray = npt.NDArray[np.int64]
 
 
-class BaselinePolicy(Protocol):
-    """A baseline: actions for the vehicles ``egos`` (indices into ``snapshot``) under their masks."""
+class RuleActions(Protocol):
+    """A rule's arithmetic: actions for the vehicles ``egos`` (indices into ``snapshot``) under their masks.
+    Not a policy contract: the engine's one is ``env.engine.Policy``, which ``RuleBasedPolicy`` implements."""
 
     def __call__(
         self,
@@ -65,7 +66,7 @@ def fsm_idm_actions(
     return closest_allowed_action(target, prev_accel, mask)
 
 
-BASELINES: dict[str, BaselinePolicy] = {
+BASELINES: dict[str, RuleActions] = {
     "idm": idm_actions,
     "fsm_idm": fsm_idm_actions,
 }
@@ -88,7 +89,7 @@ class RuleBasedPolicy:
 
 __all__ = [
     "BASELINES",
-    "BaselinePolicy",
+    "RuleActions",
     "RuleBasedPolicy",
     "fsm_idm_actions",
     "idm_actions",
