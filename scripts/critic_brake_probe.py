@@ -9,7 +9,9 @@ For each checkpoint: sample ``--episodes`` intelligent-world episodes of the con
 * per action: how often it was taken, Q(s, a) minus the discounted joint return that followed along the agent's
   own steps (γ of the config; a car cut off by the time limit is not bootstrapped), and COMA's advantage;
 * over the rows where both a hard brake and Δa = 0 are allowed: Q(s, hard brake) − Q(s, Δa = 0) in the 10 steps
-  before the agent's own collision and elsewhere, and the share of rows where Q prefers the brake;
+  before the agent's own collision (split by whether the agent is ahead of or behind the other road's car it
+  meets at the merge: under the own-lane mask a brake helps the one behind, and the one ahead is hit from behind
+  if it brakes) and elsewhere, and the share of rows where Q prefers the brake;
 * how the agents that ever hard-braked ended, against those that never did.
 
 The config must be the run's own: its rewards (a ``collide_scale``, say) are what Q was trained on. docs/results.md
@@ -34,6 +36,7 @@ from idas_sumo.agents.rollout import RolloutTask, batch_from_episodes, collect_e
 from idas_sumo.env.actions import DELTA_ACCEL_MPS2, HARD_BRAKE
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.env.scenario import generate_scenario
+from idas_sumo.env.state_layout import STATE_FEATURE_NAMES, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
@@ -96,10 +99,16 @@ def probe(config: TrainConfig, net: Path, checkpoint: Path, episodes: int, seed:
     both = mask[:, HARD_BRAKE] & mask[:, KEEP_ACCEL]
     gap = q[:, HARD_BRAKE] - q[:, KEEP_ACCEL]
     before = collides & (to_end < BEFORE_COLLISION_STEPS)
-    for name, rows in (("before a collision", both & before), ("elsewhere", both & ~before)):
+    ahead = _ahead_of_other_road(b.state.numpy(), b.slot.numpy())
+    for name, rows in (
+        ("before a collision, ahead of the other road's nearest car", both & before & (ahead == 1)),
+        ("before a collision, behind it", both & before & (ahead == 0)),
+        ("before a collision, past the merge or alone", both & before & (ahead < 0)),
+        ("elsewhere", both & ~before),
+    ):
         if rows.any():
             print(
-                f"  Q(brake) - Q(Δa=0), {name}: {rows.sum()} rows, mean {gap[rows].mean():.2f}, "
+                f"  Q(brake) - Q(Δa=0), {name}: {rows.sum()} rows, mean {gap[rows].mean():.2f} (sd {gap[rows].std():.2f}), "
                 f"Q prefers the brake in {100 * np.mean(gap[rows] > 0):.0f} %"
             )
     first = np.ones(n, dtype=np.bool_)
@@ -112,6 +121,31 @@ def probe(config: TrainConfig, net: Path, checkpoint: Path, episodes: int, seed:
                 f"  agents that {'did' if did else 'never'} hard-brake: {len(ends)}; "
                 + ", ".join(f"{e} {v:.0f} %" for e, v in shares.items())
             )
+
+
+def _ahead_of_other_road(
+    state: npt.NDArray[np.float32], slot: npt.NDArray[np.int64]
+) -> npt.NDArray[np.int64]:
+    """Per row: 1 when the agent is nearer the merge point than the other incoming road's car whose distance to
+    it is closest to its own (the car it meets there), 0 when farther, -1 when it is past the merge or that road
+    is empty."""
+    vehicles = state.reshape(state.shape[0], STATE_SLOTS, STATE_FEATURES)
+    col = {
+        name: STATE_FEATURE_NAMES.index(name) for name in ("present", "on_main", "on_merge", "dist_to_merge")
+    }
+    rows = np.arange(state.shape[0])
+    own = vehicles[rows, slot]
+    out = np.full(state.shape[0], -1, dtype=np.int64)
+    for road, other in (("on_main", "on_merge"), ("on_merge", "on_main")):
+        mine = own[:, col[road]] > 0
+        candidates = (vehicles[:, :, col["present"]] > 0) & (vehicles[:, :, col[other]] > 0)
+        gap = np.abs(vehicles[:, :, col["dist_to_merge"]] - own[:, None, col["dist_to_merge"]])
+        gap = np.where(candidates, gap, np.inf)
+        nearest = gap.argmin(axis=1)
+        found = mine & np.isfinite(gap[rows, nearest])
+        partner_dist = vehicles[rows, nearest, col["dist_to_merge"]]
+        out[found] = (own[found, col["dist_to_merge"]] < partner_dist[found]).astype(np.int64)
+    return out
 
 
 def _end(
