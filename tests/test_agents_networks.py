@@ -23,7 +23,7 @@ from idas_sumo.agents.networks import (
     ValueCritic,
     ego_first_slots,
 )
-from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
+from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, N_DELTA_ACTIONS, RELEASE_BRAKE
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
 from idas_sumo.env.state_layout import STATE_FEATURE_NAMES, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.errors import InputError
@@ -442,3 +442,39 @@ def test_ego_first_critic_does_not_depend_on_the_scenario_order() -> None:
         assert torch.equal(q, q_shuffled) is same
     assert Learner(LearnerConfig(central_input="ego_first")).central.ego_first
     assert not Learner(LearnerConfig()).central.ego_first
+
+
+@pytest.mark.parametrize("normalize", [False, True])
+def test_coma_delta_only_steps_the_actor_on_the_delta_rows_alone(normalize: bool) -> None:
+    """coma_actions = 'delta_only' (a labelled diagnostic), J2 alone (α = 0): the actor's loss is
+    -mean(A2' log π) with A2' the COMA advantage on the Δa rows (standardised over them when asked) and 0 on the
+    brake and release rows; a batch of brake and release rows alone leaves the actor as it was."""
+    from idas_sumo.agents.learner import _standardised
+
+    batch = random_batch(seed=7, n=64)
+    config = LearnerConfig(
+        use_central_critic=True, alpha=0.0, coma_actions="delta_only", normalize_advantages=normalize
+    )
+    learner = Learner(config, seed=3)
+    with torch.no_grad():
+        log_prob = learner.actor.distribution(batch.obs, batch.mask).log_prob(batch.action)
+    learner.update(batch)
+    record = learner.last_update
+    assert record is not None and record.central is not None
+    delta = batch.action < N_DELTA_ACTIONS
+    assert 0 < int(delta.sum()) < len(delta)
+    a2 = record.central.advantage
+    kept = _standardised(a2[delta]) if normalize else a2[delta]
+    expected = -(torch.zeros_like(a2).masked_scatter(delta, kept) * log_prob).mean()
+    assert record.actor.loss == pytest.approx(float(expected), rel=1e-5, abs=1e-7)
+
+    brakes = dataclasses.replace(
+        batch,
+        action=torch.where(torch.arange(64) % 2 == 0, HARD_BRAKE, RELEASE_BRAKE),
+        mask=torch.ones(64, 7) > 0,
+    )
+    for actions, changes in (("delta_only", False), ("all", True)):
+        learner = Learner(dataclasses.replace(config, coma_actions=actions), seed=3)  # type: ignore[arg-type]
+        before = params(learner.actor)
+        learner.update(brakes)
+        assert (not same(before, params(learner.actor))) is changes

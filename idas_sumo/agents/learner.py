@@ -28,13 +28,14 @@ from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
 from idas_sumo.agents.networks import Actor, CentralCritic, ObsWindows, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
-from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.actions import N_ACTIONS, N_DELTA_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
 CentralHead = Literal["per_action", "state_value"]
 CentralInput = Literal["scenario_slots", "ego_first"]
+ComaActions = Literal["all", "delta_only"]
 
 __all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "PendingUpdate", "UpdateRecord"]
 
@@ -85,6 +86,11 @@ class LearnerConfig:
     agent's own slot first, then the others by how far their distance to the merge point is from its own.
     The input's size is the same, so a checkpoint loads under either; its Q only means something under the
     order it was trained with."""
+    coma_actions: ComaActions = "all"
+    """Which rows J2 (COMA's term) steps the actor on. 'all' (the default, the paper). 'delta_only' (ours, a
+    labelled diagnostic): only the rows whose action was a Δa; a hard brake's or a release's row gets no COMA
+    advantage (J1's only), and with ``normalize_advantages`` A2 is standardised over the Δa rows. It asks
+    whether the stage-2 drift needs J2's view of the brake (docs/results.md)."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -525,7 +531,7 @@ class Learner:
             central_forward = self._central_forward(b, policy.probs.detach())
             central_step = self._step_central_critic(b, central_forward)
         actor_step = self._update_actor(
-            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+            b, policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
         )
         self._update_targets()
         self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
@@ -541,7 +547,7 @@ class Learner:
             self._central_forward(b, policy.probs.detach()) if self.config.use_central_critic else None
         )
         actor_step = self._update_actor(
-            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+            b, policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
         )
 
         def critics() -> UpdateRecord:
@@ -690,13 +696,21 @@ class Learner:
         entropy = dist.entropy()
         return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs)
 
-    def _update_actor(self, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None) -> ActorStep:
+    def _update_actor(
+        self, b: Batch, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None
+    ) -> ActorStep:
         """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus."""
         cfg = self.config
         log_probs, entropy = policy.log_prob, policy.entropy
         if cfg.normalize_advantages:
             adv_v = _standardised(adv_v)
-            adv_q = None if adv_q is None else _standardised(adv_q)
+        if adv_q is not None and cfg.coma_actions == "delta_only":
+            delta = b.action < N_DELTA_ACTIONS
+            adv_q = torch.zeros_like(adv_q).masked_scatter(
+                delta, _standardised(adv_q[delta]) if cfg.normalize_advantages else adv_q[delta]
+            )
+        elif adv_q is not None and cfg.normalize_advantages:
+            adv_q = _standardised(adv_q)
         loss = combined_policy_loss(
             log_probs,
             adv_v,
