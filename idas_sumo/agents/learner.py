@@ -531,7 +531,10 @@ class Learner:
             central_forward = self._central_forward(b, policy.probs.detach())
             central_step = self._step_central_critic(b, central_forward)
         actor_step = self._update_actor(
-            b, policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+            b.action,
+            policy,
+            value_forward.advantage,
+            None if central_forward is None else central_forward.advantage,
         )
         self._update_targets()
         self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
@@ -547,7 +550,10 @@ class Learner:
             self._central_forward(b, policy.probs.detach()) if self.config.use_central_critic else None
         )
         actor_step = self._update_actor(
-            b, policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+            b.action,
+            policy,
+            value_forward.advantage,
+            None if central_forward is None else central_forward.advantage,
         )
 
         def critics() -> UpdateRecord:
@@ -697,15 +703,16 @@ class Learner:
         return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs)
 
     def _update_actor(
-        self, b: Batch, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None
+        self, actions: torch.Tensor, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None
     ) -> ActorStep:
-        """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus."""
+        """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus; J2 on the
+        rows ``coma_actions`` names (``actions``: the batch's)."""
         cfg = self.config
         log_probs, entropy = policy.log_prob, policy.entropy
         if cfg.normalize_advantages:
             adv_v = _standardised(adv_v)
         if adv_q is not None and cfg.coma_actions == "delta_only":
-            delta = b.action < N_DELTA_ACTIONS
+            delta = actions < N_DELTA_ACTIONS
             adv_q = torch.zeros_like(adv_q).masked_scatter(
                 delta, _standardised(adv_q[delta]) if cfg.normalize_advantages else adv_q[delta]
             )
