@@ -12,6 +12,8 @@ For each checkpoint: sample ``--episodes`` intelligent-world episodes of the con
   before the agent's own collision (split by whether the agent is ahead of or behind the other road's car it
   meets at the merge: under the own-lane mask a brake helps the one behind, and the one ahead is hit from behind
   if it brakes) and elsewhere, and the share of rows where Q prefers the brake;
+* at a standstill (the agent's speed under 0.1 m/s): Q(Δa = +0.1 or +0.2) − Q(Δa = 0) where allowed, and the
+  policy's probabilities of them;
 * how the agents that ever hard-braked ended, against those that never did.
 
 The config must be the run's own: its rewards (a ``collide_scale``, say) are what Q was trained on. docs/results.md
@@ -35,6 +37,7 @@ from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import RolloutTask, batch_from_episodes, collect_episodes
 from idas_sumo.env.actions import DELTA_ACCEL_MPS2, HARD_BRAKE
 from idas_sumo.env.engine import EnvConfig, MergeEngine
+from idas_sumo.env.layout import SPEED_SCALE_MPS
 from idas_sumo.env.scenario import generate_scenario
 from idas_sumo.env.state_layout import STATE_FEATURE_NAMES, STATE_FEATURES, STATE_SLOTS
 from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
@@ -43,6 +46,7 @@ from idas_sumo.training.config import TrainConfig, load_train_config
 
 KEEP_ACCEL = DELTA_ACCEL_MPS2.index(0.0)  # the action Δa = 0
 BEFORE_COLLISION_STEPS = 10  # 2 s at 5 Hz
+STANDSTILL_SPEED = 0.1 / SPEED_SCALE_MPS  # 0.1 m/s in the state's scale
 
 
 def probe(config: TrainConfig, net: Path, checkpoint: Path, episodes: int, seed: int) -> None:
@@ -111,6 +115,20 @@ def probe(config: TrainConfig, net: Path, checkpoint: Path, episodes: int, seed:
                 f"  Q(brake) - Q(Δa=0), {name}: {rows.sum()} rows, mean {gap[rows].mean():.2f} (sd {gap[rows].std():.2f}), "
                 f"Q prefers the brake in {100 * np.mean(gap[rows] > 0):.0f} %"
             )
+    speed = b.state.numpy().reshape(n, STATE_SLOTS, STATE_FEATURES)[
+        np.arange(n), b.slot.numpy(), STATE_FEATURE_NAMES.index("speed")
+    ]
+    stopped = both & (speed < STANDSTILL_SPEED)
+    if stopped.any():
+        for name, a in (("+0.1", KEEP_ACCEL + 1), ("+0.2", KEEP_ACCEL + 2)):
+            go = stopped & mask[:, a]
+            if go.any():
+                lift = q[:, a] - q[:, KEEP_ACCEL]
+                print(
+                    f"  at a standstill ({stopped.sum()} rows): Q(Δa={name}) - Q(Δa=0) over {go.sum()} rows where "
+                    f"allowed, mean {lift[go].mean():.2f}, Q prefers it in {100 * np.mean(lift[go] > 0):.0f} %; "
+                    f"policy P(Δa={name}) {probs.numpy()[go, a].mean():.3f}, P(Δa=0) {probs.numpy()[go, KEEP_ACCEL].mean():.3f}"
+                )
     first = np.ones(n, dtype=np.bool_)
     first[next_row[next_row >= 0]] = False
     for did in (False, True):
