@@ -21,7 +21,7 @@ import itertools
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Protocol
+from typing import Literal, Protocol, get_args
 
 import numpy as np
 import numpy.typing as npt
@@ -94,6 +94,8 @@ IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 HARD_BRAKE_DETECT_MPS2 = -3.0  # a SUMO-driven car decelerating harder than this counts as a hard brake
 DEFAULT_MAX_EPISODE_S = 60.0  # ours: timeout, not a success
+Standstill = Literal["keeps_command", "at_rest"]
+"""What acceleration an agent at rest drives on with (``EnvConfig.standstill``)."""
 END_REASONS: tuple[str, ...] = ("finished", "collided", "removed", "timeout")
 _PART = {name: i for i, name in enumerate(REWARD_PART_NAMES)}
 
@@ -113,10 +115,17 @@ class EnvConfig:
     junction: str | None = None
     """Which merge of a net with several the episodes run on (its junction id, ``choose_merge``); None:
     the net's only one. Here, so that every engine of a run (workers, Ray actors) runs on the same."""
+    standstill: Standstill = "keeps_command"
+    """The acceleration an agent that comes to rest drives on with. 'keeps_command' (the default; every
+    shipped policy was trained so): the one it commanded, so a car that stopped at -1.5 m/s² needs eight
+    steps of +0.2 before it moves. 'at_rest' (ours, a labelled variant): 0, the acceleration a car at rest
+    has (the paper's agents observe "the current acceleration", L277), so one +0.1 moves it."""
 
     def __post_init__(self) -> None:
         if not (self.max_episode_s > 0):
             raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+        if self.standstill not in get_args(Standstill):
+            raise ValueError(f"standstill must be one of {get_args(Standstill)}, got {self.standstill!r}")
         if self.safety_mask not in SAFETY_MASKS:
             raise ValueError(
                 f"safety_mask must be one of {', '.join(SAFETY_MASKS)}, got {self.safety_mask!r}"
@@ -945,6 +954,8 @@ class MergeEngine:
             new_accel = next_acceleration(prev, applied)
             next_speed = _next_speeds(before.speed_mps, batch.egos, new_accel, STEP_LENGTH_S)
             self.backend.set_speeds(agents.global_ids, next_speed)
+            if self.config.standstill == "at_rest":
+                new_accel = np.where((next_speed == 0.0) & (new_accel < 0.0), 0.0, new_accel)
             cars.accel[agents.car] = new_accel
         events = self.backend.step()
         self._time_s = events.time_s

@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, SafetyMask
+from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, SafetyMask, Standstill
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -119,6 +119,9 @@ class TrainConfig:
     safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
     """Which car the safety mask follows in training and validation (``EnvConfig.safety_mask``):
     'own_lane' (the paper) or 'merge_aware' (ours, a shield; the shipped policies were trained with it)."""
+    standstill: Standstill = "keeps_command"
+    """The acceleration an agent at rest drives on with in training and validation (``EnvConfig.standstill``):
+    'keeps_command' (the default) or 'at_rest' (ours, a labelled variant). Evaluation keeps the default."""
     junction: str = ""
     """Which merge of a net with several to train on (its junction id, ``idas-sumo nets inspect``);
     "": the net's only merge (``EnvConfig.junction``)."""

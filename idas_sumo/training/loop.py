@@ -126,6 +126,7 @@ def run_training(
         reward=config.reward,
         safety_mask=config.safety_mask,
         junction=config.junction or None,
+        standstill=config.standstill,
     )
     # On resume, the metrics rows past the checkpoint go (they are written again).
     keep_below = state.global_episode if resumed is not None else None
