@@ -53,7 +53,12 @@ def probe(config: TrainConfig, net: Path, checkpoint: Path, episodes: int, seed:
     learner_config = dataclasses.replace(config.learner, use_central_critic=True)
     learner = Learner(learner_config)
     learner.load_state_dict(load_checkpoint(checkpoint).learner, load_optimisers=False)
-    env = EnvConfig(max_episode_s=config.max_episode_s, reward=config.reward, safety_mask=config.safety_mask)
+    env = EnvConfig(
+        max_episode_s=config.max_episode_s,
+        reward=config.reward,
+        safety_mask=config.safety_mask,
+        standstill=config.standstill,
+    )
     engine = MergeEngine(net, copies=16, config=env)
     rng = np.random.default_rng(seed)
     try:
