@@ -36,7 +36,7 @@ import torch
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import RolloutTask, batch_from_episodes, collect_episodes
 from idas_sumo.env.actions import DELTA_ACCEL_MPS2, HARD_BRAKE
-from idas_sumo.env.engine import EnvConfig, MergeEngine
+from idas_sumo.env.engine import MergeEngine
 from idas_sumo.env.layout import SPEED_SCALE_MPS
 from idas_sumo.env.scenario import generate_scenario
 from idas_sumo.env.state_layout import STATE_FEATURE_NAMES, STATE_FEATURES, STATE_SLOTS
@@ -53,13 +53,7 @@ def probe(config: TrainConfig, net: Path, checkpoint: Path, episodes: int, seed:
     learner_config = dataclasses.replace(config.learner, use_central_critic=True)
     learner = Learner(learner_config)
     learner.load_state_dict(load_checkpoint(checkpoint).learner, load_optimisers=False)
-    env = EnvConfig(
-        max_episode_s=config.max_episode_s,
-        reward=config.reward,
-        safety_mask=config.safety_mask,
-        standstill=config.standstill,
-    )
-    engine = MergeEngine(net, copies=16, config=env)
+    engine = MergeEngine(net, copies=16, config=config.env_config())
     rng = np.random.default_rng(seed)
     try:
         tasks = [

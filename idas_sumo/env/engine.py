@@ -59,7 +59,6 @@ from idas_sumo.env.rewards import (
     MERGE_ZONE_RADIUS_M,
     REWARD_PART_NAMES,
     RewardConfig,
-    collide_reward,
     finish_reward,
 )
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
@@ -665,8 +664,7 @@ class MergeEngine:
                 slot.outcome.end_reasons[vid] = reason
                 if reason == "collided":
                     prio = float(slot.scenario.prio(slot.spec[vid].road))
-                    price = self.config.reward
-                    reward = float(collide_reward(prio, price.collision_sign, price.collide_scale))
+                    reward = self.config.reward.collide(prio)
                     slot.outcome.returns[vid] = slot.outcome.returns.get(vid, 0.0) + reward
                 continue
             cars.state[c] = ACTIVE
@@ -1024,13 +1022,12 @@ class MergeEngine:
                 _PART["flow"],
                 _PART["impede"],
             )
-            sign, scale = self.config.reward.collision_sign, self.config.reward.collide_scale
             for i in np.flatnonzero(collided).tolist():
                 slot = self.slots[copies[i]]
                 # The priority of the road the car came from: collisions happen on the junction or
                 # after it, where the snapshot's road is the outgoing one (priority max of both).
                 prio = float(slot.scenario.prio(slot.spec[batch.ids[i]].road))
-                parts[i, _PART["collide"]] = float(collide_reward(prio, sign, scale))
+                parts[i, _PART["collide"]] = self.config.reward.collide(prio)
             won = code == _REASON_CODE["finished"]
             parts[won, _PART["finish"]] = finish_reward(batch.b_type[won])
             if self.config.reward.timeout == "forfeit_finish":

@@ -19,7 +19,7 @@ from idas_sumo.env.layout import (
     SCALAR_SCALES,
     VISIBILITY_M,
 )
-from idas_sumo.env.snapshot import TrafficSnapshot, same_lane
+from idas_sumo.env.snapshot import TrafficSnapshot, same_lane, walk_start
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -47,9 +47,7 @@ def _draw_grids(
     """
     if len(egos) == 0:
         return
-    egos = np.ascontiguousarray(egos, dtype=np.int64)
-    by_dist = snapshot.by_distance
-    lo, hi = by_dist.spans(snapshot, egos)
+    egos, by_dist, lo, hi = walk_start(snapshot, egos)
     # Copy by copy (or one world), a copy's span in the distance order is also its span of rows.
     rows_by_copy = snapshot.copy is None or snapshot.copy_bounds is not None
     _draw_grids_kernel(

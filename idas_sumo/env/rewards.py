@@ -88,6 +88,10 @@ class RewardConfig:
         if not (math.isfinite(self.collide_scale) and self.collide_scale > 0.0):
             raise InputError(f"collide_scale must be a positive number, got {self.collide_scale}")
 
+    def collide(self, b_prio: float) -> float:
+        """r_collide of a car from a road of priority ``b_prio``, under this config's sign and scale."""
+        return float(collide_reward(b_prio, self.collision_sign, self.collide_scale))
+
     @property
     def timeout_ends_episode(self) -> bool:
         """Whether a timeout is an end with nothing to bootstrap (training), as a finish or collision is."""

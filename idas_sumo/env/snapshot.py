@@ -144,9 +144,7 @@ def leaders(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatA
 def leaders_and_speeds(snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, FloatArray, FloatArray]:
     """``leaders`` and their ``leader_speeds`` (the ego's own speed where it has none), in one compiled call
     (what the safety mask needs every step)."""
-    egos = np.ascontiguousarray(egos, dtype=np.int64)
-    by_dist = snapshot.by_distance
-    lo, hi = by_dist.spans(snapshot, egos)
+    egos, by_dist, lo, hi = walk_start(snapshot, egos)
     return _leaders_kernel(
         snapshot.road,
         snapshot.dist_to_merge_m,
@@ -173,9 +171,7 @@ def nearest_ahead(
     first candidate: the matrices cost a few dozen numpy calls per step (at 8 cars a copy more than
     SUMO's own step of those cars) and grew as N x N in one world.
     """
-    egos = np.ascontiguousarray(egos, dtype=np.int64)
-    by_dist = snapshot.by_distance
-    lo, hi = by_dist.spans(snapshot, egos)
+    egos, by_dist, lo, hi = walk_start(snapshot, egos)
     return _nearest_ahead_kernel(
         snapshot.road,
         snapshot.dist_to_merge_m,
@@ -223,6 +219,17 @@ class DistanceOrder:
             return np.zeros(len(egos), dtype=np.int64), np.full(len(egos), len(self.order), dtype=np.int64)
         ego_copy = np.asarray(snapshot.copy, dtype=np.int64)[egos]
         return self.starts[ego_copy], self.starts[ego_copy + 1]
+
+
+def walk_start(
+    snapshot: TrafficSnapshot, egos: IntArray
+) -> tuple[IntArray, DistanceOrder, IntArray, IntArray]:
+    """What every compiled walk down a copy's vehicles starts from: the egos as a contiguous int64 array, the
+    snapshot's distance order, and each ego's span of it, [lo, hi) (``DistanceOrder.spans``)."""
+    egos = np.ascontiguousarray(egos, dtype=np.int64)
+    by_dist = snapshot.by_distance
+    lo, hi = by_dist.spans(snapshot, egos)
+    return egos, by_dist, lo, hi
 
 
 @kernel

@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, SafetyMask, Standstill
+from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, EnvConfig, SafetyMask, Standstill
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -129,6 +129,16 @@ class TrainConfig:
     """``[geometry]``: train each round on a generated merge drawn from these ranges (training/geometry.py);
     None (no table): every round on the run's net. Validation runs on the run's net unless the table's
     ``validation_geometries`` draws merges for it."""
+
+    def env_config(self) -> EnvConfig:
+        """The episode rules of this run's training and validation (evaluation builds its own)."""
+        return EnvConfig(
+            max_episode_s=self.max_episode_s,
+            reward=self.reward,
+            safety_mask=self.safety_mask,
+            junction=self.junction or None,
+            standstill=self.standstill,
+        )
 
     def __post_init__(self) -> None:
         for name in (

@@ -34,7 +34,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from idas_sumo.agents.learner import Learner, PendingUpdate
 from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
-from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
 from idas_sumo.env.scenario import Road, generate_scenario
 from idas_sumo.errors import InputError
@@ -121,13 +120,7 @@ def run_training(
             _remove_run_outputs(out_dir)
 
     run = _Run(config, out_dir, _site_limits(site))
-    env_config = EnvConfig(
-        max_episode_s=config.max_episode_s,
-        reward=config.reward,
-        safety_mask=config.safety_mask,
-        junction=config.junction or None,
-        standstill=config.standstill,
-    )
+    env_config = config.env_config()
     # On resume, the metrics rows past the checkpoint go (they are written again).
     keep_below = state.global_episode if resumed is not None else None
     final = run.latest
