@@ -445,6 +445,38 @@ def test_ego_first_critic_does_not_depend_on_the_scenario_order() -> None:
 
 
 @pytest.mark.parametrize("normalize", [False, True])
+def test_coma_action_means_subtracted_through_the_update(normalize: bool) -> None:
+    """coma_action_means = 'subtract' (a labelled variant), J2 alone (α = 0): the actor's loss is
+    -mean(A2' log π) with A2' the COMA advantage less, on every row whose mask allowed a choice, the mean over
+    such rows of the same action (then standardised when asked); 'keep' leaves A2 as it was."""
+    from idas_sumo.agents.coma import subtract_action_means
+    from idas_sumo.agents.learner import _standardised
+
+    batch = random_batch(seed=7, n=64)
+    batch.mask[:4] = False
+    batch.mask[:4, HARD_BRAKE] = True  # four forced brakes
+    batch.action[:4] = HARD_BRAKE
+    losses = {}
+    for means in ("keep", "subtract"):
+        config = LearnerConfig(
+            use_central_critic=True, alpha=0.0, coma_action_means=means, normalize_advantages=normalize
+        )
+        learner = Learner(config, seed=3)
+        with torch.no_grad():
+            log_prob = learner.actor.distribution(batch.obs, batch.mask).log_prob(batch.action)
+        learner.update(batch)
+        record = learner.last_update
+        assert record is not None and record.central is not None
+        a2 = record.central.advantage
+        if means == "subtract":
+            a2 = subtract_action_means(a2, batch.action, batch.mask.sum(dim=1) > 1)
+        expected = -((_standardised(a2) if normalize else a2) * log_prob).mean()
+        assert record.actor.loss == pytest.approx(float(expected), rel=1e-5, abs=1e-7)
+        losses[means] = record.actor.loss
+    assert losses["keep"] != pytest.approx(losses["subtract"], rel=1e-3)
+
+
+@pytest.mark.parametrize("normalize", [False, True])
 def test_coma_delta_only_steps_the_actor_on_the_delta_rows_alone(normalize: bool) -> None:
     """coma_actions = 'delta_only' (a labelled diagnostic), J2 alone (α = 0): the actor's loss is
     -mean(A2' log π) with A2' the COMA advantage on the Δa rows (standardised over them when asked) and 0 on the

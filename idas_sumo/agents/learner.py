@@ -24,7 +24,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss
+from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss, subtract_action_means
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
 from idas_sumo.agents.networks import Actor, CentralCritic, ObsWindows, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
@@ -36,6 +36,7 @@ from idas_sumo.errors import InputError
 CentralHead = Literal["per_action", "state_value"]
 CentralInput = Literal["scenario_slots", "ego_first"]
 ComaActions = Literal["all", "delta_only"]
+ComaActionMeans = Literal["keep", "subtract"]
 
 __all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "PendingUpdate", "UpdateRecord"]
 
@@ -91,6 +92,12 @@ class LearnerConfig:
     labelled diagnostic): only the rows whose action was a Δa; a hard brake's or a release's row gets no COMA
     advantage (J1's only), and with ``normalize_advantages`` A2 is standardised over the Δa rows. It asks
     whether the stage-2 drift needs J2's view of the brake (docs/results.md)."""
+    coma_action_means: ComaActionMeans = "keep"
+    """What J2 does with each action's mean COMA advantage over a batch. 'keep' (the default, the paper).
+    'subtract' (ours, a labelled variant; ``coma.subtract_action_means``): every row whose mask allowed a choice
+    gets its advantage minus the mean over the batch's chosen rows that took the same action, so a Q whose
+    value of an action is off by about the same amount everywhere (as measured for the hard brake,
+    docs/results.md) steers where the policy takes it, not how often; J1 alone sets how often."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -532,6 +539,7 @@ class Learner:
             central_step = self._step_central_critic(b, central_forward)
         actor_step = self._update_actor(
             b.action,
+            b.mask,
             policy,
             value_forward.advantage,
             None if central_forward is None else central_forward.advantage,
@@ -551,6 +559,7 @@ class Learner:
         )
         actor_step = self._update_actor(
             b.action,
+            b.mask,
             policy,
             value_forward.advantage,
             None if central_forward is None else central_forward.advantage,
@@ -703,14 +712,22 @@ class Learner:
         return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs)
 
     def _update_actor(
-        self, actions: torch.Tensor, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None
+        self,
+        actions: torch.Tensor,
+        mask: torch.Tensor,
+        policy: _Policy,
+        adv_v: torch.Tensor,
+        adv_q: torch.Tensor | None,
     ) -> ActorStep:
         """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus; J2 on the
-        rows ``coma_actions`` names (``actions``: the batch's)."""
+        rows ``coma_actions`` names, less each action's mean where ``coma_action_means`` asks (``actions``,
+        ``mask``: the batch's)."""
         cfg = self.config
         log_probs, entropy = policy.log_prob, policy.entropy
         if cfg.normalize_advantages:
             adv_v = _standardised(adv_v)
+        if adv_q is not None and cfg.coma_action_means == "subtract":
+            adv_q = subtract_action_means(adv_q, actions, mask.bool().sum(dim=1) > 1)
         if adv_q is not None and cfg.coma_actions == "delta_only":
             delta = actions < N_DELTA_ACTIONS
             adv_q = torch.zeros_like(adv_q).masked_scatter(
