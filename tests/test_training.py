@@ -332,6 +332,46 @@ def test_timeout_variant_charges_the_unearned_finish_and_ends_the_agent(net_path
 
 
 @pytest.mark.sumo
+def test_action_override_replaces_one_decision_and_nothing_before_it(net_path: Path) -> None:
+    """RolloutTask.override (the counterfactual probe's): the agent's decision-th action is the one given, every
+    row before it is the plain episode's, and two episodes with the same override are the same to the end."""
+    from idas_sumo.agents.rollout import ActionOverride, RolloutTask, collect_episodes
+    from idas_sumo.env.actions import HARD_BRAKE
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
+    from idas_sumo.env.scenario import Scenario, VehicleSpec
+
+    scenario = Scenario(
+        "three",
+        (
+            VehicleSpec("m0", "main", 20.0, 10.0),
+            VehicleSpec("m1", "main", 60.0, 10.0),
+            VehicleSpec("r0", "merge", 30.0, 10.0),
+        ),
+    )
+    override = ActionOverride("r0", decision=5, action=HARD_BRAKE, continuation_seed=11)
+    engine = MergeEngine(net_path, copies=3, config=EnvConfig(max_episode_s=4.0))
+    try:
+        plain, forced, again = collect_episodes(
+            engine,
+            Learner(LearnerConfig(), seed=0),
+            [
+                RolloutTask(scenario, 7),
+                RolloutTask(scenario, 7, override=override),
+                RolloutTask(scenario, 7, override=override),
+            ],
+        )
+    finally:
+        engine.close()
+    r0_rows = np.flatnonzero(forced.slot == forced.slot[2])  # every car acts from the first step: r0 is third
+    row = int(r0_rows[5])
+    assert plain.action[row] != HARD_BRAKE and forced.action[row] == HARD_BRAKE
+    np.testing.assert_array_equal(plain.action[:row], forced.action[:row])
+    np.testing.assert_array_equal(plain.obs[: row + 1], forced.obs[: row + 1])
+    np.testing.assert_array_equal(forced.action, again.action)
+    np.testing.assert_array_equal(forced.joint_reward, again.joint_reward)
+
+
+@pytest.mark.sumo
 def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
     from idas_sumo.training.loop import run_training
 

@@ -38,6 +38,7 @@ from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
 
 __all__ = [
+    "ActionOverride",
     "EpisodeData",
     "EpisodeStats",
     "RolloutTask",
@@ -379,12 +380,27 @@ class GroupedActor(Protocol):
 
 
 @dataclass(frozen=True)
+class ActionOverride:
+    """One decision of one agent replaced: its ``decision``-th action (from 0) is ``action`` instead of the
+    one drawn, and the episode's generator restarts from ``continuation_seed`` right after. Episodes of one
+    scenario and action seed are the same up to that decision, so several overrides of it measure what each
+    action leads to from one state (``scripts/counterfactual_probe.py``)."""
+
+    agent_id: str
+    decision: int
+    action: int
+    continuation_seed: int
+
+
+@dataclass(frozen=True)
 class RolloutTask:
-    """One episode to collect: the scenario, the seed of its action sampling, greedy or not."""
+    """One episode to collect: the scenario, the seed of its action sampling, greedy or not, and an optional
+    replaced decision."""
 
     scenario: Scenario
     action_seed: int
     deterministic: bool = False
+    override: ActionOverride | None = None
 
 
 class _LearningPolicy:
@@ -394,6 +410,8 @@ class _LearningPolicy:
         self.actor = actor
         self.tasks = tasks
         self.generators = [torch.Generator().manual_seed(t.action_seed) for t in tasks]
+        self.overridden = np.array([j for j, t in enumerate(tasks) if t.override is not None], dtype=np.int64)
+        self.decisions: dict[int, int] = {}  # job -> its overridden agent's decisions so far
 
     def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         assert batch.job is not None, "the episode loop names each agent's job"
@@ -410,7 +428,30 @@ class _LearningPolicy:
             ]
             sel = rows[part]
             out[part] = self.actor.act_grouped(batch.obs[sel], batch.masks[sel], groups, deterministic=det)
+        if len(self.overridden):
+            self._override(batch, rows, jobs, out)
         return out
+
+    def _override(
+        self,
+        batch: AgentBatch,
+        rows: npt.NDArray[np.int64],
+        jobs: npt.NDArray[np.int64],
+        out: npt.NDArray[np.int64],
+    ) -> None:
+        """Replace the overridden decisions among ``rows`` in ``out`` (after this step's draws, so the past is
+        the same whatever replaces it)."""
+        for i in np.flatnonzero(np.isin(jobs, self.overridden)).tolist():
+            j = int(jobs[i])
+            override = self.tasks[j].override
+            assert override is not None
+            if batch.ids[rows[i]] != override.agent_id:
+                continue
+            n = self.decisions.get(j, 0)
+            self.decisions[j] = n + 1
+            if n == override.decision:
+                out[i] = override.action
+                self.generators[j].manual_seed(override.continuation_seed)
 
 
 class _Collector:
