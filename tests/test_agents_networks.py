@@ -476,6 +476,31 @@ def test_coma_action_means_subtracted_through_the_update(normalize: bool) -> Non
     assert losses["keep"] != pytest.approx(losses["subtract"], rel=1e-3)
 
 
+def test_explored_rows_train_q_action_part_and_not_the_actor() -> None:
+    """central_action_rows = 'explored' (a labelled variant): Q's action head D learns from the explored rows
+    only (a batch without any leaves it as it was, one with some moves it), and an explored row never steps
+    the actor (a batch of explored rows alone leaves it as it was)."""
+    with pytest.raises(InputError, match="state_value"):
+        LearnerConfig(central_action_rows="explored")
+    config = LearnerConfig(
+        use_central_critic=True, central_head="state_value", central_action_rows="explored", entropy_coef=0.0
+    )
+    batch = random_batch(seed=7, n=64)
+    for explored, head_moves in (
+        (torch.zeros(64, dtype=torch.bool), False),
+        (torch.arange(64) % 4 == 0, True),
+    ):
+        learner = Learner(config, seed=3)
+        head, body = params(learner.central.head), params(learner.central.body)
+        learner.update(dataclasses.replace(batch, explored=explored))
+        assert (not same(head, params(learner.central.head))) is head_moves
+        assert not same(body, params(learner.central.body))  # U(s) learns from every row
+    learner = Learner(config, seed=3)
+    actor = params(learner.actor)
+    learner.update(dataclasses.replace(batch, explored=torch.ones(64, dtype=torch.bool)))
+    assert same(actor, params(learner.actor))
+
+
 @pytest.mark.parametrize("normalize", [False, True])
 def test_coma_delta_only_steps_the_actor_on_the_delta_rows_alone(normalize: bool) -> None:
     """coma_actions = 'delta_only' (a labelled diagnostic), J2 alone (α = 0): the actor's loss is

@@ -372,6 +372,37 @@ def test_action_override_replaces_one_decision_and_nothing_before_it(net_path: P
 
 
 @pytest.mark.sumo
+def test_exploring_episode_flags_its_uniform_actions_and_leaves_its_neighbours_alone(net_path: Path) -> None:
+    """RolloutTask.explore (TrainConfig.critic_exploration): about that share of the episode's rows is flagged
+    explored, every action stays allowed, the flags reach the batch, and an episode that does not explore, run
+    beside it, is the one it is alone (no flags, same actions)."""
+    from idas_sumo.agents.rollout import RolloutTask, batch_from_episodes, collect_episodes
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
+    from idas_sumo.env.scenario import generate_scenario
+
+    rng = np.random.default_rng(4)
+    traffic = TrafficConfig(n_vehicles=0, min_vehicles_per_road=3, max_vehicles_per_road=3)
+    engine = MergeEngine(net_path, copies=2, config=EnvConfig(max_episode_s=15.0))
+    learner = Learner(LearnerConfig(use_central_critic=True), seed=0)
+    try:
+        scenarios = [generate_scenario(rng, traffic, engine.speed_limits_mps) for _ in range(2)]
+        exploring, plain = collect_episodes(
+            engine, learner, [RolloutTask(scenarios[0], 1, explore=0.5), RolloutTask(scenarios[1], 2)]
+        )
+        (alone,) = collect_episodes(engine, learner, [RolloutTask(scenarios[1], 2)])
+    finally:
+        engine.close()
+    assert exploring.explored is not None and plain.explored is None
+    assert 0.35 < exploring.explored.mean() < 0.65
+    assert exploring.mask[np.arange(len(exploring)), exploring.action].all()
+    np.testing.assert_array_equal(plain.action, alone.action)
+    batch = batch_from_episodes([exploring, plain])
+    assert batch.explored is not None
+    assert batch.explored.tolist() == exploring.explored.tolist() + [False] * len(plain)
+    assert batch_from_episodes([plain]).explored is None
+
+
+@pytest.mark.sumo
 def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
     from idas_sumo.training.loop import run_training
 

@@ -37,6 +37,7 @@ CentralHead = Literal["per_action", "state_value"]
 CentralInput = Literal["scenario_slots", "ego_first"]
 ComaActions = Literal["all", "delta_only"]
 ComaActionMeans = Literal["keep", "subtract"]
+CentralActionRows = Literal["all", "explored"]
 
 __all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "PendingUpdate", "UpdateRecord"]
 
@@ -98,6 +99,12 @@ class LearnerConfig:
     gets its advantage minus the mean over the batch's chosen rows that took the same action, so a Q whose
     value of an action is off by about the same amount everywhere (as measured for the hard brake,
     docs/results.md) steers where the policy takes it, not how often; J1 alone sets how often."""
+    central_action_rows: CentralActionRows = "all"
+    """Which rows train Q's action part D(s, a) under ``central_head = "state_value"``. 'all' (the default).
+    'explored' (ours, a labelled variant): only the rows whose action was drawn uniformly from the allowed ones
+    (``Batch.explored``, ``TrainConfig.critic_exploration``), where the action taken does not depend on the
+    state: Q's differences between actions then cannot learn which situations an action is taken in, only what
+    it leads to (docs/results.md, "Declared: a critic that learns actions from random ones")."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -116,6 +123,8 @@ class LearnerConfig:
                 raise InputError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if self.entropy_coef < 0.0:
             raise InputError(f"entropy_coef must be non-negative, got {self.entropy_coef}")
+        if self.central_action_rows == "explored" and self.central_head != "state_value":
+            raise InputError('central_action_rows = "explored" needs central_head = "state_value"')
 
     @property
     def effective_alpha(self) -> float:
@@ -153,6 +162,7 @@ class Batch:
     next_valid: torch.Tensor | None = None  # (B,) float32
     next_row: torch.Tensor | None = None  # (B,) int64 row of the same agent's next step, -1: none
     bootstrap_obs: torch.Tensor | None = None  # (cut-off rows, OBS_DIM): o' where next_row is -1, done 0
+    explored: torch.Tensor | None = None  # (B,) bool: the action was drawn uniformly, not by the policy
 
     def to(self, device: torch.device | str) -> Batch:
         moved: dict[str, Any] = {
@@ -540,6 +550,7 @@ class Learner:
         actor_step = self._update_actor(
             b.action,
             b.mask,
+            b.explored,
             policy,
             value_forward.advantage,
             None if central_forward is None else central_forward.advantage,
@@ -560,6 +571,7 @@ class Learner:
         actor_step = self._update_actor(
             b.action,
             b.mask,
+            b.explored,
             policy,
             value_forward.advantage,
             None if central_forward is None else central_forward.advantage,
@@ -689,10 +701,11 @@ class Learner:
             loss = 0.5 * (target - q_taken).pow(2).mean()
         else:  # U(s) regresses to every row's target; D(s, a) to what U leaves (U held fixed there)
             value = forward.state_value
-            loss = (
-                0.5 * (target - value).pow(2).mean()
-                + 0.5 * (target - value.detach() - (q_taken - value)).pow(2).mean()
-            )
+            residual = (target - value.detach() - (q_taken - value)).pow(2)
+            if cfg.central_action_rows == "explored":  # D only where the action did not follow the state
+                explored = _require(b.explored, "explored").float()
+                residual = residual * explored * (len(explored) / explored.sum().clamp(min=1.0))
+            loss = 0.5 * (target - value).pow(2).mean() + 0.5 * residual.mean()
         self.opt_central.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
@@ -715,6 +728,7 @@ class Learner:
         self,
         actions: torch.Tensor,
         mask: torch.Tensor,
+        explored: torch.Tensor | None,
         policy: _Policy,
         adv_v: torch.Tensor,
         adv_q: torch.Tensor | None,
@@ -724,6 +738,8 @@ class Learner:
         ``mask``: the batch's)."""
         cfg = self.config
         log_probs, entropy = policy.log_prob, policy.entropy
+        if explored is not None:  # an explored action is not the policy's: no policy gradient through it
+            log_probs = log_probs * (~explored).to(log_probs.dtype)
         if cfg.normalize_advantages:
             adv_v = _standardised(adv_v)
         if adv_q is not None and cfg.coma_action_means == "subtract":

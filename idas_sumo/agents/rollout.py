@@ -101,6 +101,7 @@ class EpisodeData:
     next_valid: npt.NDArray[np.float32]  # (N,)
     next_row: npt.NDArray[np.int64]  # (N,) row of the same agent's next step, -1 when none
     stats: EpisodeStats
+    explored: npt.NDArray[np.bool_] | None = None  # (N,) the action was drawn uniformly (RolloutTask.explore)
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
@@ -166,6 +167,12 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
         batch.next_slot = cat("next_slot")
         batch.next_action = cat("next_action")
         batch.next_valid = cat("next_valid")
+    if any(e.explored is not None and e.explored.any() for e in episodes):
+        batch.explored = torch.from_numpy(
+            np.concatenate(
+                [np.zeros(len(e), np.bool_) if e.explored is None else e.explored for e in episodes]
+            )
+        )
     return batch
 
 
@@ -191,6 +198,7 @@ class _EpisodeRecorder:
         self.agents_per_step: list[int] = []
         self.collisions = 0
         self.state: npt.NDArray[np.float32] | None = None
+        self.explored: list[npt.NDArray[np.bool_]] = []  # only in episodes that explore
 
     def step(
         self,
@@ -364,6 +372,7 @@ def _episode_data(
         next_valid=has_next.astype(np.float32),
         next_row=nxt,
         stats=stats,
+        explored=np.concatenate(rec.explored) if rec.explored and n else None,
     )
 
 
@@ -401,6 +410,9 @@ class RolloutTask:
     action_seed: int
     deterministic: bool = False
     override: ActionOverride | None = None
+    explore: float = 0.0
+    """Share of the episode's decisions drawn uniformly from the allowed actions instead of from the policy
+    (``TrainConfig.critic_exploration``), each agent-step with this probability, from the episode's generator."""
 
 
 class _LearningPolicy:
@@ -411,6 +423,9 @@ class _LearningPolicy:
         self.tasks = tasks
         self.generators = [torch.Generator().manual_seed(t.action_seed) for t in tasks]
         self.overridden = np.array([j for j, t in enumerate(tasks) if t.override is not None], dtype=np.int64)
+        self.exploring = np.array([j for j, t in enumerate(tasks) if t.explore > 0.0], dtype=np.int64)
+        self.explored_rows = np.zeros(0, dtype=np.int64)
+        """The batch rows whose action the last ``act`` drew uniformly."""
         self.decisions: dict[int, int] = {}  # job -> its overridden agent's decisions so far
 
     def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
@@ -428,9 +443,32 @@ class _LearningPolicy:
             ]
             sel = rows[part]
             out[part] = self.actor.act_grouped(batch.obs[sel], batch.masks[sel], groups, deterministic=det)
+        if len(self.exploring):
+            self._explore(batch, rows, jobs, out)
         if len(self.overridden):
             self._override(batch, rows, jobs, out)
         return out
+
+    def _explore(
+        self,
+        batch: AgentBatch,
+        rows: npt.NDArray[np.int64],
+        jobs: npt.NDArray[np.int64],
+        out: npt.NDArray[np.int64],
+    ) -> None:
+        """Per exploring episode, after its policy draws: each of its agents' actions, with the task's
+        probability, replaced by one drawn uniformly from the allowed ones."""
+        explored: list[npt.NDArray[np.int64]] = []
+        for j in np.intersect1d(jobs, self.exploring).tolist():
+            part = np.flatnonzero(jobs == j)
+            generator = self.generators[j]
+            pick = torch.rand(len(part), generator=generator) < self.tasks[j].explore
+            allowed = torch.from_numpy(batch.masks[rows[part]].astype(np.float32))
+            uniform = torch.multinomial(allowed, 1, generator=generator).squeeze(1)
+            chosen = pick.numpy()
+            out[part[chosen]] = uniform.numpy()[chosen]
+            explored.append(rows[part[chosen]])
+        self.explored_rows = np.concatenate(explored) if explored else np.zeros(0, dtype=np.int64)
 
     def _override(
         self,
@@ -457,9 +495,11 @@ class _LearningPolicy:
 class _Collector:
     """The engine observer of a rollout: one ``_EpisodeRecorder`` per job."""
 
-    def __init__(self, n_jobs: int) -> None:
+    def __init__(self, n_jobs: int, policy: Policy | None = None) -> None:
         self.recorders = [_EpisodeRecorder() for _ in range(n_jobs)]
         self.episodes: dict[int, EpisodeData] = {}
+        self.policy = policy if isinstance(policy, _LearningPolicy) and len(policy.exploring) else None
+        """The policy whose explored rows are recorded; None when no episode explores."""
 
     def decided(
         self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: npt.NDArray[np.int64]
@@ -478,8 +518,14 @@ class _Collector:
         if not len(batch):
             return
         obs = batch.obs
+        explored = None
+        if self.policy is not None:
+            explored = np.zeros(len(batch), dtype=np.bool_)
+            explored[self.policy.explored_rows] = True
         for k in np.unique(batch.copy).tolist():
             rows = np.flatnonzero(batch.copy == k)
+            if explored is not None and self.policy is not None and self.policy.tasks[jobs[k]].explore > 0.0:
+                self.recorders[jobs[k]].explored.append(explored[rows])
             ids = [batch.ids[r] for r in rows]
             state_slot = engine.slots[k].state_slot
             agent_slots = np.array([state_slot.get(a, -1) for a in ids], dtype=np.int64)
@@ -513,6 +559,6 @@ def collect_episodes(
 def record_episodes(engine: MergeEngine, policy: Policy, scenarios: Sequence[Scenario]) -> list[EpisodeData]:
     """Every scenario run to its end with every learning agent on ``policy`` (a learned actor, or a
     rule-based teacher for imitation), recorded as agent-steps; in scenario order."""
-    collector = _Collector(len(scenarios))
+    collector = _Collector(len(scenarios), policy)
     run_episodes(engine, scenarios, lambda job, agent: 0, [policy], collector)
     return [collector.episodes[j] for j in range(len(scenarios))]

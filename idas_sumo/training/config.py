@@ -119,6 +119,11 @@ class TrainConfig:
     safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
     """Which car the safety mask follows in training and validation (``EnvConfig.safety_mask``):
     'own_lane' (the paper) or 'merge_aware' (ours, a shield; the shipped policies were trained with it)."""
+    critic_exploration: float = 0.0
+    """Share of the agent-steps of every sampling episode whose action is drawn uniformly from the allowed ones
+    instead of from the policy (ours, a labelled variant; 0: none, the paper). Those rows train the critics but
+    not the actor, and under ``[learner] central_action_rows = "explored"`` they alone teach Q what each
+    action leads to (docs/results.md, "Declared: a critic that learns actions from random ones")."""
     standstill: Standstill = "keeps_command"
     """The acceleration an agent at rest drives on with in training and validation (``EnvConfig.standstill``):
     'keeps_command' (the default) or 'at_rest' (ours, a labelled variant). Evaluation keeps the default."""
@@ -159,6 +164,8 @@ class TrainConfig:
             raise ConfigValueError(f"copies must be in [1, {MAX_COPIES}], got {self.copies}")
         if not self.max_episode_s > 0.0:
             raise ConfigValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+        if not 0.0 <= self.critic_exploration < 1.0:
+            raise ConfigValueError(f"critic_exploration must lie in [0, 1), got {self.critic_exploration}")
         if self.validation_criterion not in VALIDATION_CRITERIA:
             raise ConfigValueError(
                 f"validation_criterion must be one of {', '.join(VALIDATION_CRITERIA)}, "

@@ -742,6 +742,7 @@ def _episode_tasks(
                 state.np_rng, plan.traffic, speed_limits, name=f"{plan.name}-{state.episode + i}"
             ),
             action_seed=int(torch.randint(0, 2**62, (1,), generator=state.torch_rng).item()),
+            explore=run.config.critic_exploration,
         )
         for i in range(n)
     ]
