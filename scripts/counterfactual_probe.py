@@ -34,6 +34,7 @@ import numpy.typing as npt
 import torch
 
 from idas_sumo.agents.learner import Learner
+from idas_sumo.agents.returns import lambda_targets
 from idas_sumo.agents.rollout import ActionOverride, EpisodeData, RolloutTask, collect_episodes
 from idas_sumo.env.actions import DELTA_ACCEL_MPS2, HARD_BRAKE
 from idas_sumo.env.engine import MergeEngine
@@ -79,18 +80,17 @@ def _returns(
     """Per row: the discounted joint return along the agent's own steps, and whether the agent collides within
     ``BEFORE_COLLISION_STEPS`` of its own steps (its last reward at most ``collision_price``)."""
     n = len(episode)
-    ret = np.zeros(n)
-    to_end = np.zeros(n, dtype=np.int64)
-    collides = np.zeros(n, dtype=np.bool_)
-    joint = episode.joint_reward.astype(np.float64)
+    joint = torch.from_numpy(episode.joint_reward.astype(np.float64))
+    next_row = torch.from_numpy(episode.next_row)
+    # λ = 1 on one-step targets without a bootstrap: Σ_k γ^k r_(t+k) along the agent's rows.
+    ret = lambda_targets(joint, torch.zeros(n, dtype=torch.float64), next_row, gamma, 1.0).numpy()
+    # The same recursion with γ = 1 on ones counts the steps to the agent's end.
+    to_end = lambda_targets(
+        torch.ones(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64), next_row, 1.0, 1.0
+    )
     last = (episode.next_row < 0) & (episode.done > 0) & (episode.reward <= collision_price + 1e-6)
-    collided_slots = set(episode.slot[last].tolist())
-    for i in range(n - 1, -1, -1):
-        j = episode.next_row[i]
-        ret[i] = joint[i] + (gamma * ret[j] if j >= 0 else 0.0)
-        to_end[i] = to_end[j] + 1 if j >= 0 else 0
-        collides[i] = episode.slot[i] in collided_slots
-    return ret, collides & (to_end < BEFORE_COLLISION_STEPS)
+    collides = np.isin(episode.slot, episode.slot[last])
+    return ret, collides & (to_end.numpy() <= BEFORE_COLLISION_STEPS)
 
 
 def _pick_points(
