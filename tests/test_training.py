@@ -891,6 +891,18 @@ def test_validation_criterion_ranks_by_return_or_by_success_first() -> None:
         TrainConfig(validation_criterion="speed")  # type: ignore[arg-type]
 
 
+def test_critic_exploration_is_checked() -> None:
+    """critic_exploration lies in [0, 1), and Q's action part cannot learn from explored rows that never come."""
+    from idas_sumo.training.config import ConfigValueError, TrainConfig
+
+    with pytest.raises(ConfigValueError, match="critic_exploration must lie"):
+        TrainConfig(critic_exploration=1.0)
+    explored_q = LearnerConfig(central_head="state_value", central_action_rows="explored")
+    with pytest.raises(ConfigValueError, match="needs critic_exploration"):
+        TrainConfig(learner=explored_q)
+    assert TrainConfig(learner=explored_q, critic_exploration=0.02).critic_exploration == 0.02
+
+
 def test_a_sum_of_zero_penalties_is_written_as_0_not_minus_0() -> None:
     """r_impede and r_flow are -5·0 and -1·0 on a step without a hard brake, which is -0.0: their episode sums
     must still read 0 in metrics.csv, and a real penalty must keep its sign."""

@@ -703,7 +703,7 @@ class Learner:
             value = forward.state_value
             residual = (target - value.detach() - (q_taken - value)).pow(2)
             if cfg.central_action_rows == "explored":  # D only where the action did not follow the state
-                explored = _require(b.explored, "explored").float()
+                explored = torch.zeros_like(target) if b.explored is None else b.explored.to(target.dtype)
                 residual = residual * explored * (len(explored) / explored.sum().clamp(min=1.0))
             loss = 0.5 * (target - value).pow(2).mean() + 0.5 * residual.mean()
         self.opt_central.zero_grad(set_to_none=True)

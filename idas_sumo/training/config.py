@@ -166,6 +166,8 @@ class TrainConfig:
             raise ConfigValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
         if not 0.0 <= self.critic_exploration < 1.0:
             raise ConfigValueError(f"critic_exploration must lie in [0, 1), got {self.critic_exploration}")
+        if self.learner.central_action_rows == "explored" and self.critic_exploration == 0.0:
+            raise ConfigValueError('[learner] central_action_rows = "explored" needs critic_exploration > 0')
         if self.validation_criterion not in VALIDATION_CRITERIA:
             raise ConfigValueError(
                 f"validation_criterion must be one of {', '.join(VALIDATION_CRITERIA)}, "
