@@ -14,7 +14,9 @@ draws after it come from the continuation seed, the same for every action (commo
 value of an action is the discounted joint return along the agent's own steps from there (Q's target: γ of the
 config, a car cut off by the time limit not bootstrapped), averaged over the continuations.
 
-Printed per checkpoint and action a ≠ Δa = 0: the mean of Q(s, a) − Q(s, Δa = 0) and of its measured
+With ``--hold N`` each replayed action is kept for the agent's next N decisions (a masked one replaced by the
+closest allowed, as always): what a sustained brake or slow-down leads to, which COMA's one-step counterfactual
+never asks (Q's column is still its one-step view). Printed per checkpoint and action a ≠ Δa = 0: the mean of Q(s, a) − Q(s, Δa = 0) and of its measured
 counterpart, their correlation over the decisions (Pearson and Spearman), how often they agree in sign, and the
 standard error of the measured differences (the continuations' noise); before a collision and elsewhere.
 docs/results.md ("Declared diagnostic: Q's counterfactual against a measured one") quotes its output.
@@ -128,6 +130,7 @@ def probe(
     points: int,
     continuations: int,
     seed: int,
+    hold: int,
 ) -> None:
     learner_config = dataclasses.replace(config.learner, use_central_critic=True)
     learner = Learner(learner_config)
@@ -155,7 +158,9 @@ def probe(
                 if not allowed[a]:
                     continue
                 for c in range(continuations):
-                    override = ActionOverride(point.agent_id, point.decision, a, CONTINUATION_SEED_BASE + c)
+                    override = ActionOverride(
+                        point.agent_id, point.decision, a, CONTINUATION_SEED_BASE + c, hold=hold
+                    )
                     tasks.append(
                         RolloutTask(
                             scenarios[point.scenario], ACTION_SEED_BASE + point.scenario, override=override
@@ -184,7 +189,7 @@ def probe(
     before = np.array([pt.before_collision for pt in chosen])
     print(
         f"{checkpoint}: {n_scenarios} scenarios, {len(chosen)} decisions ({before.sum()} before a collision), "
-        f"{len(replays)} replays"
+        f"{len(replays)} replays, each action held for {hold} decision(s)"
     )
     print("  action vs Δa=0          where          n  Q diff  measured  se  pearson  spearman  same sign %")
     for name, a in ACTIONS.items():
@@ -216,10 +221,22 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=4, help="decisions replayed per scenario")
     parser.add_argument("--continuations", type=int, default=4, help="continuation seeds per action")
     parser.add_argument("--seed", type=int, default=77, help="scenario seed (not an evaluation seed)")
+    parser.add_argument(
+        "--hold", type=int, default=1, help="decisions each replayed action is held for (1: COMA's one step)"
+    )
     args = parser.parse_args()
     config = load_train_config(args.config)
     for checkpoint in args.checkpoints:
-        probe(config, args.net, checkpoint, args.scenarios, args.points, args.continuations, args.seed)
+        probe(
+            config,
+            args.net,
+            checkpoint,
+            args.scenarios,
+            args.points,
+            args.continuations,
+            args.seed,
+            args.hold,
+        )
 
 
 if __name__ == "__main__":

@@ -349,15 +349,17 @@ def test_action_override_replaces_one_decision_and_nothing_before_it(net_path: P
         ),
     )
     override = ActionOverride("r0", decision=5, action=HARD_BRAKE, continuation_seed=11)
-    engine = MergeEngine(net_path, copies=3, config=EnvConfig(max_episode_s=4.0))
+    held = dataclasses.replace(override, hold=3)
+    engine = MergeEngine(net_path, copies=4, config=EnvConfig(max_episode_s=4.0))
     try:
-        plain, forced, again = collect_episodes(
+        plain, forced, again, three = collect_episodes(
             engine,
             Learner(LearnerConfig(), seed=0),
             [
                 RolloutTask(scenario, 7),
                 RolloutTask(scenario, 7, override=override),
                 RolloutTask(scenario, 7, override=override),
+                RolloutTask(scenario, 7, override=held),
             ],
         )
     finally:
@@ -365,6 +367,8 @@ def test_action_override_replaces_one_decision_and_nothing_before_it(net_path: P
     r0_rows = np.flatnonzero(forced.slot == forced.slot[2])  # every car acts from the first step: r0 is third
     row = int(r0_rows[5])
     assert plain.action[row] != HARD_BRAKE and forced.action[row] == HARD_BRAKE
+    assert (three.action[r0_rows[5:8]] == HARD_BRAKE).all()  # hold = 3: decisions 5, 6 and 7
+    assert forced.action[r0_rows[6]] != HARD_BRAKE or forced.action[r0_rows[7]] != HARD_BRAKE
     np.testing.assert_array_equal(plain.action[:row], forced.action[:row])
     np.testing.assert_array_equal(plain.obs[: row + 1], forced.obs[: row + 1])
     np.testing.assert_array_equal(forced.action, again.action)

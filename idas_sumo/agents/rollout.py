@@ -390,15 +390,18 @@ class GroupedActor(Protocol):
 
 @dataclass(frozen=True)
 class ActionOverride:
-    """One decision of one agent replaced: its ``decision``-th action (from 0) is ``action`` instead of the
-    one drawn, and the episode's generator restarts from ``continuation_seed`` right after. Episodes of one
-    scenario and action seed are the same up to that decision, so several overrides of it measure what each
-    action leads to from one state (``scripts/counterfactual_probe.py``)."""
+    """Decisions of one agent replaced: its ``decision``-th action (from 0), and the ``hold`` - 1 after it, are
+    ``action`` instead of the ones drawn, and the episode's generator restarts from ``continuation_seed`` right
+    after the first. Episodes of one scenario and action seed are the same up to that decision, so several
+    overrides of it measure what each action leads to from one state (``scripts/counterfactual_probe.py``)."""
 
     agent_id: str
     decision: int
     action: int
     continuation_seed: int
+    hold: int = 1
+    """How many of the agent's decisions from ``decision`` on take ``action`` (a masked one is replaced by the
+    closest allowed action, as any request is)."""
 
 
 @dataclass(frozen=True)
@@ -487,8 +490,9 @@ class _LearningPolicy:
                 continue
             n = self.decisions.get(j, 0)
             self.decisions[j] = n + 1
-            if n == override.decision:
+            if override.decision <= n < override.decision + override.hold:
                 out[i] = override.action
+            if n == override.decision:
                 self.generators[j].manual_seed(override.continuation_seed)
 
 
