@@ -290,13 +290,15 @@ def rollout_tasks(net_path: Path) -> list:
 
 
 def episode_digest(e: object) -> dict[str, object]:
-    """Every array of an ``EpisodeData`` as a digest, and its stats but ``success`` and ``perfect`` (which
-    took the evaluation's meaning when rollouts moved onto the engine)."""
+    """Every array of an ``EpisodeData`` it carries as a digest, and its stats but ``success`` and ``perfect``
+    (which took the evaluation's meaning when rollouts moved onto the engine)."""
     import dataclasses
 
     out: dict[str, object] = {}
     for f in dataclasses.fields(e):  # type: ignore[arg-type]
         value = getattr(e, f.name)
+        if value is None:  # an optional array the episode does not carry (``explored`` without exploration)
+            continue
         if f.name == "stats":
             stats = dataclasses.asdict(value)
             stats.pop("success"), stats.pop("perfect")
