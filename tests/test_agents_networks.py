@@ -444,6 +444,18 @@ def test_ego_first_critic_does_not_depend_on_the_scenario_order() -> None:
     assert not Learner(LearnerConfig()).central.ego_first
 
 
+def _coma_update(config: LearnerConfig, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """One update of a fresh learner (seed 3) on ``batch``: log π of its actions before the update, COMA's
+    advantage A2 and the actor's loss."""
+    learner = Learner(config, seed=3)
+    with torch.no_grad():
+        log_prob = learner.actor.distribution(batch.obs, batch.mask).log_prob(batch.action)
+    learner.update(batch)
+    record = learner.last_update
+    assert record is not None and record.central is not None
+    return log_prob, record.central.advantage, record.actor.loss
+
+
 @pytest.mark.parametrize("normalize", [False, True])
 def test_coma_action_means_subtracted_through_the_update(normalize: bool) -> None:
     """coma_action_means = 'subtract' (a labelled variant), J2 alone (α = 0): the actor's loss is
@@ -461,18 +473,12 @@ def test_coma_action_means_subtracted_through_the_update(normalize: bool) -> Non
         config = LearnerConfig(
             use_central_critic=True, alpha=0.0, coma_action_means=means, normalize_advantages=normalize
         )
-        learner = Learner(config, seed=3)
-        with torch.no_grad():
-            log_prob = learner.actor.distribution(batch.obs, batch.mask).log_prob(batch.action)
-        learner.update(batch)
-        record = learner.last_update
-        assert record is not None and record.central is not None
-        a2 = record.central.advantage
+        log_prob, a2, loss = _coma_update(config, batch)
         if means == "subtract":
             a2 = subtract_action_means(a2, batch.action, batch.mask.sum(dim=1) > 1)
         expected = -((_standardised(a2) if normalize else a2) * log_prob).mean()
-        assert record.actor.loss == pytest.approx(float(expected), rel=1e-5, abs=1e-7)
-        losses[means] = record.actor.loss
+        assert loss == pytest.approx(float(expected), rel=1e-5, abs=1e-7)
+        losses[means] = loss
     assert losses["keep"] != pytest.approx(losses["subtract"], rel=1e-3)
 
 
@@ -512,18 +518,12 @@ def test_coma_delta_only_steps_the_actor_on_the_delta_rows_alone(normalize: bool
     config = LearnerConfig(
         use_central_critic=True, alpha=0.0, coma_actions="delta_only", normalize_advantages=normalize
     )
-    learner = Learner(config, seed=3)
-    with torch.no_grad():
-        log_prob = learner.actor.distribution(batch.obs, batch.mask).log_prob(batch.action)
-    learner.update(batch)
-    record = learner.last_update
-    assert record is not None and record.central is not None
+    log_prob, a2, loss = _coma_update(config, batch)
     delta = batch.action < N_DELTA_ACTIONS
     assert 0 < int(delta.sum()) < len(delta)
-    a2 = record.central.advantage
     kept = _standardised(a2[delta]) if normalize else a2[delta]
     expected = -(torch.zeros_like(a2).masked_scatter(delta, kept) * log_prob).mean()
-    assert record.actor.loss == pytest.approx(float(expected), rel=1e-5, abs=1e-7)
+    assert loss == pytest.approx(float(expected), rel=1e-5, abs=1e-7)
 
     brakes = dataclasses.replace(
         batch,
