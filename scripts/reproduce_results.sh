@@ -34,9 +34,10 @@ for method in idas_geometry idm fsm_idm; do
   ev --baseline "$method" --others idas_geometry --suite geometry --scenarios 100 --seed 2024 --workers 2 \
     --out "$out/geometry-trained-2024/$method"
 done
-# and the two labelled reward variants, each on the declared seed and 2019-2021: brakes/ (the braker pays for a
-# chosen hard brake, idas_brakes) and manoeuvre/ (a hard brake counts once, at the step it begins, idas_manoeuvre).
-for variant in brakes:idas_brakes manoeuvre:idas_manoeuvre; do
+# and the labelled variants, each on the declared seed and 2019-2021: brakes/ (the braker pays for a chosen hard
+# brake, idas_brakes), manoeuvre/ (a hard brake counts once, at the step it begins, idas_manoeuvre) and
+# explored10/ (Q's action part from 10 % random actions, r_collide x 20, idas_explored10_collide).
+for variant in brakes:idas_brakes manoeuvre:idas_manoeuvre explored10:idas_explored10_collide; do
   dir=${variant%%:*}
   policy=${variant##*:}
   for seed in 2024 2019 2020 2021; do

@@ -15,12 +15,14 @@ LEARNED_METHODS: dict[str, str] = {
     "idas": "idas.pt",
     "idas_v": "idas_v.pt",
     "idas_direct": "idas_direct.pt",
-    # Ours, beside the paper's: IDAS trained on generated merges of many geometries (issue #17), and IDAS
+    # Ours, beside the paper's: IDAS trained on generated merges of many geometries (issue #17), IDAS
     # trained with the labelled reward variants impede_blame = "braker_if_unforced" and brake_count =
-    # "manoeuvre" (docs/results.md).
+    # "manoeuvre", and IDAS whose critic learns its actions from 10 % random ones with r_collide x 20
+    # (docs/results.md).
     "idas_geometry": "idas_geometry.pt",
     "idas_brakes": "idas_brakes.pt",
     "idas_manoeuvre": "idas_manoeuvre.pt",
+    "idas_explored10_collide": "idas_explored10_collide.pt",
 }
 PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", *BASELINES)
 """The paper's five methods: what ``--baseline all`` runs."""
@@ -32,6 +34,7 @@ METHOD_LABELS: dict[str, str] = {
     "idas_geometry": "IDAS-geometry",
     "idas_brakes": "IDAS-brakes",
     "idas_manoeuvre": "IDAS-manoeuvre",
+    "idas_explored10_collide": "IDAS-explored10-collide",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
 }
