@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from idas_sumo.agents.learner import Learner
+from idas_sumo.baselines.policies import BASELINES
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
@@ -35,7 +36,7 @@ def main() -> None:
     )
     parser.add_argument("--net", type=resolve_user_path, default=DEFAULT_NET_NAME)
     parser.add_argument("--config", type=resolve_user_path, default="scenarios/train_shipped.toml")
-    parser.add_argument("--teacher", choices=("idm", "fsm_idm"), default="idm")
+    parser.add_argument("--teacher", choices=tuple(BASELINES), default="idm")
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--epochs", type=int, default=15)
     parser.add_argument("--lr", type=float, default=1e-3, help="actor and V learning rate while imitating")

@@ -24,7 +24,7 @@ LEARNED_METHODS: dict[str, str] = {
     "idas_manoeuvre": "idas_manoeuvre.pt",
     "idas_explored10_collide": "idas_explored10_collide.pt",
 }
-PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", *BASELINES)
+PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", "idm", "fsm_idm")
 """The paper's five methods: what ``--baseline all`` runs."""
 METHODS: tuple[str, ...] = (*LEARNED_METHODS, *BASELINES)
 METHOD_LABELS: dict[str, str] = {
@@ -37,6 +37,7 @@ METHOD_LABELS: dict[str, str] = {
     "idas_explored10_collide": "IDAS-explored10-collide",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
+    "fsm_idm_smooth": "FSM+IDM-smooth",
 }
 
 
