@@ -12,7 +12,13 @@ from idas_sumo.baselines.fsm_idm import (
     real_leader_idm_acceleration,
     virtual_leaders,
 )
-from idas_sumo.baselines.policies import BASELINES, fsm_idm_actions, idm_actions
+from idas_sumo.baselines.policies import (
+    BASELINES,
+    fsm_idm_actions,
+    fsm_idm_smooth_actions,
+    hard_brake_only_when_forced,
+    idm_actions,
+)
 from idas_sumo.env.actions import (
     HARD_BRAKE,
     HARD_BRAKE_MPS2,
@@ -310,8 +316,38 @@ def test_idm_policy_ignores_other_road_fsm_does_not() -> None:
     assert fsm_idm_actions(snap, EGO, prev, full).tolist() == [HARD_BRAKE]
 
 
+def test_smooth_fsm_eases_down_where_fsm_brakes_hard() -> None:
+    # The same virtual leader as above: FSM+IDM wants far below -4 m/s² and brakes hard; FSM+IDM-smooth,
+    # with every Δa allowed, takes the strongest one instead (a = 0 - 0.2).
+    snap = make_snapshot([(MAIN, 100.0, 15.0), (MERGE, 90.0, 15.0)])
+    full = np.ones((1, N_ACTIONS), dtype=np.int8)
+    prev = np.array([0.0])
+    assert fsm_idm_actions(snap, EGO, prev, full).tolist() == [HARD_BRAKE]
+    assert fsm_idm_smooth_actions(snap, EGO, prev, full).tolist() == [0]
+    # Where the mask leaves only the hard brake (and at -2 m/s² the lower Δa steps are out of range), it
+    # still brakes hard: the brake is taken away only while a Δa action is allowed.
+    forced = np.array([[0, 0, 0, 0, 0, 1, 0]], dtype=np.int8)
+    assert fsm_idm_smooth_actions(snap, EGO, prev, forced).tolist() == [HARD_BRAKE]
+
+
+def test_hard_brake_only_when_forced_hand_cases() -> None:
+    masks = np.array(
+        [
+            [1, 1, 1, 1, 1, 1, 0],  # every Δa allowed: the brake goes
+            [1, 0, 0, 0, 0, 1, 0],  # one Δa left (the rule mask at the limit): the brake goes
+            [0, 0, 0, 0, 0, 1, 1],  # only brake and release: both stay
+            [0, 0, 0, 0, 0, 1, 0],  # only the brake: it stays
+        ],
+        dtype=np.int8,
+    )
+    out = hard_brake_only_when_forced(masks)
+    assert out[:, HARD_BRAKE].tolist() == [0, 0, 1, 1]
+    np.testing.assert_array_equal(np.delete(out, HARD_BRAKE, axis=1), np.delete(masks, HARD_BRAKE, axis=1))
+    assert masks[0, HARD_BRAKE] == 1  # the caller's mask is not changed
+
+
 def test_registry() -> None:
-    assert set(BASELINES) == {"idm", "fsm_idm"}
+    assert set(BASELINES) == {"idm", "fsm_idm", "fsm_idm_smooth"}
     snap = make_snapshot([(MAIN, 100.0, 15.0), (MERGE, 90.0, 15.0)])
     full = np.ones((1, N_ACTIONS), dtype=np.int8)
     for name, policy in BASELINES.items():
