@@ -27,6 +27,14 @@ def test_finish(b_type: float, expected: float) -> None:
     assert float(finish_reward(b_type)) == expected
 
 
+@pytest.mark.parametrize(("b_type", "expected"), [(-2.0, 20.0), (0.0, 12.5), (2.0, 5.0)])
+def test_finish_slope_cooperative_waits(b_type: float, expected: float) -> None:
+    # (-15·b_type + 50)/4: (30 + 50)/4 = 20, 12.5, (-30 + 50)/4 = 5; the config's method gives the same.
+    assert float(finish_reward(b_type, "cooperative_waits")) == expected
+    assert float(RewardConfig(finish_slope="cooperative_waits").finish(b_type)) == expected
+    assert float(RewardConfig().finish(b_type)) == float(finish_reward(b_type))
+
+
 @pytest.mark.parametrize(
     ("prio", "sign", "expected"),
     [

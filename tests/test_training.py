@@ -332,6 +332,42 @@ def test_timeout_variant_charges_the_unearned_finish_and_ends_the_agent(net_path
 
 
 @pytest.mark.sumo
+def test_finish_slope_changes_only_the_finish_reward_through_the_rollout(net_path: Path) -> None:
+    """[reward] finish_slope = 'cooperative_waits' (a labelled hypothesis): the same episode, the same actions, and
+    each finishing car's reward row carries (-15·b_type + 50)/4 instead of the printed (15·b_type + 50)/4."""
+    from idas_sumo.agents.rollout import RolloutTask, collect_episodes
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
+    from idas_sumo.env.rewards import RewardConfig
+    from idas_sumo.env.scenario import Scenario, VehicleSpec
+
+    scenario = Scenario(  # two cars close to the merge, far apart: both finish within a few seconds
+        "near",
+        (
+            VehicleSpec("m0", "main", 200.0, 15.0, b_type=-2.0),
+            VehicleSpec("r0", "merge", 160.0, 12.0, b_type=1.0),
+        ),
+    )
+    runs = {}
+    for slope in ("paper", "cooperative_waits"):
+        config = EnvConfig(max_episode_s=30.0, reward=RewardConfig(finish_slope=slope))  # type: ignore[arg-type]
+        engine = MergeEngine(net_path, copies=1, config=config)
+        try:
+            runs[slope] = collect_episodes(
+                engine, Learner(LearnerConfig(), seed=0), [RolloutTask(scenario, 7)]
+            )[0]
+        finally:
+            engine.close()
+    paper, waits = runs["paper"], runs["cooperative_waits"]
+    assert paper.stats.end_reasons == waits.stats.end_reasons == {"m0": "finished", "r0": "finished"}
+    np.testing.assert_array_equal(paper.action, waits.action)
+    # (15·-2 + 50)/4 + (15·1 + 50)/4 = 5 + 16.25; (30 + 50)/4 + (-15 + 50)/4 = 20 + 8.75
+    assert paper.stats.reward_parts["finish"] == 21.25 and waits.stats.reward_parts["finish"] == 28.75
+    last = paper.next_row < 0
+    assert sorted((waits.reward[last] - paper.reward[last]).tolist()) == [-7.5, 15.0]
+    np.testing.assert_array_equal(paper.reward[~last], waits.reward[~last])
+
+
+@pytest.mark.sumo
 def test_action_override_replaces_one_decision_and_nothing_before_it(net_path: Path) -> None:
     """RolloutTask.override (the counterfactual probe's): the agent's decision-th action is the one given, every
     row before it is the plain episode's, and two episodes with the same override are the same to the end."""

@@ -59,7 +59,6 @@ from idas_sumo.env.rewards import (
     MERGE_ZONE_RADIUS_M,
     REWARD_PART_NAMES,
     RewardConfig,
-    finish_reward,
 )
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.env.snapshot import (
@@ -1029,10 +1028,10 @@ class MergeEngine:
                 prio = float(slot.scenario.prio(slot.spec[batch.ids[i]].road))
                 parts[i, _PART["collide"]] = self.config.reward.collide(prio)
             won = code == _REASON_CODE["finished"]
-            parts[won, _PART["finish"]] = finish_reward(batch.b_type[won])
+            parts[won, _PART["finish"]] = self.config.reward.finish(batch.b_type[won])
             if self.config.reward.timeout == "forfeit_finish":
                 cut = code == _REASON_CODE["timeout"]
-                parts[cut, _PART["finish"]] = -finish_reward(batch.b_type[cut])
+                parts[cut, _PART["finish"]] = -self.config.reward.finish(batch.b_type[cut])
         rewards = parts[:, _PART["finish"]] + parts[:, _PART["collide"]] + parts[:, _PART["impede"]]
         joint = np.bincount(batch.copy, weights=rewards, minlength=k_count) + flow
 

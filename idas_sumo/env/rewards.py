@@ -21,11 +21,18 @@ CollisionSign = Literal["paper", "lower_priority_pays"]
 ImpedeBlame = Literal["car_ahead", "braker_if_unforced"]
 BrakeCount = Literal["step", "manoeuvre"]
 TimeoutPrice = Literal["free", "forfeit_finish"]
+FinishSlope = Literal["paper", "cooperative_waits"]
 
 
-def finish_reward(b_type: npt.ArrayLike) -> FloatArray:
-    """r_finish = (15·b_type + 50) / 4, once on finishing: 5 at b_type = -2, 20 at b_type = 2."""
-    return np.asarray((15.0 * np.asarray(b_type, dtype=np.float64) + 50.0) / 4.0)
+def finish_reward(b_type: npt.ArrayLike, slope: FinishSlope = "paper") -> FloatArray:
+    """r_finish = (15·b_type + 50) / 4, once on finishing: 5 at b_type = -2, 20 at b_type = 2.
+
+    ``cooperative_waits`` (ours, a labelled hypothesis): (-15·b_type + 50) / 4, 20 at -2 and 5 at +2, so that a
+    cooperative driver (b_type = 2, L277) gains less from hurrying, as the paper's text (L196) says a small
+    final reward should make a driver *less* cooperative.
+    """
+    sign = -1.0 if slope == "cooperative_waits" else 1.0
+    return np.asarray((sign * 15.0 * np.asarray(b_type, dtype=np.float64) + 50.0) / 4.0)
 
 
 def collide_reward(b_prio: npt.ArrayLike, sign: CollisionSign = "paper", scale: float = 1.0) -> FloatArray:
@@ -84,9 +91,19 @@ class RewardConfig:
     for collisions (docs/results.md, "Declared: a collision priced above the brakes it saves"). Scales both
     sign readings; the evaluation's collision counts do not depend on it."""
 
+    finish_slope: FinishSlope = "paper"
+    """How r_finish depends on b_type. 'paper' (the default): the printed (15·b_type + 50)/4, under which a
+    larger b_type makes finishing, and so hurrying, worth more. 'cooperative_waits' (ours, a labelled
+    hypothesis, never the headline): (-15·b_type + 50)/4, the slope the paper's explanation (L196) and Fig. 6
+    need (``finish_reward``). Evaluation's normalized reward keeps the printed formula."""
+
     def __post_init__(self) -> None:
         if not (math.isfinite(self.collide_scale) and self.collide_scale > 0.0):
             raise InputError(f"collide_scale must be a positive number, got {self.collide_scale}")
+
+    def finish(self, b_type: npt.ArrayLike) -> FloatArray:
+        """r_finish of cars of driver types ``b_type`` under this config's slope."""
+        return finish_reward(b_type, self.finish_slope)
 
     def collide(self, b_prio: float) -> float:
         """r_collide of a car from a road of priority ``b_prio``, under this config's sign and scale."""
