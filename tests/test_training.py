@@ -290,13 +290,24 @@ def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
     assert learner.update(batch)["q_loss"] > 0.0
 
 
+def _one_episode_under(net_path: Path, scenario: Any, max_episode_s: float, reward: Any) -> Any:
+    """One episode of ``scenario`` (seed 7) under ``reward``, driven by a fresh learner of seed 0: the same
+    actions whatever the reward, so two runs differ only where the reward variant does."""
+    from idas_sumo.agents.rollout import RolloutTask, collect_episodes
+    from idas_sumo.env.engine import EnvConfig, MergeEngine
+
+    engine = MergeEngine(net_path, copies=1, config=EnvConfig(max_episode_s=max_episode_s, reward=reward))
+    try:
+        return collect_episodes(engine, Learner(LearnerConfig(), seed=0), [RolloutTask(scenario, 7)])[0]
+    finally:
+        engine.close()
+
+
 @pytest.mark.sumo
 def test_timeout_variant_charges_the_unearned_finish_and_ends_the_agent(net_path: Path) -> None:
     """RewardConfig.timeout: under 'free' (the default) a car the time limit cuts off gets nothing and
     bootstraps (done 0, a next observation); under 'forfeit_finish' the same episode, same actions, differs
     only in those last rows: reward -(15·b_type + 50)/4 and done 1 (nothing to bootstrap)."""
-    from idas_sumo.agents.rollout import RolloutTask, collect_episodes
-    from idas_sumo.env.engine import EnvConfig, MergeEngine
     from idas_sumo.env.rewards import RewardConfig, finish_reward
     from idas_sumo.env.scenario import Scenario, VehicleSpec
 
@@ -308,17 +319,10 @@ def test_timeout_variant_charges_the_unearned_finish_and_ends_the_agent(net_path
             VehicleSpec("r0", "merge", 30.0, 10.0, b_type=2.0),
         ),
     )
-    runs = {}
-    for price in ("free", "forfeit_finish"):
-        config = EnvConfig(max_episode_s=3.0, reward=RewardConfig(timeout=price))  # type: ignore[arg-type]
-        engine = MergeEngine(net_path, copies=1, config=config)
-        try:
-            runs[price] = collect_episodes(
-                engine, Learner(LearnerConfig(), seed=0), [RolloutTask(scenario, 7)]
-            )[0]
-        finally:
-            engine.close()
-    free, forfeit = runs["free"], runs["forfeit_finish"]
+    free, forfeit = (
+        _one_episode_under(net_path, scenario, 3.0, RewardConfig(timeout=price))  # type: ignore[arg-type]
+        for price in ("free", "forfeit_finish")
+    )
     assert free.stats.end_reasons == forfeit.stats.end_reasons == dict.fromkeys(("m0", "m1", "r0"), "timeout")
     np.testing.assert_array_equal(free.action, forfeit.action)
     last = free.next_row < 0
@@ -335,8 +339,6 @@ def test_timeout_variant_charges_the_unearned_finish_and_ends_the_agent(net_path
 def test_finish_slope_changes_only_the_finish_reward_through_the_rollout(net_path: Path) -> None:
     """[reward] finish_slope = 'cooperative_waits' (a labelled hypothesis): the same episode, the same actions, and
     each finishing car's reward row carries (-15·b_type + 50)/4 instead of the printed (15·b_type + 50)/4."""
-    from idas_sumo.agents.rollout import RolloutTask, collect_episodes
-    from idas_sumo.env.engine import EnvConfig, MergeEngine
     from idas_sumo.env.rewards import RewardConfig
     from idas_sumo.env.scenario import Scenario, VehicleSpec
 
@@ -347,17 +349,10 @@ def test_finish_slope_changes_only_the_finish_reward_through_the_rollout(net_pat
             VehicleSpec("r0", "merge", 160.0, 12.0, b_type=1.0),
         ),
     )
-    runs = {}
-    for slope in ("paper", "cooperative_waits"):
-        config = EnvConfig(max_episode_s=30.0, reward=RewardConfig(finish_slope=slope))  # type: ignore[arg-type]
-        engine = MergeEngine(net_path, copies=1, config=config)
-        try:
-            runs[slope] = collect_episodes(
-                engine, Learner(LearnerConfig(), seed=0), [RolloutTask(scenario, 7)]
-            )[0]
-        finally:
-            engine.close()
-    paper, waits = runs["paper"], runs["cooperative_waits"]
+    paper, waits = (
+        _one_episode_under(net_path, scenario, 30.0, RewardConfig(finish_slope=slope))  # type: ignore[arg-type]
+        for slope in ("paper", "cooperative_waits")
+    )
     assert paper.stats.end_reasons == waits.stats.end_reasons == {"m0": "finished", "r0": "finished"}
     np.testing.assert_array_equal(paper.action, waits.action)
     # (15·-2 + 50)/4 + (15·1 + 50)/4 = 5 + 16.25; (30 + 50)/4 + (-15 + 50)/4 = 20 + 8.75
