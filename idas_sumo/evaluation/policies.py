@@ -23,6 +23,9 @@ LEARNED_METHODS: dict[str, str] = {
     "idas_brakes": "idas_brakes.pt",
     "idas_manoeuvre": "idas_manoeuvre.pt",
     "idas_explored10_collide": "idas_explored10_collide.pt",
+    # Ours, a labelled hypothesis: the smooth recipe's stage 2 with r_finish falling in b_type
+    # ([reward] finish_slope = "cooperative_waits"; docs/results.md).
+    "idas_cooperative": "idas_cooperative.pt",
 }
 PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", "idm", "fsm_idm")
 """The paper's five methods: what ``--baseline all`` runs."""
@@ -35,6 +38,7 @@ METHOD_LABELS: dict[str, str] = {
     "idas_brakes": "IDAS-brakes",
     "idas_manoeuvre": "IDAS-manoeuvre",
     "idas_explored10_collide": "IDAS-explored10-collide",
+    "idas_cooperative": "IDAS-cooperative",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
     "fsm_idm_smooth": "FSM+IDM-smooth",
