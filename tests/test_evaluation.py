@@ -513,3 +513,20 @@ def test_bad_eval_config_is_one_line_exit_2(tmp_path: Path, capsys: pytest.Captu
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and 'did you mean "traffic"' in err[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_fsm_rules_drive_the_ego_only_in_a_case_every_other_method_drives_whole() -> None:
+    """As the paper runs FSM+IDM (it has no driver type) on one car of the representative scenes, so its smooth
+    twin of ours; IDM and the learned methods drive every car the case gives them."""
+    from idas_sumo.env.scenario import Scenario, VehicleSpec
+    from idas_sumo.evaluation.protocol import EvalCase, eval_jobs
+
+    scenario = Scenario("two", (VehicleSpec("a", "main", 20.0, 10.0), VehicleSpec("b", "merge", 20.0, 10.0)))
+    case = EvalCase(scenario, "a", 0, ("a", "b"))
+    jobs = eval_jobs([case], ["idm", "fsm_idm", "fsm_idm_smooth", "idas"])
+    assert {j.method: j.case.method_vehicles for j in jobs} == {
+        "idm": ("a", "b"),
+        "fsm_idm": ("a",),
+        "fsm_idm_smooth": ("a",),
+        "idas": ("a", "b"),
+    }

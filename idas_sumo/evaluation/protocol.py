@@ -147,7 +147,8 @@ def eval_jobs(cases: Sequence[EvalCase], methods: Sequence[str]) -> list[EvalJob
     jobs = []
     for method in methods:
         for case in cases:
-            if method == "fsm_idm":  # FSM+IDM has no driver type: the paper runs it on one car only
+            # FSM+IDM has no driver type: the paper runs it on one car only (and so its smooth twin of ours).
+            if method in ("fsm_idm", "fsm_idm_smooth"):
                 case = replace(case, method_vehicles=(case.ego,))
             jobs.append(EvalJob(method, case))
     return jobs
