@@ -98,6 +98,9 @@ BASELINES: dict[str, RuleActions] = {
     "fsm_idm_smooth": fsm_idm_smooth_actions,
 }
 """Rule-based baselines by the name ``idas-sumo evaluate --baseline`` uses."""
+EGO_ONLY_BASELINES: frozenset[str] = frozenset({"fsm_idm", "fsm_idm_smooth"})
+"""Rules with no driver type: where a case gives the method several cars (the representative scenes), the paper
+runs FSM+IDM on one car only and IDAS on the other; its smooth twin of ours runs the same way."""
 
 
 class RuleBasedPolicy:
@@ -116,6 +119,7 @@ class RuleBasedPolicy:
 
 __all__ = [
     "BASELINES",
+    "EGO_ONLY_BASELINES",
     "RuleActions",
     "RuleBasedPolicy",
     "fsm_idm_actions",

@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
+from idas_sumo.baselines.policies import EGO_ONLY_BASELINES
 from idas_sumo.config import from_dict, load_toml
 from idas_sumo.env.engine import (
     DEFAULT_MAX_EPISODE_S,
@@ -147,8 +148,7 @@ def eval_jobs(cases: Sequence[EvalCase], methods: Sequence[str]) -> list[EvalJob
     jobs = []
     for method in methods:
         for case in cases:
-            # FSM+IDM has no driver type: the paper runs it on one car only (and so its smooth twin of ours).
-            if method in ("fsm_idm", "fsm_idm_smooth"):
+            if method in EGO_ONLY_BASELINES:  # no driver type: the paper runs FSM+IDM on one car only
                 case = replace(case, method_vehicles=(case.ego,))
             jobs.append(EvalJob(method, case))
     return jobs
