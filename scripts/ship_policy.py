@@ -4,7 +4,10 @@
 
 Writes idas_sumo/policies/NAME.pt (the checkpoint, loadable by ``idas-sumo evaluate --baseline NAME``)
 and idas_sumo/policies/NAME.json: config, episodes per stage, seed, wall time, end-of-stage learning-curve numbers,
-package versions.
+package versions. With ``--budget-run DIR`` (the same seed and config run on a larger budget, whose first episodes
+are the checkpoint's run's: validation never touches the training generators) the metadata also records that run's
+episodes, end-of-stage numbers and validation curve, after checking row by row that its first episodes are the
+checkpoint run's; a run that differs is refused.
 """
 
 from __future__ import annotations
@@ -13,8 +16,10 @@ import argparse
 import dataclasses
 import datetime as dt
 import json
+import os
 import platform
 import shutil
+import sys
 from importlib import metadata
 from pathlib import Path
 
@@ -72,6 +77,25 @@ def _validation_curve(path: Path, stages: list[str] | None) -> list[dict] | None
     ]
 
 
+def budget_run_record(run_metrics: pd.DataFrame, budget_dir: Path, stages: list[str] | None) -> dict:
+    """The larger-budget run of the same seed, after checking that its first rows are ``run_metrics``'s."""
+    budget = pd.read_csv(budget_dir / "metrics.csv")
+    if stages:
+        budget = budget[budget["stage"].isin(stages)]
+    own = run_metrics.drop(columns="wall_time_s").reset_index(drop=True)
+    prefix = budget.head(len(own)).drop(columns="wall_time_s").reset_index(drop=True)
+    if len(budget) < len(own) or not prefix.equals(own):
+        raise ValueError(f"{budget_dir}: its first {len(own)} episodes are not the checkpoint run's")
+    return {
+        "run": str(budget_dir),
+        "global_episodes": int(budget["global_episode"].max() + 1),
+        "identical_first_episodes": len(own),
+        "wall_time_s": round(float(budget["wall_time_s"].max()), 1),
+        "stages": stage_summaries(budget),
+        "validation_curve": _validation_curve(budget_dir / "validation.csv", stages),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("checkpoint", type=Path)
@@ -79,12 +103,22 @@ def main() -> None:
     parser.add_argument("--command", required=True, help="the train command that made the run")
     parser.add_argument("--stages", nargs="*", help="only these stages' metrics (default: all in the run)")
     parser.add_argument("--note", default="", help="how the run relates to the paper's budget and recipe")
+    parser.add_argument(
+        "--budget-run",
+        type=Path,
+        help="the same seed's run on a larger budget (its first episodes are this run's)",
+    )
     args = parser.parse_args()
     data = load_checkpoint(args.checkpoint)
     metrics = pd.read_csv(args.checkpoint.parent / "metrics.csv")
     if args.stages:
         metrics = metrics[metrics["stage"].isin(args.stages)]
     wall_s = float(metrics["wall_time_s"].max())
+    try:
+        budget_run = budget_run_record(metrics, args.budget_run, args.stages) if args.budget_run else None
+    except (OSError, ValueError, KeyError) as err:
+        print(f"ship_policy: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
     packages = {p: metadata.version(p) for p in ("idas-sumo", "torch", "eclipse-sumo", "libsumo", "numpy")}
     meta = {
         "policy": args.name,
@@ -96,10 +130,11 @@ def main() -> None:
         "global_episodes": int(metrics["global_episode"].max() + 1),
         "seed": data.config.seed,
         "wall_time_s": round(wall_s, 1),
-        "machine": f"{platform.machine()}, {platform.python_version()}, 2 CPU cores, no GPU",
+        "machine": f"{platform.machine()}, {platform.python_version()}, {os.cpu_count()} CPU cores, no GPU",
         "stages": stage_summaries(metrics),
         "picked_by_validation": _validation_pick(data),
         "validation_curve": _validation_curve(args.checkpoint.parent / "validation.csv", args.stages),
+        **({"budget_run": budget_run} if budget_run else {}),
         "config": data.config.as_dict(),
         "packages": {**packages, "python": platform.python_version()},
         "shipped_on": dt.date.today().isoformat(),

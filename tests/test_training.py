@@ -845,6 +845,26 @@ def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
     assert again.joint_return == pytest.approx(best.validation.joint_return, abs=1e-4)
 
 
+@pytest.mark.sumo
+def test_a_smaller_budget_trains_the_first_episodes_of_a_larger_one(net_path: Path, tmp_path: Path) -> None:
+    """Nothing in a round depends on the budget, so a short run is a prefix of the long one of its seed (a
+    shipped checkpoint of a short run is the same weights as the long run's at that episode)."""
+    from idas_sumo.training.loop import run_training
+
+    short = tiny_config(stage="intelligent", intelligent_episodes=2, seed=3)
+    run_training(net_path, short, tmp_path / "short", progress=False)
+    run_training(
+        net_path, dataclasses.replace(short, intelligent_episodes=4), tmp_path / "long", progress=False
+    )
+
+    def strip(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+        return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in rows]
+
+    long_rows = strip(read_metrics(tmp_path / "long"))
+    assert len(long_rows) == 4
+    assert long_rows[:2] == strip(read_metrics(tmp_path / "short"))  # the losses too: the same weights
+
+
 def test_copies_is_a_validated_config_value_and_a_train_flag() -> None:
     from idas_sumo.cli import build_parser
     from idas_sumo.sim.multinet import MAX_COPIES
