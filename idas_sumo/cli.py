@@ -395,8 +395,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     _add_sweep_parser(sub)
 
-    plot = sub.add_parser("plot", help="draw PNG plots from an evaluation or a training run directory")
-    plot.add_argument("dir", type=_out_path, help="directory written by `idas-sumo evaluate` or `train`")
+    plot = sub.add_parser(
+        "plot", help="draw PNG plots from an evaluation or a training run directory, or compare training runs"
+    )
+    plot.add_argument(
+        "dir",
+        type=_out_path,
+        nargs="+",
+        help="directory written by `idas-sumo evaluate` or `train`; several training runs (seeds, variants) "
+        "are drawn on one figure, written to --out",
+    )
+    plot.add_argument(
+        "--out", type=_out_path, help="the comparison's .png (with several training run directories)"
+    )
 
     rep = sub.add_parser("replay", help="run one evaluated episode again: in sumo-gui or as an animation")
     rep.add_argument("dir", type=_out_path, help="directory written by `idas-sumo evaluate`")
@@ -694,14 +705,27 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _plot(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.plots import plot_directory
-    from idas_sumo.training.plots import is_training_run, plot_training_run
+    from idas_sumo.io_utils import ensure_writable_dir
+    from idas_sumo.training.plots import compare_runs, is_training_run, plot_training_run
 
-    for csv in sorted(Path(args.dir).glob("*.csv")) if Path(args.dir).is_dir() else []:
-        if csv.exists() and not csv.is_file():  # reading a FIFO blocks until written to
-            raise InputError(f"{csv}: not a regular file (a FIFO, device or socket), expected a CSV file")
+    for directory in args.dir:
+        for csv in sorted(directory.glob("*.csv")) if directory.is_dir() else []:
+            if csv.exists() and not csv.is_file():  # reading a FIFO blocks until written to
+                raise InputError(f"{csv}: not a regular file (a FIFO, device or socket), expected a CSV file")
+    if len(args.dir) > 1 or args.out is not None:
+        if len(args.dir) < 2:
+            raise InputError(
+                "--out writes a comparison of several training runs: name two run directories or more"
+            )
+        if args.out is None or args.out.suffix.lower() != ".png":
+            raise InputError("comparing several training runs needs --out FILE.png")
+        ensure_writable_dir(args.out.parent, "--out")
+        print(f"wrote {compare_runs(args.dir, args.out)}")
+        return 0
+    (directory,) = args.dir
     # An evaluation has episodes.csv; a training run, metrics.csv or validation.csv.
-    training = not (args.dir / "episodes.csv").exists() and is_training_run(args.dir)
-    for png in plot_training_run(args.dir) if training else plot_directory(args.dir):
+    training = not (directory / "episodes.csv").exists() and is_training_run(directory)
+    for png in plot_training_run(directory) if training else plot_directory(directory):
         print(f"wrote {png}")
     return 0
 

@@ -157,3 +157,54 @@ def test_plot_on_a_real_curriculum_run(tmp_path: Path, net_path: Path) -> None:
     assert main(args) == 0
     assert main(["plot", str(run)]) == 0
     assert_png(run / LEARNING_CURVES_NAME)
+
+
+def test_plot_compares_several_training_runs_on_one_figure(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import idas_sumo.training.plots as plots
+
+    runs = [synthetic_run(tmp_path / f"seed{s}", robot=120, intelligent=60) for s in range(3)]
+    out = tmp_path / "figs" / "seeds.png"
+    assert main(["plot", *map(str, runs), "--out", str(out)]) == 0
+    assert_png(out)
+    assert f"wrote {out}" in capsys.readouterr().out
+    assert not any((run / LEARNING_CURVES_NAME).exists() for run in runs)  # only the comparison is written
+
+    figures = []
+    monkeypatch.setattr(plots, "save_png", lambda fig, path: figures.append(fig) or path)
+    main(["plot", *map(str, runs[:2]), "--out", str(out)])
+    (fig,) = figures
+    success, returns, failures, entropy = fig.axes
+    assert [t.get_text() for t in success.get_legend().get_texts()] == ["seed0", "seed1"]
+    # One star per run, at its last new best (synthetic_run flags each stage's episode 50: global 50 and 170).
+    stars = [line for line in returns.get_lines() if line.get_marker() == "*"]
+    assert [float(s.get_xdata()[0]) for s in stars] == [170.0, 170.0]
+    assert len(failures.get_lines()) == 4  # collision and timeout per run
+    assert len(entropy.get_lines()) == 2
+    assert all(ax.get_title() and ax.get_ylabel() for ax in fig.axes)
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ([], "needs --out FILE.png"),
+        (["--out", "x.svg"], "needs --out FILE.png"),
+        (["--only-one", "--out", "x.png"], "two run directories or more"),
+        (["--not-a-run", "--out", "x.png"], "not a training run"),
+    ],
+)
+def test_plot_comparison_bad_input_is_one_line_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str
+) -> None:
+    run = synthetic_run(tmp_path / "run")
+    dirs = [str(run), str(run)]
+    if "--only-one" in extra:
+        dirs, extra = [str(run)], extra[1:]
+    if "--not-a-run" in extra:
+        dirs, extra = [str(run), str(tmp_path)], extra[1:]
+    extra = [str(tmp_path / a) if a.startswith("x.") else a for a in extra]
+    assert main(["plot", *dirs, *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err
+    assert not list(tmp_path.glob("x.*"))

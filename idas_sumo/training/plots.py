@@ -180,3 +180,80 @@ def learning_curves(
     suffix = f" (rolling means over {smoothing} episodes)" if smoothing else ""
     fig.suptitle(f"Learning curves: {title}{suffix}; dashed: a new stage begins")
     return save_png(fig, path)
+
+
+COMPARE_METRICS: tuple[str, ...] = ("global_episode", "collisions", "timed_out")
+"""The metrics.csv columns the comparison of runs reads (entropy too, where the run has it)."""
+
+
+def compare_runs(directories: list[Path], path: Path) -> Path:
+    """Several training runs (seeds, variants) on one figure, one colour each: validation success and joint
+    return (each run's best starred), and the training episodes with a collision or a timeout (rolling
+    means) and the actor's entropy, over each run's global episode. The spread across seeds, at a glance."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = []
+    for directory in directories:
+        if not is_training_run(directory):
+            raise InputError(f"{directory}: not a training run (no {METRICS_NAME} or {VALIDATION_NAME})")
+        metrics_path, validation_path = directory / METRICS_NAME, directory / VALIDATION_NAME
+        metrics = _read(metrics_path, COMPARE_METRICS) if metrics_path.is_file() else None
+        validation = _read(validation_path, VALIDATION_COLUMNS) if validation_path.is_file() else None
+        if (metrics is None or metrics.empty) and (validation is None or validation.empty):
+            raise InputError(f"{directory}: its {METRICS_NAME} and {VALIDATION_NAME} hold no rows yet")
+        runs.append((directory.name, metrics, validation))
+
+    fig, axes = plt.subplots(2, 2, figsize=(13, 7.5), layout="constrained", sharex=True)
+    (vrate_ax, vret_ax), (fail_ax, ent_ax) = axes
+    for k, (name, metrics, validation) in enumerate(runs):
+        colour = f"C{k % 10}"
+        if validation is not None and len(validation):
+            x = validation["global_episode"]
+            vrate_ax.plot(x, 100 * validation["success_rate"], color=colour, lw=1.2, label=name)
+            vret_ax.plot(x, validation["joint_return"], color=colour, lw=1.2, label=name)
+            flagged = validation[validation["best"] == 1]
+            if len(flagged):  # the last new best is the run's <stage>_best.pt
+                best = flagged.iloc[-1]
+                vret_ax.plot(
+                    best["global_episode"], best["joint_return"], marker="*", ms=14, color=colour, mec="black"
+                )
+        if metrics is not None and len(metrics):
+            metrics = metrics.sort_values("global_episode", kind="stable")
+            window = max(1, len(metrics) // CURVE_POINTS)
+            x = metrics["global_episode"]
+            fail_ax.plot(
+                x,
+                100 * _rolling((metrics["collisions"] > 0).astype(float), window),
+                color=colour,
+                label=f"{name}: collision",
+            )
+            fail_ax.plot(
+                x,
+                100 * _rolling(metrics["timed_out"].astype(float), window),
+                color=colour,
+                ls=":",
+                label=f"{name}: timeout",
+            )
+            if "entropy" in metrics.columns:
+                ent_ax.plot(x, metrics["entropy"], color=colour, lw=0.8, label=name)
+    vrate_ax.set_title("Validation: success on held-out scenarios", fontsize=10)
+    vrate_ax.set_ylabel("held-out scenarios, %")
+    vrate_ax.set_ylim(-3, 103)
+    vret_ax.set_title("Validation: joint return (each run's best weights starred)", fontsize=10)
+    vret_ax.set_ylabel("mean joint return per episode")
+    fail_ax.set_title("Training: episodes with a collision (solid) or a timeout (dotted)", fontsize=10)
+    fail_ax.set_ylabel("episodes, % (rolling mean)")
+    fail_ax.set_ylim(-3, 103)
+    ent_ax.set_title("Actor entropy (one value per update)", fontsize=10)
+    ent_ax.set_ylabel("entropy, nats")
+    for ax in axes.flat:
+        ax.grid(alpha=0.25)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8, loc="best")
+    for ax in axes[1]:
+        ax.set_xlabel("training episode (all stages)")
+    fig.suptitle(f"{len(runs)} training runs compared")
+    return save_png(fig, path)
