@@ -4,6 +4,7 @@ row per training episode) and ``validation.csv`` (one row per validation), stage
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -29,6 +30,18 @@ CURVE_POINTS = 60
 the episode-to-episode noise (one episode's success is 0 or 1) without hiding a collapse."""
 SUCCESS_COLOUR, PERFECT_COLOUR, COLLISION_COLOUR, LINE_COLOUR = "#2ca02c", "#1f77b4", "#d62728", "0.2"
 """One colour per quantity in every panel (stages are told apart by the dashed boundary)."""
+
+
+ROLLING_PERCENT, HELD_OUT_PERCENT = "episodes, % (rolling mean)", "held-out scenarios, %"
+JOINT_RETURN_LABEL, ENTROPY_TITLE = "mean joint return per episode", "Actor entropy (one value per update)"
+
+
+def _panel(ax: Any, title: str, ylabel: str, percent: bool = False) -> None:
+    """A panel's title and y label; a percentage's axis from 0 to 100 with a margin."""
+    ax.set_title(title, fontsize=10)
+    ax.set_ylabel(ylabel)
+    if percent:
+        ax.set_ylim(-3, 103)
 
 
 def is_training_run(directory: Path) -> bool:
@@ -104,15 +117,15 @@ def learning_curves(
             if "entropy" in rows.columns:
                 ent_ax.plot(x, rows["entropy"], color=LINE_COLOUR, lw=0.8)
     smoothing = ", ".join(f"{stage} {w}" for stage, w in windows.items())
-    ret_ax.set_title("Training: mean return per agent", fontsize=10)
-    ret_ax.set_ylabel("return (rolling mean)")
-    rate_ax.set_title("Training: episodes with success, perfect success, a collision", fontsize=10)
-    rate_ax.set_ylabel("episodes, % (rolling mean)")
-    rate_ax.set_ylim(-3, 103)
-    brake_ax.set_title("Training: hard brakes in the merging zone", fontsize=10)
-    brake_ax.set_ylabel("per episode (rolling mean)")
-    ent_ax.set_title("Actor entropy (one value per update)", fontsize=10)
-    ent_ax.set_ylabel("entropy, nats")
+    _panel(ret_ax, "Training: mean return per agent", "return (rolling mean)")
+    _panel(
+        rate_ax,
+        "Training: episodes with success, perfect success, a collision",
+        ROLLING_PERCENT,
+        percent=True,
+    )
+    _panel(brake_ax, "Training: hard brakes in the merging zone", "per episode (rolling mean)")
+    _panel(ent_ax, ENTROPY_TITLE, "entropy, nats")
 
     if validation is not None and len(validation):
         for stage in dict.fromkeys(validation["stage"].astype(str)):
@@ -152,10 +165,8 @@ def learning_curves(
         vret_ax.set_title("Validation: joint return on held-out scenarios", fontsize=10)
     else:
         vret_ax.set_title("Validation: none in this run", fontsize=10)
-    vret_ax.set_ylabel("mean joint return per episode")
-    vrate_ax.set_title("Validation: success and perfect success", fontsize=10)
-    vrate_ax.set_ylabel("held-out scenarios, %")
-    vrate_ax.set_ylim(-3, 103)
+    vret_ax.set_ylabel(JOINT_RETURN_LABEL)
+    _panel(vrate_ax, "Validation: success and perfect success", HELD_OUT_PERCENT, percent=True)
 
     ordered = sorted(starts.items(), key=lambda kv: kv[1])
     for ax in axes.flat:
@@ -239,16 +250,15 @@ def compare_runs(directories: list[Path], path: Path) -> Path:
             )
             if "entropy" in metrics.columns:
                 ent_ax.plot(x, metrics["entropy"], color=colour, lw=0.8, label=name)
-    vrate_ax.set_title("Validation: success on held-out scenarios", fontsize=10)
-    vrate_ax.set_ylabel("held-out scenarios, %")
-    vrate_ax.set_ylim(-3, 103)
-    vret_ax.set_title("Validation: joint return (each run's best weights starred)", fontsize=10)
-    vret_ax.set_ylabel("mean joint return per episode")
-    fail_ax.set_title("Training: episodes with a collision (solid) or a timeout (dotted)", fontsize=10)
-    fail_ax.set_ylabel("episodes, % (rolling mean)")
-    fail_ax.set_ylim(-3, 103)
-    ent_ax.set_title("Actor entropy (one value per update)", fontsize=10)
-    ent_ax.set_ylabel("entropy, nats")
+    _panel(vrate_ax, "Validation: success on held-out scenarios", HELD_OUT_PERCENT, percent=True)
+    _panel(vret_ax, "Validation: joint return (each run's best weights starred)", JOINT_RETURN_LABEL)
+    _panel(
+        fail_ax,
+        "Training: episodes with a collision (solid) or a timeout (dotted)",
+        ROLLING_PERCENT,
+        percent=True,
+    )
+    _panel(ent_ax, ENTROPY_TITLE, "entropy, nats")
     for ax in axes.flat:
         ax.grid(alpha=0.25)
         if ax.get_legend_handles_labels()[0]:
