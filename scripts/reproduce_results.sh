@@ -56,3 +56,12 @@ done
 # protocol on the declared seed with every other car on it.
 ev --baseline idas_cooperative --suite driver-types --seed 2019 --out "$out/cooperative/driver-types" --trajectories
 ev --baseline idas_cooperative --others idas_cooperative --scenarios 100 --seed 2024 --out "$out/cooperative/paper-2024"
+# Four more evaluation seeds for IDAS's margin over the rules (docs/results.md "Declared: four more evaluation seeds
+# for the margin over the rules"), then the margins over all eight seeds, paired by scenario.
+for seed in 2025 2026 2027 2028; do
+  for method in idas idm fsm_idm; do
+    ev --baseline "$method" --scenarios 100 --seed "$seed" --workers 2 --out "$out/margin/paper-$seed/$method"
+  done
+done
+python scripts/margins.py "$out"/paper "$out"/paper-20{24,20,21} "$out"/margin/paper-20{25,26,27,28}/* \
+  --out "$out/margin/margins.csv"

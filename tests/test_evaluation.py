@@ -530,3 +530,27 @@ def test_fsm_rules_drive_the_ego_only_in_a_case_every_other_method_drives_whole(
         "fsm_idm_smooth": ("a",),
         "idas": ("a", "b"),
     }
+
+
+def test_paired_margin_by_hand() -> None:
+    from idas_sumo.evaluation.metrics import paired_margin
+
+    # Two seeds, four shared scenarios; IDM also ran a fifth that IDAS did not (left out of the pairing).
+    rows = [
+        ("idas", 1, "a", 1),
+        ("idas", 1, "b", 1),
+        ("idas", 2, "a", 0),
+        ("idas", 2, "b", 1),
+        ("idm", 1, "a", 0),
+        ("idm", 1, "b", 1),
+        ("idm", 2, "a", 0),
+        ("idm", 2, "b", 0),
+        ("idm", 2, "c", 1),
+    ]
+    episodes = pd.DataFrame(rows, columns=["method", "seed", "scenario", "perfect"])
+    m = paired_margin(episodes, "idas", "idm")
+    # Differences 1, 0, 0, 1: mean 0.5; sample sd sqrt(1/3) = 0.57735; / sqrt(4) = 0.288675.
+    assert (m.margin_pts, m.standard_error_pts, m.scenarios) == (50.0, 28.87, 4)
+    assert paired_margin(episodes, "idm", "idas").margin_pts == -50.0
+    with pytest.raises(ValueError, match="share 0 scenarios"):
+        paired_margin(episodes, "idas", "fsm_idm")

@@ -235,3 +235,30 @@ def summary_rows(episodes: pd.DataFrame) -> list[dict[str, object]]:
             }
         )
     return rows
+
+
+@dataclass(frozen=True)
+class PairedMargin:
+    """``method`` minus ``against`` on one 0/1 column, in percentage points, over the scenarios both ran."""
+
+    margin_pts: float
+    standard_error_pts: float
+    scenarios: int
+
+
+def paired_margin(episodes: pd.DataFrame, method: str, against: str, column: str = "perfect") -> PairedMargin:
+    """The difference of two methods on the same scenarios (matched on seed and scenario: each scenario is the
+    same for both, only the ego's method differs), with the standard error of the mean paired difference
+    (sample standard deviation / √n). Pairing removes the scenario-to-scenario spread both methods share."""
+    keys = ["seed", "scenario"]
+    a = episodes[episodes["method"] == method].set_index(keys)[column]
+    b = episodes[episodes["method"] == against].set_index(keys)[column]
+    both = a.index.intersection(b.index)
+    if len(both) < 2:
+        raise ValueError(f"{method} and {against} share {len(both)} scenarios; a margin needs two or more")
+    diff = (a.loc[both].astype(float) - b.loc[both].astype(float)).to_numpy()
+    return PairedMargin(
+        margin_pts=round(100.0 * float(diff.mean()), 2),
+        standard_error_pts=round(100.0 * float(diff.std(ddof=1)) / float(np.sqrt(len(diff))), 2),
+        scenarios=len(diff),
+    )
