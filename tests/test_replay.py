@@ -27,11 +27,11 @@ from idas_sumo.evaluation.replay import (
     write_animation,
 )
 
-SEED = 7
+SEED = 10
 SCENARIOS = 8
-"""Seed 7's first 8 paper scenarios with IDM as the method and the shipped IDAS as the others hold
-both a collision and a perfect episode (the test below checks that they still do; seed 6 did while the
-FSM+IDM-start IDAS shipped, seed 7 before it)."""
+"""Seed 10's first 8 paper scenarios with IDM as the method and the shipped IDAS as the others hold
+both a collision and a perfect episode (the test below checks that they still do; each shipped IDAS changes
+the others' driving: seed 7 did for the smooth recipe's first pick, 6 for the FSM+IDM-start IDAS)."""
 GIF_MAGIC = (b"GIF87a", b"GIF89a")
 
 
