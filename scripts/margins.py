@@ -30,7 +30,7 @@ def margin_rows(episodes: pd.DataFrame) -> list[dict[str, object]]:
     for label, group in [*groups, ("all", episodes)]:
         row: dict[str, object] = {
             "seed": label,
-            "scenarios": group["scenario"].nunique() * group["seed"].nunique(),
+            "scenarios": len(group[["seed", "scenario"]].drop_duplicates()),
         }
         for method in METHODS:
             mine = group[group["method"] == method]

@@ -63,12 +63,21 @@ def plot_training_run(directory: Path) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
+    metrics, validation = _read_run(directory, METRICS_NEEDED)
+    return [learning_curves(metrics, validation, directory / LEARNING_CURVES_NAME, directory.name)]
+
+
+def _read_run(
+    directory: Path, metrics_columns: tuple[str, ...]
+) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+    """A run's metrics.csv (with ``metrics_columns``) and validation.csv, None where the file is absent; a run
+    with no rows in either is an InputError."""
     metrics_path, validation_path = directory / METRICS_NAME, directory / VALIDATION_NAME
-    metrics = _read(metrics_path, METRICS_NEEDED) if metrics_path.is_file() else None
+    metrics = _read(metrics_path, metrics_columns) if metrics_path.is_file() else None
     validation = _read(validation_path, VALIDATION_COLUMNS) if validation_path.is_file() else None
     if (metrics is None or metrics.empty) and (validation is None or validation.empty):
         raise InputError(f"{directory}: its {METRICS_NAME} and {VALIDATION_NAME} hold no rows yet")
-    return [learning_curves(metrics, validation, directory / LEARNING_CURVES_NAME, directory.name)]
+    return metrics, validation
 
 
 def learning_curves(
@@ -210,12 +219,7 @@ def compare_runs(directories: list[Path], path: Path) -> Path:
     for directory in directories:
         if not is_training_run(directory):
             raise InputError(f"{directory}: not a training run (no {METRICS_NAME} or {VALIDATION_NAME})")
-        metrics_path, validation_path = directory / METRICS_NAME, directory / VALIDATION_NAME
-        metrics = _read(metrics_path, COMPARE_METRICS) if metrics_path.is_file() else None
-        validation = _read(validation_path, VALIDATION_COLUMNS) if validation_path.is_file() else None
-        if (metrics is None or metrics.empty) and (validation is None or validation.empty):
-            raise InputError(f"{directory}: its {METRICS_NAME} and {VALIDATION_NAME} hold no rows yet")
-        runs.append((directory.name, metrics, validation))
+        runs.append((directory.name, *_read_run(directory, COMPARE_METRICS)))
 
     fig, axes = plt.subplots(2, 2, figsize=(13, 7.5), layout="constrained", sharex=True)
     (vrate_ax, vret_ax), (fail_ax, ent_ax) = axes
