@@ -23,6 +23,7 @@ from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
 from idas_sumo.agents.networks import STATE_DIM, STATE_SLOTS, Actor, CentralCritic, ValueCritic
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
 from idas_sumo.env.layout import OBS_DIM
+from idas_sumo.errors import InputError
 
 GAMMA = 0.9  # the paper's values, written out rather than imported: the test checks the defaults too
 ALPHA = 0.7
@@ -444,3 +445,73 @@ def test_a_q_of_the_other_head_is_not_loaded() -> None:
     same = Learner(LearnerConfig(central_head="state_value"), seed=3)
     same.load_state_dict(state_value.state_dict())
     assert all(torch.equal(v, same.central.state_dict()[k]) for k, v in q_before.items())
+
+
+# --- the anchor (ours, a labelled variant): KL(π ‖ π₀) in the actor loss ------------------------------
+
+ANCHOR_COEF = 0.5
+LOGITS = [0.3, -0.2, 0.8, 0.0, 1.1, -0.5, 0.4]  # the online actor's (pinned) logits after the anchor is set
+
+
+def test_anchor_kl_to_a_uniform_start_is_hand_worked_through_the_update() -> None:
+    """π₀ uniform over each row's allowed actions (the pinned actor when the anchor is taken), then π moved
+    to softmax(LOGITS) over them: KL(π ‖ π₀) = Σ π log(π · n) per row; the actor's loss is the paper's plus
+    anchor_coef · mean KL, and its SGD step is -lr·∇ of exactly that."""
+    learner = pinned_learner(True)
+    learner.config = dataclasses.replace(learner.config, anchor_coef=ANCHOR_COEF)
+    learner.anchor_to_start()
+    pin_head(learner.actor.head, LOGITS)
+    batch = make_batch(seed=2)
+
+    probs = []
+    for i in range(ROWS):
+        z = sum(math.exp(LOGITS[a]) for a in ALLOWED[i])
+        probs.append([math.exp(LOGITS[a]) / z if a in ALLOWED[i] else 0.0 for a in range(N_ACTIONS)])
+    kl = [sum(p * math.log(p * len(ALLOWED[i])) for p in probs[i] if p > 0.0) for i in range(ROWS)]
+    assert all(k > 1e-3 for k in kl)  # the term is not vacuous: π has moved off π₀ in every row
+    v_next = [0.0 if DONE[i] else V_ONLINE for i in range(ROWS)]
+    adv_v = [REWARD[i] + GAMMA * v_next[i] - V_ONLINE for i in range(ROWS)]
+    adv_q = [
+        Q_ONLINE[ACTION[i]] - sum(probs[i][a] * Q_ONLINE[a] for a in range(N_ACTIONS)) for i in range(ROWS)
+    ]
+    weight = [ALPHA * adv_v[i] + (1.0 - ALPHA) * adv_q[i] for i in range(ROWS)]
+    paper_loss = -sum(weight[i] * math.log(probs[i][ACTION[i]]) for i in range(ROWS)) / ROWS
+    expected_loss = paper_loss + ANCHOR_COEF * sum(kl) / ROWS
+
+    def actor_loss_of(net: Actor) -> torch.Tensor:
+        log_pi = torch.log_softmax(net.masked_logits(batch.obs, batch.mask), dim=1)
+        taken = log_pi.gather(1, batch.action[:, None])[:, 0]
+        uniform = torch.tensor([math.log(1.0 / len(allowed)) for allowed in ALLOWED])
+        kl_rows = (log_pi.exp() * (log_pi - uniform[:, None])).masked_fill(~batch.mask, 0.0).sum(dim=1)
+        return -(torch.tensor(weight) * taken).mean() + ANCHOR_COEF * kl_rows.mean()
+
+    expected_actor = sgd_step_of(learner.actor, actor_loss_of)
+    stats = learner.update(batch)
+    assert stats["actor_loss"] == pytest.approx(expected_loss, rel=1e-5)
+    assert_params(learner.actor, expected_actor)
+    anchor = learner.anchor
+    assert anchor is not None
+    assert float(anchor.head.weight.abs().sum()) == 0.0  # π₀ stayed where it was taken
+
+
+def test_the_anchor_is_saved_and_loaded_only_by_an_anchored_learner() -> None:
+    """A resumed anchored stage keeps its π₀; a learner without the anchor ignores one in the state."""
+    config = LearnerConfig(anchor_coef=ANCHOR_COEF)
+    anchored = Learner(config, seed=1)
+    anchored.anchor_to_start()
+    assert "anchor" not in Learner(LearnerConfig(), seed=1).state_dict()
+    state = anchored.state_dict()
+    resumed = Learner(config, seed=2)
+    resumed.load_state_dict(state)
+    assert resumed.anchor is not None
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(resumed.anchor.parameters(), anchored.actor.parameters(), strict=True)
+    )
+    plain = Learner(LearnerConfig(), seed=2)
+    plain.load_state_dict(state)
+    assert plain.anchor is None
+    with pytest.raises(RuntimeError, match="anchor_to_start"):
+        Learner(config, seed=3).update(make_batch())
+    with pytest.raises(InputError, match="anchor_coef"):
+        LearnerConfig(anchor_coef=-0.1)

@@ -462,14 +462,20 @@ def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.sumo
-@pytest.mark.parametrize("validate_every", [0, 1])
+@pytest.mark.parametrize(("validate_every", "anchor_coef"), [(0, 0.0), (1, 0.0), (0, 0.5)])
 def test_interrupt_then_resume_continues_exactly(
-    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, validate_every: int
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, validate_every: int, anchor_coef: float
 ) -> None:
+    """With ``anchor_coef`` the resumed run must keep the anchor it started from (its first weights), not
+    re-anchor on the checkpoint's: the actor's last weights tell the two apart."""
     from idas_sumo.training.loop import run_training
 
     config = tiny_config(
-        stage="robot", robot_episodes=3, validate_every=validate_every, validation_scenarios=1
+        stage="robot",
+        robot_episodes=3,
+        validate_every=validate_every,
+        validation_scenarios=1,
+        learner=dataclasses.replace(LearnerConfig(), anchor_coef=anchor_coef),
     )
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)

@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 from torch import nn
+from torch.distributions import kl_divergence
 
 from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss, subtract_action_means
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
@@ -105,6 +106,11 @@ class LearnerConfig:
     (``Batch.explored``, ``TrainConfig.critic_exploration``), where the action taken does not depend on the
     state: Q's differences between actions then cannot learn which situations an action is taken in, only what
     it leads to (docs/results.md, "Declared: a critic that learns actions from random ones")."""
+    anchor_coef: float = 0.0
+    """Weight of KL(π ‖ π₀) in the actor loss, π₀ the policy the stage started from (ours, a labelled variant;
+    0: none, the paper). A trust region around the warm start: the paper's stage 2 drifts from IDAS-V into
+    collisions and then a stall in every seed after ~2,500 episodes, both pushed by J2 (docs/results.md); with the
+    anchor a push that the returns do not back costs the policy its distance from π₀. Set by ``anchor_to_start``."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -121,8 +127,9 @@ class LearnerConfig:
         for name in ("gae_lambda", "q_lambda"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise InputError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
-        if self.entropy_coef < 0.0:
-            raise InputError(f"entropy_coef must be non-negative, got {self.entropy_coef}")
+        for name in ("entropy_coef", "anchor_coef"):
+            if getattr(self, name) < 0.0:
+                raise InputError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.central_action_rows == "explored" and self.central_head != "state_value":
             raise InputError('central_action_rows = "explored" needs central_head = "state_value"')
 
@@ -191,7 +198,7 @@ class ActorStep:
     """The actor's part of an update."""
 
     loss: float
-    """-mean((α A1 + (1-α) A2) log π(a|o)) - entropy_coef · mean entropy."""
+    """-mean((α A1 + (1-α) A2) log π(a|o)) - entropy_coef · mean entropy + anchor_coef · mean KL(π ‖ π₀)."""
     entropy: float
     """Mean entropy of the masked policy before the step."""
     grad_norm: float
@@ -333,6 +340,8 @@ class _Policy:
     log_prob: torch.Tensor
     entropy: torch.Tensor
     probs: torch.Tensor
+    anchor_kl: torch.Tensor | None = None
+    """KL(π ‖ π₀) per row (B,), with gradients; None without an anchor."""
 
 
 def _standardised(adv: torch.Tensor) -> torch.Tensor:
@@ -465,6 +474,13 @@ class Learner:
         self.central_target = _frozen_copy(self.central)
         self.last_update: UpdateRecord | None = None
         """What the last ``update`` regressed to and stepped with; None before the first."""
+        self.anchor: Actor | None = None
+        """π₀ of ``anchor_coef``: a frozen copy of the actor the stage started from; None without one."""
+
+    def anchor_to_start(self) -> None:
+        """Freeze a copy of the current actor as π₀, the policy ``anchor_coef`` keeps the actor near (call once,
+        after the stage's starting weights are loaded)."""
+        self.anchor = _frozen_copy(self.actor)
 
     def act(
         self,
@@ -722,7 +738,14 @@ class Learner:
         # sums gradients in creation order, and this one keeps the float results bit for bit.
         log_prob = dist.log_prob(b.action.long())
         entropy = dist.entropy()
-        return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs)
+        anchor_kl = None
+        if self.config.anchor_coef > 0.0:
+            if self.anchor is None:
+                raise RuntimeError("anchor_coef > 0 but no anchor: call anchor_to_start() first")
+            with torch.no_grad():
+                start = self.anchor.distribution(obs, b.mask.bool())
+            anchor_kl = kl_divergence(dist, start)  # masked actions have probability 0 in both: no term
+        return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs, anchor_kl=anchor_kl)
 
     def _update_actor(
         self,
@@ -759,6 +782,8 @@ class Learner:
             entropy=entropy,
             entropy_coef=cfg.entropy_coef,
         )
+        if policy.anchor_kl is not None:
+            loss = loss + cfg.anchor_coef * policy.anchor_kl.mean()
         self.opt_actor.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
@@ -795,7 +820,7 @@ class Learner:
             "opt_actor": self.opt_actor.state_dict(),
             "opt_value": self.opt_value.state_dict(),
             "opt_central": self.opt_central.state_dict(),
-        }
+        } | ({} if self.anchor is None else {"anchor": self.anchor.state_dict()})
 
     def load_state_dict(self, state: dict[str, Any], load_optimisers: bool = True) -> None:
         """Restore from ``state_dict()``. The config stays this learner's own (stage 2 may load stage 1).
@@ -822,6 +847,9 @@ class Learner:
         self.value_target.load_state_dict(state["value_target"])
         if same_central:
             self.central_target.load_state_dict(state["central_target"])
+        if self.config.anchor_coef > 0.0 and "anchor" in state:  # a resumed anchored stage keeps its π₀
+            self.anchor = _frozen_copy(self.actor)
+            self.anchor.load_state_dict(state["anchor"])
         if load_optimisers:
             self.opt_actor.load_state_dict(state["opt_actor"])
             self.opt_value.load_state_dict(state["opt_value"])

@@ -502,7 +502,8 @@ def _stage_learner(
     init_weights: dict[str, Any] | None,
 ) -> Learner:
     """The stage's learner: the checkpoint's when the run resumes in this stage, else the previous
-    stage's networks (the curriculum's stage 2), else ``init_weights``, else fresh ones."""
+    stage's networks (the curriculum's stage 2), else ``init_weights``, else fresh ones; with ``anchor_coef``
+    its anchor is what it starts from."""
     overlap = os.environ.get(OVERLAP_UPDATE_ENV, "") == "1"
     learner = Learner(plan.learner, seed=seed, critics_in_background=overlap)
     if resumed is not None:
@@ -511,6 +512,8 @@ def _stage_learner(
         learner.load_state_dict(previous.state_dict(), load_optimisers=False)
     elif init_weights is not None:
         learner.load_state_dict(init_weights, load_optimisers=False)
+    if resumed is None and plan.learner.anchor_coef > 0.0:
+        learner.anchor_to_start()  # π₀: the weights this stage starts from (a resumed stage keeps its own)
     return learner
 
 
