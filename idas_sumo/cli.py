@@ -303,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument(
         "--baseline",
         required=True,
-        help="method: idas | idas_v | idas_direct | idm | fsm_idm | all (those five: the paper's); also idas_geometry | idas_brakes | idas_manoeuvre | idas_explored10_collide | idas_cooperative | fsm_idm_smooth (ours, docs/results.md)",
+        help="method: idas | idas_v | idas_direct | idm | fsm_idm | all (those five: the paper's); also idas_geometry | idas_brakes | idas_manoeuvre | idas_explored10_collide | idas_cooperative | idas_anchored | fsm_idm_smooth (ours, docs/results.md)",
     )
     ev.add_argument(
         "--net", type=_input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"

@@ -56,6 +56,13 @@ done
 # protocol on the declared seed with every other car on it.
 ev --baseline idas_cooperative --suite driver-types --seed 2019 --out "$out/cooperative/driver-types" --trajectories
 ev --baseline idas_cooperative --others idas_cooperative --scenarios 100 --seed 2024 --out "$out/cooperative/paper-2024"
+# The labelled variant idas_anchored (stage 2 with the actor anchored to IDAS-V; docs/results.md "Declared: stage 2
+# anchored to its warm start"): the paper protocol on the declared seed and 2019, every other car on the shipped
+# IDAS, and the driver-type sweep.
+for seed in 2024 2019; do
+  ev --baseline idas_anchored --scenarios 100 --seed "$seed" --workers 2 --out "$out/anchored/paper-$seed"
+done
+ev --baseline idas_anchored --suite driver-types --seed 2019 --out "$out/anchored/driver-types" --trajectories
 # Four more evaluation seeds for IDAS's margin over the rules (docs/results.md "Declared: four more evaluation seeds
 # for the margin over the rules"), then the margins over all eight seeds, paired by scenario.
 for seed in 2025 2026 2027 2028; do

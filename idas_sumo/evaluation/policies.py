@@ -26,6 +26,9 @@ LEARNED_METHODS: dict[str, str] = {
     # Ours, a labelled hypothesis: the smooth recipe's stage 2 with r_finish falling in b_type
     # ([reward] finish_slope = "cooperative_waits"; docs/results.md).
     "idas_cooperative": "idas_cooperative.pt",
+    # Ours, a labelled variant: the smooth recipe's stage 2 with the actor anchored to IDAS-V by
+    # KL(π ‖ π₀) ([learner] anchor_coef = 0.5; docs/results.md).
+    "idas_anchored": "idas_anchored.pt",
 }
 PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", "idm", "fsm_idm")
 """The paper's five methods: what ``--baseline all`` runs."""
@@ -39,6 +42,7 @@ METHOD_LABELS: dict[str, str] = {
     "idas_manoeuvre": "IDAS-manoeuvre",
     "idas_explored10_collide": "IDAS-explored10-collide",
     "idas_cooperative": "IDAS-cooperative",
+    "idas_anchored": "IDAS-anchored",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
     "fsm_idm_smooth": "FSM+IDM-smooth",
