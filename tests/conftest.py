@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -27,6 +28,14 @@ class SmallBudget:
     max_episode_s: float = 20.0
     api_cycles: int = 30
     """num_cycles for the PettingZoo API test."""
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A suite started in the background (``cmd &`` in a script, nohup) inherits SIGINT ignored, and so would every
+    process the Ctrl-C tests start: they would see no KeyboardInterrupt. Python's own handler here is reset to the
+    default in each child at exec, so those tests behave as from a terminal."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")
