@@ -16,6 +16,9 @@ from pathlib import Path
 
 import pandas as pd
 
+from idas_sumo.training.metrics import METRICS_NAME
+from idas_sumo.training.validation import VALIDATION_NAME
+
 
 def block_table(metrics: pd.DataFrame, block: int) -> pd.DataFrame:
     """Per block of ``block`` stage episodes: success, perfect, collision and timeout shares (%), mean entropy."""
@@ -59,13 +62,13 @@ def main(argv: list[str] | None = None) -> int:
         print("training_blocks: --block must be at least 1", file=sys.stderr)
         return 2
     for run in args.runs:
-        metrics_path = run / "metrics.csv"
+        metrics_path = run / METRICS_NAME
         if not metrics_path.is_file():
             print(f"training_blocks: {metrics_path}: no such file", file=sys.stderr)
             return 2
         print(f"\n## {run}\n")
         print(markdown(block_table(pd.read_csv(metrics_path), args.block)))
-        validation_path = run / "validation.csv"
+        validation_path = run / VALIDATION_NAME
         if validation_path.is_file():
             v = pd.read_csv(validation_path)
             v = v.assign(success=v["success_rate"] * 100, perfect=v["perfect_rate"] * 100)

@@ -31,9 +31,9 @@ class SmallBudget:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """A suite started in the background (``cmd &`` in a script; nohup for SIGHUP) inherits SIGINT ignored, and so would every
-    process the Ctrl-C tests start: they would see no KeyboardInterrupt. Python's own handler here is reset to the
-    default in each child at exec, so those tests behave as from a terminal."""
+    """A suite started in the background (``cmd &`` in a script) inherits SIGINT ignored (under nohup, SIGHUP too),
+    and so would every process the signal tests start: they would see no KeyboardInterrupt or hangup. A handler set
+    here is reset to the default in each child at exec, so those tests behave as from a terminal."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     if signal.getsignal(signal.SIGHUP) == signal.SIG_IGN:  # nohup: the SIGHUP tests need a hangup to land
