@@ -15,6 +15,11 @@ from typing import Any, TypeVar
 from idas_sumo.errors import InputError
 
 T = TypeVar("T")
+RETIRED_ATTR = "RETIRED_KEYS"
+"""A config dataclass may name keys it no longer has, with the value they had by default, in a class attribute of
+this name (``RETIRED_KEYS: ClassVar[dict[str, Any]]``). Files written before (checkpoints, recipes) still load when
+they hold that value; any other value was a retired experiment's variant, refused with a pointer to its write-up."""
+RETIRED_NOTE = "a retired experiment variant (experiments/README.md); this build runs only"
 
 
 def did_you_mean(word: str, choices: typing.Iterable[str]) -> str:
@@ -102,8 +107,12 @@ def from_dict(cls: type[T], data: Any, where: str) -> T:
     assert dataclasses.is_dataclass(cls)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    retired: dict[str, Any] = getattr(cls, RETIRED_ATTR, {})
     for key in data:
-        if key not in fields:
+        if key in retired and key not in fields:
+            if data[key] != retired[key]:
+                raise InputError(f"{where}.{key}: {data[key]!r} is {RETIRED_NOTE} {retired[key]!r}")
+        elif key not in fields:
             raise InputError(f"{where}: unknown key {key!r}{did_you_mean(key, fields)}")
     kwargs: dict[str, Any] = {}
     for name, field in fields.items():
