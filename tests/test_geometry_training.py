@@ -23,6 +23,7 @@ from idas_sumo.sim.netgen import NetParams
 from idas_sumo.training.config import TrainConfig, load_train_config
 from idas_sumo.training.geometry import GRID, GeometryConfig, draw_geometry
 
+EXPERIMENT_RECIPES = Path(__file__).resolve().parents[1] / "experiments" / "recipes"
 RANGES = GeometryConfig(
     main_length_m=(230.0, 260.0),
     merge_length_m=(230.0, 260.0),
@@ -71,15 +72,16 @@ def test_geometry_is_off_by_default_and_only_in_the_geometry_recipes() -> None:
 
 
 def test_the_geometry_recipes_are_the_shipped_ones_with_the_default_ranges() -> None:
-    stage1 = load_train_config(SCENARIO_DIR / "train_geometry.toml")
-    stage2 = load_train_config(SCENARIO_DIR / "train_geometry_stage2.toml")
+    # The earlier geometry recipes and the FSM+IDM-start recipes they extend live in experiments/recipes.
+    stage1 = load_train_config(EXPERIMENT_RECIPES / "train_geometry.toml")
+    stage2 = load_train_config(EXPERIMENT_RECIPES / "train_geometry_stage2.toml")
     assert stage1.geometry == stage2.geometry == GeometryConfig()
     assert dataclasses.replace(stage1, geometry=None) == load_train_config(
-        SCENARIO_DIR / "train_shipped.toml"
+        EXPERIMENT_RECIPES / "train_shipped.toml"
     )
-    shipped2 = load_train_config(SCENARIO_DIR / "train_shipped_stage2_safety.toml")
+    shipped2 = load_train_config(EXPERIMENT_RECIPES / "train_shipped_stage2_safety.toml")
     assert dataclasses.replace(stage2, geometry=None) == shipped2  # from IDAS-V too
-    validated = load_train_config(SCENARIO_DIR / "train_geometry_stage2_validated.toml")
+    validated = load_train_config(EXPERIMENT_RECIPES / "train_geometry_stage2_validated.toml")
     assert validated == dataclasses.replace(
         stage2,
         intelligent_episodes=2000,

@@ -15,20 +15,9 @@ LEARNED_METHODS: dict[str, str] = {
     "idas": "idas.pt",
     "idas_v": "idas_v.pt",
     "idas_direct": "idas_direct.pt",
-    # Ours, beside the paper's: IDAS trained on generated merges of many geometries (issue #17), IDAS
-    # trained with the labelled reward variants impede_blame = "braker_if_unforced" and brake_count =
-    # "manoeuvre", and IDAS whose critic learns its actions from 10 % random ones with r_collide x 20
-    # (docs/results.md).
+    # Ours, beside the paper's: IDAS trained on generated merges of many geometries (issue #17). Variant
+    # policies live in experiments/policies and are evaluated by path (--policy; experiments/README.md).
     "idas_geometry": "idas_geometry.pt",
-    "idas_brakes": "idas_brakes.pt",
-    "idas_manoeuvre": "idas_manoeuvre.pt",
-    "idas_explored10_collide": "idas_explored10_collide.pt",
-    # Ours, a labelled hypothesis: the smooth recipe's stage 2 with r_finish falling in b_type
-    # ([reward] finish_slope = "cooperative_waits"; docs/results.md).
-    "idas_cooperative": "idas_cooperative.pt",
-    # Ours, a labelled variant: the smooth recipe's stage 2 with the actor anchored to IDAS-V by
-    # KL(π ‖ π₀) ([learner] anchor_coef = 0.5; docs/results.md).
-    "idas_anchored": "idas_anchored.pt",
 }
 PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", "idm", "fsm_idm")
 """The paper's five methods: what ``--baseline all`` runs."""
@@ -38,11 +27,6 @@ METHOD_LABELS: dict[str, str] = {
     "idas_v": "IDAS-V",
     "idas_direct": "IDAS-direct",
     "idas_geometry": "IDAS-geometry",
-    "idas_brakes": "IDAS-brakes",
-    "idas_manoeuvre": "IDAS-manoeuvre",
-    "idas_explored10_collide": "IDAS-explored10-collide",
-    "idas_cooperative": "IDAS-cooperative",
-    "idas_anchored": "IDAS-anchored",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
     "fsm_idm_smooth": "FSM+IDM-smooth",
