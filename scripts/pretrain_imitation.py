@@ -1,10 +1,11 @@
-"""The warm start of the shipped IDAS (ours, not the paper's): an actor that imitates the masked IDM baseline.
+"""The warm start of the shipped IDAS (ours, not the paper's): an actor that imitates a masked rule baseline.
 
-    python scripts/pretrain_imitation.py --out runs/imitation.pt            # 200 episodes, 15 epochs: ~4 min
-    # then: idas-sumo train --config scenarios/train_shipped.toml  (its init_from is runs/imitation.pt)
+    python scripts/pretrain_imitation.py --teacher fsm_idm_smooth --out runs/imitation_smooth.pt
+    # then: idas-sumo train --config scenarios/train_smooth.toml  (its init_from is runs/imitation_smooth.pt)
 
 The demonstrations alternate between the config's intelligent-world traffic and the paper suite's
-generator. docs/results.md ("What we tried") says what stage 2 did with such a start.
+generator (train_smooth.toml's traffic and learner are those of experiments/recipes/train_shipped.toml, the
+default before it moved). docs/results.md ("What each method is") says how the shipped IDAS used it.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--net", type=resolve_user_path, default=DEFAULT_NET_NAME)
-    parser.add_argument("--config", type=resolve_user_path, default="scenarios/train_shipped.toml")
+    parser.add_argument("--config", type=resolve_user_path, default="scenarios/train_smooth.toml")
     parser.add_argument("--teacher", choices=tuple(BASELINES), default="idm")
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--epochs", type=int, default=15)
