@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Regenerate the numbers and plots in docs/results.md (under 15 minutes on a 2-core laptop; the time of the last
 # run is in docs/results.md). Usage: bash scripts/reproduce_results.sh [OUT_DIR]   (default: results/)
+# The variant policies' evaluations are in experiments/reproduce_variants.sh.
 # Every run uses the paper's own-lane safety mask (the default) unless it says --safety-mask merge_aware.
 set -euo pipefail
 out=${1:-results}
@@ -34,35 +35,11 @@ for method in idas_geometry idm fsm_idm; do
   ev --baseline "$method" --others idas_geometry --suite geometry --scenarios 100 --seed 2024 --workers 2 \
     --out "$out/geometry-trained-2024/$method"
 done
-# and the labelled variants, each on the declared seed and 2019-2021: brakes/ (the braker pays for a chosen hard
-# brake, idas_brakes), manoeuvre/ (a hard brake counts once, at the step it begins, idas_manoeuvre) and
-# explored10/ (Q's action part from 10 % random actions, r_collide x 20, idas_explored10_collide).
-for variant in brakes:idas_brakes manoeuvre:idas_manoeuvre explored10:idas_explored10_collide; do
-  dir=${variant%%:*}
-  policy=${variant##*:}
-  for seed in 2024 2019 2020 2021; do
-    for method in "$policy" idm fsm_idm; do
-      ev --baseline "$method" --others "$policy" --scenarios 100 --seed "$seed" --workers 2 \
-        --out "$out/$dir/paper-$seed/$method"
-    done
-  done
-done
 # FSM+IDM-smooth (ours, the rule the shipped IDAS's warm start imitates) as the ego in the paper protocol, on the
 # declared seed and 2019-2021 (docs/results.md "Declared: a warm start that brakes hard only when forced").
 for seed in 2024 2019 2020 2021; do
   ev --baseline fsm_idm_smooth --scenarios 100 --seed "$seed" --out "$out/smooth/paper-$seed"
 done
-# The labelled hypothesis idas_cooperative (r_finish falling in b_type): the driver-type sweep, and the paper
-# protocol on the declared seed with every other car on it.
-ev --baseline idas_cooperative --suite driver-types --seed 2019 --out "$out/cooperative/driver-types" --trajectories
-ev --baseline idas_cooperative --others idas_cooperative --scenarios 100 --seed 2024 --out "$out/cooperative/paper-2024"
-# The labelled variant idas_anchored (stage 2 with the actor anchored to IDAS-V; docs/results.md "Declared: stage 2
-# anchored to its warm start"): the paper protocol on the declared seed and 2019, every other car on the shipped
-# IDAS, and the driver-type sweep.
-for seed in 2024 2019; do
-  ev --baseline idas_anchored --scenarios 100 --seed "$seed" --workers 2 --out "$out/anchored/paper-$seed"
-done
-ev --baseline idas_anchored --suite driver-types --seed 2019 --out "$out/anchored/driver-types" --trajectories
 # Four more evaluation seeds for IDAS's margin over the rules (docs/results.md "Declared: four more evaluation seeds
 # for the margin over the rules"), then the margins over all eight seeds, paired by scenario.
 for seed in 2025 2026 2027 2028; do

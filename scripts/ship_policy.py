@@ -96,6 +96,12 @@ def budget_run_record(run_metrics: pd.DataFrame, budget_dir: Path, stages: list[
     }
 
 
+def recipe_names(command: str) -> list[str]:
+    """The file names of the ``--config`` recipes a made-with command trains from (tests check they ship)."""
+    words = command.split()
+    return [Path(words[i + 1]).name for i, w in enumerate(words[:-1]) if w == "--config"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("checkpoint", type=Path)
@@ -120,14 +126,22 @@ def main() -> None:
         print(f"ship_policy: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     packages = {p: metadata.version(p) for p in ("idas-sumo", "torch", "eclipse-sumo", "libsumo", "numpy")}
+    # The stage sets the central critic (training/curriculum.py): record what the learner ran with, not the
+    # recipe's value, which the stage overrides.
+    central_critic = bool(data.learner["config"]["use_central_critic"])
+    config = data.config.as_dict()
+    config["learner"]["use_central_critic"] = central_critic
     meta = {
         "policy": args.name,
         "file": f"{args.name}.pt",
         "file_sha256": file_digest(args.checkpoint),
         "made_with": args.command,
+        "recipes": recipe_names(args.command),
         "source_checkpoint": str(args.checkpoint),
         "stage_of_checkpoint": data.stage,
-        "global_episodes": int(metrics["global_episode"].max() + 1),
+        "run_episodes": int(metrics["global_episode"].max() + 1),
+        "checkpoint_global_episode": data.global_episode,
+        "central_critic": central_critic,
         "seed": data.config.seed,
         "wall_time_s": round(wall_s, 1),
         "machine": f"{platform.machine()}, {platform.python_version()}, {os.cpu_count()} CPU cores, no GPU",
@@ -135,7 +149,7 @@ def main() -> None:
         "picked_by_validation": _validation_pick(data),
         "validation_curve": _validation_curve(args.checkpoint.parent / "validation.csv", args.stages),
         **({"budget_run": budget_run} if budget_run else {}),
-        "config": data.config.as_dict(),
+        "config": config,
         "packages": {**packages, "python": platform.python_version()},
         "shipped_on": dt.date.today().isoformat(),
         "note": args.note or "See docs/results.md for how this policy was trained.",
