@@ -67,6 +67,8 @@ def test_idas_weights_saw_idas_v_episodes_and_its_own() -> None:
     # IDAS's stage 2 started from IDAS-V's checkpoint.
     assert idas["config"]["init_from"] == idas_v["source_checkpoint"]
     assert idas_v["rl_episodes_in_weights"] == idas_v["checkpoint_global_episode"] == 2000
-    assert idas["rl_episodes_in_weights"] == 2000 + 2512 == (
-        idas_v["checkpoint_global_episode"] + idas["checkpoint_global_episode"]
+    assert (
+        idas["rl_episodes_in_weights"]
+        == 2000 + 2512
+        == (idas_v["checkpoint_global_episode"] + idas["checkpoint_global_episode"])
     )
