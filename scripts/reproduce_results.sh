@@ -36,11 +36,11 @@ for method in idas_geometry idm fsm_idm; do
     --out "$out/geometry-trained-2024/$method"
 done
 # FSM+IDM-smooth (ours, the rule the shipped IDAS's warm start imitates) as the ego in the paper protocol, on the
-# declared seed and 2019-2021 (docs/results.md "Declared: a warm start that brakes hard only when forced").
+# declared seed and 2019-2021 (experiments/diary.md "Declared: a warm start that brakes hard only when forced").
 for seed in 2024 2019 2020 2021; do
   ev --baseline fsm_idm_smooth --scenarios 100 --seed "$seed" --out "$out/smooth/paper-$seed"
 done
-# Four more evaluation seeds for IDAS's margin over the rules (docs/results.md "Declared: four more evaluation seeds
+# Four more evaluation seeds for IDAS's margin over the rules (experiments/diary.md "Declared: four more evaluation seeds
 # for the margin over the rules"), then the margins over all eight seeds, paired by scenario.
 for seed in 2025 2026 2027 2028; do
   for method in idas idm fsm_idm; do
