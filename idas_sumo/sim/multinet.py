@@ -41,7 +41,7 @@ from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.io_utils import atomic_open, atomic_path, file_digest, remove_stale_temps
-from idas_sumo.sim.merge_detect import MergeSite, as_site
+from idas_sumo.sim.merge_detect import Approach, MergeSite, RouteLane, as_site
 from idas_sumo.sim.netgen import MergeNet, sumo_binary
 
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
@@ -73,6 +73,26 @@ def global_edge_id(prefix: str, local_edge_id: str) -> str:
     if local_edge_id.startswith(":"):
         return f":{prefix}{local_edge_id[1:]}"
     return prefix + local_edge_id
+
+
+def prefixed_site(site: MergeSite, prefix: str, path: Path) -> MergeSite:
+    """``site`` in a multi-copy net (file ``path``) as the copy whose ids carry ``prefix``: every edge
+    id (a junction-internal one after its colon) and the junction id."""
+
+    def lanes(xs: tuple[RouteLane, ...]) -> tuple[RouteLane, ...]:
+        return tuple(dataclasses.replace(x, edge_id=global_edge_id(prefix, x.edge_id)) for x in xs)
+
+    def approach(a: Approach) -> Approach:
+        return dataclasses.replace(a, lanes=lanes(a.lanes), through=lanes(a.through))
+
+    return dataclasses.replace(
+        site,
+        path=path,
+        junction_id=prefix + site.junction_id,
+        main=approach(site.main),
+        merge=approach(site.merge),
+        out=lanes(site.out),
+    )
 
 
 def default_cache_dir() -> Path:
@@ -340,7 +360,7 @@ class MultiNet:
 
     def copy_site(self, k: int) -> MergeSite:
         """Copy ``k``'s merge site (global edge and junction ids; ``path`` the K-copy file)."""
-        return self.site.with_prefix(self.prefix(k), self.path)
+        return prefixed_site(self.site, self.prefix(k), self.path)
 
     @property
     def source(self) -> MergeNet:
@@ -394,4 +414,5 @@ __all__ = [
     "global_edge_id",
     "multi_net",
     "pin_internal_lanes",
+    "prefixed_site",
 ]
