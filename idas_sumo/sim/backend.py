@@ -40,11 +40,9 @@ end, SUMO stops it there and it changes when a gap comes). Not set on single-lan
 car can change lanes (the generated T-junction runs as it always did)."""
 CONTROLLED_LC_ASSERTIVE = 20.0
 """How much smaller than SUMO's safe gaps a controlled car accepts when it changes lanes (its vType's
-``lcAssertive``). An on-ramp car must leave its acceleration lane for the highway's lane; the gap it
-moves into is the policy's to make, by its speed, as at any merge. With SUMO's own safe gaps (sized by
-the braking of the car behind, 2 m/s² for a SUMO-driven car: about 150 m at 30 m/s) a controlled ramp
-car ran beside a gap of 60 m to the end of its lane, stopped there and changed only when the highway
-car had passed. Left out on single-lane merges."""
+``lcAssertive``): an on-ramp car must leave its acceleration lane, and the gap it moves into is the
+policy's to make, by its speed. With SUMO's own safe gaps (sized by the braking of the car behind) a
+controlled ramp car ran to the end of its lane beside a wide gap. Left out on single-lane merges."""
 CONTROLLED_TYPE = "agent"
 ROBOT_TYPE = "robot"
 # Controlled cars must not be clipped by their vType: the paper's hard brake is -4 m/s².

@@ -11,11 +11,10 @@ edge and junction id, hence every lane and junction-internal id, gets the prefix
 more netconvert merges the K copies. Normalisation is off in both steps so copy 0 keeps the source's
 coordinates. Reading a net, netconvert recomputes junction shapes and junction-internal lanes; on a
 shifted copy the coordinates round differently in binary, and at one of netconvert's thresholds the
-result changes (a 45 degree merge gave some copies a 7.70 m internal lane for the source's 7.49 m). So
-the copies are built from the source with its internal lanes pinned (``pin_internal_lanes``). A
-junction's outline may still come out otherwise in a copy: the cars drive on the lanes (on a 45
-degree net, the same cars in copies with either outline drove identical trajectories, collisions on
-junctions checked).
+result changes (on a 45 degree merge some copies' internal lanes came out longer). So the copies
+are built from the source with its internal lanes pinned (``pin_internal_lanes``). A junction's
+outline may still come out otherwise in a copy: the cars drive on the lanes (on a 45 degree net, the
+same cars in copies with either outline drove identical trajectories, collisions on junctions checked).
 
 The result is checked with sumolib against the source: every edge of every copy, the junction-internal
 ones included, has the source's lanes with the same lengths and speed limits, the same priority and
