@@ -6,7 +6,8 @@ A module may import its own package, any lower layer, and the shared leaves (the
 ``__version__``, ``errors``, ``config``, ``io_utils``, ``resources``), which import only each other.
 Two packages on one layer (training and evaluation; agents and baselines) must not import each other.
 Every import counts, also the lazy ones inside functions and those under ``TYPE_CHECKING``: a lazy
-import that points up is a cycle that only shows when that function runs.
+import that points up is a cycle that only shows when that function runs. Inside a layer, no two modules
+import each other, directly or round a longer circle.
 """
 
 from __future__ import annotations
@@ -49,16 +50,20 @@ def imported_modules(source: str, module: str, is_package: bool) -> list[tuple[i
         if isinstance(node, ast.Import):
             found.extend((node.lineno, alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join([*base, node.module] if node.module else base)
-            else:
-                target = node.module or ""
+            target = _from_target(node, package)
             found.append((node.lineno, target))
             if target == PACKAGE:  # ``from idas_sumo import errors`` imports a submodule
                 found.extend((node.lineno, f"{target}.{a.name}") for a in node.names if _is_submodule(a.name))
     return found
+
+
+def _from_target(node: ast.ImportFrom, package: str) -> str:
+    """The absolute module ``from TARGET import ...`` names (relative ones resolved against ``package``)."""
+    if not node.level:
+        return node.module or ""
+    base = package.split(".")
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join([*base, node.module] if node.module else base)
 
 
 def _is_submodule(name: str) -> bool:
@@ -158,3 +163,65 @@ def test_lazy_and_relative_imports_are_seen() -> None:
     )
     found = {m for _, m in imported_modules(source, "idas_sumo.env.engine", is_package=False)}
     assert found == {"idas_sumo.env", "idas_sumo.baselines", "idas_sumo.training.checkpoint", "libsumo"}
+
+
+# --- no import circle between modules -----------------------------------------------------------------
+
+
+def import_graph(root: Path = PACKAGE_DIR) -> dict[str, set[str]]:
+    """Each module of the package -> the package's modules it imports, with every import counted as
+    ``imported_modules`` reads them; ``from package import name`` counts the submodule ``name`` too."""
+    paths = {module_name(p): p for p in sorted(root.rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for module, path in paths.items():
+        is_package = path.name == "__init__.py"
+        package = module if is_package else module.rpartition(".")[0]
+        targets = {imported for _, imported in imported_modules(path.read_text(), module, is_package)}
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                base = _from_target(node, package)
+                targets.update(f"{base}.{alias.name}" for alias in node.names)
+        graph[module] = {t for t in targets if t in paths and t != module}
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import circle of ``graph`` as the modules round it, the first one again at the end; None if
+    there is none (a depth-first search: an edge back to a module on the current path closes a circle)."""
+    done: set[str] = set()
+    path: list[str] = []
+
+    def visit(module: str) -> list[str] | None:
+        if module in path:
+            return [*path[path.index(module) :], module]
+        if module in done:
+            return None
+        path.append(module)
+        for imported in sorted(graph.get(module, ())):
+            cycle = visit(imported)
+            if cycle:
+                return cycle
+        path.pop()
+        done.add(module)
+        return None
+
+    for module in sorted(graph):
+        cycle = visit(module)
+        if cycle:
+            return cycle
+    return None
+
+
+def test_no_import_circle_between_modules() -> None:
+    graph = import_graph()
+    assert len(graph) > 30 and sum(map(len, graph.values())) > 100, graph
+    assert "idas_sumo.sim.backend" in graph["idas_sumo.sim.batch"]  # ``from idas_sumo.sim import backend``
+    cycle = find_cycle(graph)
+    assert cycle is None, "import circle: " + " -> ".join(cycle)
+
+
+def test_the_circle_finder_itself() -> None:
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"x": {"a"}, "a": {"b"}, "b": {"a"}}) == ["a", "b", "a"]
+    assert find_cycle({"a": {"a"}}) == ["a", "a"]

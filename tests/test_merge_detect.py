@@ -416,12 +416,12 @@ def test_approach_lane_at_roundtrip(sample_nets: dict[str, Path]) -> None:
 def test_a_multi_copy_net_holds_each_copy_of_the_site(sample_nets: dict[str, Path], tmp_path: Path) -> None:
     """The engine runs K copies of a net in one SUMO run (sim/multinet.py): detection on the K-copy
     net finds K sites, each the source's with the copy's prefix."""
-    from idas_sumo.sim.multinet import build_copies, copy_prefix
+    from idas_sumo.sim.multinet import build_copies, copy_prefix, prefixed_site
 
     source = choose_merge(sample_nets["onramp"])
     copies = build_copies(source.path, 3, tmp_path / "cache")
     found = detect_merges(copies)
-    assert found == tuple(source.with_prefix(copy_prefix(k, 3), copies) for k in range(3))
+    assert found == tuple(prefixed_site(source, copy_prefix(k, 3), copies) for k in range(3))
     assert [s.junction_id for s in found] == ["c0_drop", "c1_drop", "c2_drop"]
     assert found[1].distance_table("merge")["c1_ramp"] == source.distance_table("merge")["ramp"]
 

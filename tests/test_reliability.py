@@ -551,12 +551,19 @@ def test_sigterm_during_train_is_143_and_leaks_no_temp_dir(tmp_path: Path) -> No
 
 
 def test_worker_start_up_lives_in_one_module() -> None:
-    """train and evaluate start workers through sim/processes.py, not each its own subprocess code."""
+    """train and evaluate start workers through sim/processes.py, not each its own subprocess code; and
+    the SUMO child and the workers share one launcher and handshake, sim/rpc.py."""
     package = REPO_ROOT / "idas_sumo"
     for module in ("training/workers.py", "evaluation/workers.py"):
         source = (package / module).read_text()
         assert "WorkerProcesses" in source, module
         assert "subprocess" not in source and "Listener" not in source, module
+    rpc = package / "sim" / "rpc.py"
+    assert all(s in rpc.read_text() for s in ("deliver_challenge(", "sys.executable", "create_server"))
+    for path in set(package.rglob("*.py")) - {rpc}:
+        source = path.read_text()
+        for own_stack in ("challenge(", "sys.executable", "token_bytes", "urandom", "create_server"):
+            assert own_stack not in source, (path, own_stack)
 
 
 # --- siblings found by trying more bad inputs -----------------------------------------------------------
@@ -741,6 +748,78 @@ def test_worker_count_is_bounded_in_the_python_api_too() -> None:
     for count in (0, max_workers() + 1, 1000):
         with pytest.raises(InputError, match=r"workers: \d+ is not in \[1, "):
             WorkerProcesses("builtins:print", count, "test worker")
+
+
+ECHO_SERVER = """\
+class Echo:
+    def __init__(self, init):
+        self.init = init
+
+    def handle(self, request, shared):
+        return (self.init, request, shared)
+
+    def close(self):
+        pass
+"""
+
+
+class _OpensAFile:
+    """Unpickling this creates ``path``: what a stranger's pickle could do if it were ever loaded."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (str(self.path), "w"))
+
+
+def test_a_silent_or_unknown_caller_does_not_stop_the_workers_starting(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 34: a local program that connected to the workers' port during start-up and sent nothing
+    blocked the start forever. It is dropped after the handshake's timeout, one that sends a pickle
+    instead of the key's answer is dropped without the pickle being loaded, and the real workers start."""
+    import pickle
+    import socket
+    import struct
+    import threading
+
+    from idas_sumo.sim import rpc
+    from idas_sumo.sim.processes import ProcessPool
+
+    assert rpc.HANDSHAKE_TIMEOUT_S <= 10.0  # "a few seconds"
+    monkeypatch.setattr(rpc, "HANDSHAKE_TIMEOUT_S", 1.0)
+    (tmp_path / "echo_server.py").write_text(ECHO_SERVER)
+    paths = [str(tmp_path), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(paths))
+    opened = tmp_path / "opened_by_a_pickle"
+    payload = pickle.dumps(_OpensAFile(opened))
+    strangers: list[socket.socket] = []
+    launch = rpc.CallBackServer.launch
+
+    def strangers_first(server: rpc.CallBackServer, *args: Any, **kwargs: Any) -> Any:
+        if not strangers:  # in the queue before any worker: accepted first
+            silent = socket.create_connection(("127.0.0.1", server.port))
+            pickler = socket.create_connection(("127.0.0.1", server.port))
+            pickler.sendall(struct.pack("!i", len(payload)) + payload)
+            strangers.extend((silent, pickler))
+            threading.Timer(30.0, silent.close).start()  # before the fix: fail the time check, not hang
+        return launch(server, *args, **kwargs)
+
+    monkeypatch.setattr(rpc.CallBackServer, "launch", strangers_first)
+    started = time.monotonic()
+    with ProcessPool("echo_server:Echo", [10, 20], "test worker", capture_stderr=True) as pool:
+        assert time.monotonic() - started < 20.0
+        pool.submit({0: "a", 1: "b"}, shared="s")
+        assert [pool.result(i) for i in range(2)] == [(10, "a", "s"), (20, "b", "s")]
+    assert len(strangers) == 2
+    for stranger in strangers:  # the parent hung up on both
+        stranger.settimeout(5.0)
+        with contextlib.suppress(OSError):
+            while stranger.recv(4096):
+                pass
+        stranger.close()
+    assert not opened.exists()
 
 
 def test_workers_start_run_their_entry_and_stop() -> None:

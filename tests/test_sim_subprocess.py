@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -187,3 +188,68 @@ def test_an_error_that_cannot_be_pickled_travels_as_a_simulation_error() -> None
     odd = _portable_error(_NeedsTwoArgs("x", "y"))
     assert isinstance(odd, SimulationError)
     assert str(odd) == "_NeedsTwoArgs in the SUMO subprocess: x y"
+
+
+# --- the handshake every child goes through (sim/rpc.py) ------------------------------------------------
+
+
+def _both_sides(key_a: bytes, key_b: bytes) -> list[BaseException | None]:
+    """Run the handshake over a socket pair, the accepting side with ``key_a``, the child with ``key_b``;
+    what each side raised (None: it got its connection)."""
+    import socket
+    import threading
+
+    from idas_sumo.sim.rpc import authenticated
+
+    a, b = socket.socketpair()
+    outcome: list[BaseException | None] = [None, None]
+
+    def side(i: int, sock: socket.socket, key: bytes, first: bool) -> None:
+        try:
+            authenticated(sock, key, challenge_first=first, timeout_s=5.0).close()
+        except BaseException as err:
+            outcome[i] = err
+
+    child = threading.Thread(target=side, args=(1, b, key_b, False))
+    child.start()
+    side(0, a, key_a, True)
+    child.join(10.0)
+    return outcome
+
+
+def test_the_handshake_needs_the_same_key_on_both_sides() -> None:
+    from multiprocessing import AuthenticationError
+
+    assert _both_sides(b"k" * 32, b"k" * 32) == [None, None]
+    refused = _both_sides(b"k" * 32, b"x" * 32)
+    assert isinstance(refused[0], AuthenticationError) and isinstance(refused[1], AuthenticationError)
+
+
+def test_a_caller_that_trickles_bytes_is_dropped_at_the_handshake_deadline() -> None:
+    """The deadline bounds the whole handshake, not each read: one byte every 0.2 s cannot hold it open."""
+    import socket
+    import threading
+
+    from idas_sumo.sim.rpc import authenticated
+
+    ours, theirs = socket.socketpair()
+    stop = threading.Event()
+
+    def trickle() -> None:
+        with contextlib.suppress(OSError):
+            theirs.sendall(b"\0\0\0\x20")  # "32 bytes follow", then one every 0.2 s: 6.4 s in all
+            while not stop.wait(0.2):
+                theirs.sendall(b"\0")
+
+    sender = threading.Thread(target=trickle)
+    sender.start()
+    started = time.monotonic()
+    try:
+        with pytest.raises(TimeoutError):
+            authenticated(ours, b"k" * 32, challenge_first=True, timeout_s=1.0)
+        assert time.monotonic() - started < 3.0
+        assert ours.fileno() == -1  # closed on failure
+    finally:
+        stop.set()
+        sender.join()
+        theirs.close()

@@ -12,6 +12,7 @@ import math
 import os
 import shutil
 import tempfile
+import time
 import typing
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -23,6 +24,7 @@ import numpy as np
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.sim.merge_detect import MergeSite, Side, as_site
 from idas_sumo.sim.netgen import MergeNet
+from idas_sumo.sim.rpc import CallBackServer, NoCallBack
 
 STEP_LENGTH_S = 0.2  # SUMO's step, also the agents' decision period (5 Hz)
 CONTROLLED_SPEED_MODE = 32  # every check off, right of way inside the junction ignored too (bit 5 inverted)
@@ -38,11 +40,9 @@ end, SUMO stops it there and it changes when a gap comes). Not set on single-lan
 car can change lanes (the generated T-junction runs as it always did)."""
 CONTROLLED_LC_ASSERTIVE = 20.0
 """How much smaller than SUMO's safe gaps a controlled car accepts when it changes lanes (its vType's
-``lcAssertive``). An on-ramp car must leave its acceleration lane for the highway's lane; the gap it
-moves into is the policy's to make, by its speed, as at any merge. With SUMO's own safe gaps (sized by
-the braking of the car behind, 2 m/s² for a SUMO-driven car: about 150 m at 30 m/s) a controlled ramp
-car ran beside a gap of 60 m to the end of its lane, stopped there and changed only when the highway
-car had passed. Left out on single-lane merges."""
+``lcAssertive``): an on-ramp car must leave its acceleration lane, and the gap it moves into is the
+policy's to make, by its speed. With SUMO's own safe gaps (sized by the braking of the car behind) a
+controlled ramp car ran to the end of its lane beside a wide gap. Left out on single-lane merges."""
 CONTROLLED_TYPE = "agent"
 ROBOT_TYPE = "robot"
 # Controlled cars must not be clipped by their vType: the paper's hard brake is -4 m/s².
@@ -458,34 +458,11 @@ def slot_taken() -> bool:
 
 # -- a second simulation: SUMO in a child process --------------------------------------------------
 #
-# The child is a fresh interpreter started with subprocess, not multiprocessing: "spawn" would re-import
-# the user's __main__ there, so a script without an ``if __name__ == "__main__":`` guard that opens two
-# environments would run itself again in the child and crash. Messages are pickled over a loopback
-# socket (multiprocessing.connection, authenticated with a one-time key) rather than the child's
-# stdout, where libsumo prints; the child runs in its own session (process group on Windows) so a
-# Ctrl-C in the terminal reaches only the parent, which then closes the child.
+# The child is started, and calls back on an authenticated loopback socket, through sim/rpc.py (see
+# there why not multiprocessing, and how the key travels); it then serves ``serve_backend``.
 
-_CHILD_CODE = (
-    "import sys; sys.path.append(sys.argv[1]); from idas_sumo.sim.backend import _child_main; _child_main()"
-)
 _CHILD_START_TIMEOUT_S = 60.0
 _CHILD_CLOSE_TIMEOUT_S = 5.0
-
-
-def _child_main() -> None:
-    """Entry point of the SUMO child: read the parent's address and key on stdin, connect, serve."""
-    import signal
-    import sys
-    from multiprocessing.connection import Client
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns Ctrl-C and closes us
-    try:
-        port, key = sys.stdin.readline().split()
-        sys.stdin.close()
-        conn = Client(("127.0.0.1", int(port)), family="AF_INET", authkey=bytes.fromhex(key))
-    except (ValueError, OSError):  # the parent gave up on us before we connected: nobody to tell
-        sys.exit(1)
-    _serve(conn)
 
 
 def _portable_error(err: Exception) -> Exception:
@@ -499,8 +476,9 @@ def _portable_error(err: Exception) -> Exception:
     return err
 
 
-def _serve(conn: Any) -> None:
-    """Child side of ``SubprocessBackend``: run calls on a local backend until told to close."""
+def serve_backend(conn: Any) -> None:
+    """Child side of ``SubprocessBackend`` (the child's entry): run calls on a local backend until
+    told to close."""
     import pickle
 
     backend: SumoBackend | None = None
@@ -570,61 +548,20 @@ class SubprocessBackend:
             raise
 
     def _start_child(self) -> tuple[Any, Any]:
-        import secrets
-        import socket
-        import subprocess
-        import sys
-
-        key = secrets.token_bytes(32)
-        # The directory holding this idas_sumo, for a parent that found it through its own sys.path edits.
-        package_root = str(Path(__file__).resolve().parents[2])
-        new_group: dict[str, Any] = {"start_new_session": True}
-        if sys.platform == "win32":
-            new_group = {"creationflags": subprocess.CREATE_NEW_PROCESS_GROUP}
-        with socket.create_server(("127.0.0.1", 0)) as server:
-            port = server.getsockname()[1]
-            # -P: the user's working directory must not shadow modules in the child.
-            proc = subprocess.Popen(
-                [sys.executable, "-P", "-c", _CHILD_CODE, package_root], stdin=subprocess.PIPE, **new_group
-            )
+        """The child process, and its authenticated connection once it called back."""
+        with CallBackServer() as server:
+            proc = server.launch("idas_sumo.sim.backend:serve_backend")
             try:
-                conn = self._connect(proc, server, port, key)
-            except BaseException:  # a Ctrl-C included: leave no child behind
+                conn = server.accept([proc], time.monotonic() + _CHILD_START_TIMEOUT_S)
+            except BaseException as err:  # a Ctrl-C included: leave no child behind
                 proc.kill()
                 proc.wait()
-                raise
-        return proc, conn
-
-    @staticmethod
-    def _connect(proc: Any, server: Any, port: int, key: bytes) -> Any:
-        """Hand the child the address and key, accept its connection and check the key both ways."""
-        import time
-        from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
-
-        assert proc.stdin is not None
-        with contextlib.suppress(OSError):  # a child that died at once is reported below
-            proc.stdin.write(f"{port} {key.hex()}\n".encode())
-            proc.stdin.close()
-        server.settimeout(0.5)
-        deadline = time.monotonic() + _CHILD_START_TIMEOUT_S
-        while True:
-            try:
-                sock, _ = server.accept()
-                break
-            except TimeoutError:
-                if proc.poll() is not None:
+                if not isinstance(err, NoCallBack):
+                    raise
+                if err.exited:
                     raise SimulationError(f"the SUMO subprocess died (exit code {proc.returncode})") from None
-                if time.monotonic() > deadline:
-                    raise SimulationError("the SUMO subprocess did not start within a minute") from None
-        sock.setblocking(True)
-        conn = Connection(sock.detach())
-        try:  # what multiprocessing's Listener.accept does: each side proves it knows the key
-            deliver_challenge(conn, key)
-            answer_challenge(conn, key)
-        except BaseException:
-            conn.close()
-            raise
-        return conn
+                raise SimulationError("the SUMO subprocess did not start within a minute") from None
+        return proc, conn
 
     def _died(self) -> SimulationError:
         import subprocess

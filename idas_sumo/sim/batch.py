@@ -320,17 +320,8 @@ class BatchBackend:
 
         Read with the plain getters, called through libsumo's SWIG functions (``libsumo._libsumo``:
         the ``libsumo.vehicle`` methods are Python wrappers around them) and ``map`` into ``np.fromiter``.
-        benchmarks/sumo_read.py measured this the cheapest way. µs per vehicle-step, step + read (the
-        read's share in brackets), median of 5 runs of 100 steps on the 2 shared cores, N = 8 / 32 /
-        128 / 512 vehicles:
-
-        - getters in a plain loop: 1.75 (+0.83) / 1.52 (+0.76) / 1.52 (+0.77) / 1.55 (+0.73)
-        - SWIG getters + map (this): 1.58 (+0.66) / 1.28 (+0.52) / 1.26 (+0.51) / 1.27 (+0.46)
-        - variable subscriptions, getAllSubscriptionResults: 2.31 (+1.39) / 1.90 (+1.14) / 2.09
-          (+1.34) / 2.19 (+1.38); per-vehicle getSubscriptionResults and one context subscription
-          cost about the same (subscriptions are filled inside ``simulationStep``, which they slow down)
-        - this method, copy and edge bookkeeping included: 2.36 (+1.44) / 1.60 (+0.84) / 1.47 (+0.72)
-          / 1.49 (+0.68)
+        The cheapest of the ways benchmarks/sumo_read.py compares: subscriptions are filled inside
+        ``simulationStep``, which they slow down, and cost more than these getters.
 
         The split of the ids into copies, local ids and scenario indices is kept while the id list stays
         the same (most steps: only an entry or an exit changes it), so a step pays one tuple comparison

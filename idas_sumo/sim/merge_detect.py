@@ -24,7 +24,6 @@ position`` on whichever edge it is. Nothing here assumes edge names or lengths.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -180,26 +179,6 @@ class MergeSite:
         ``side``'s route: a car on that edge at lane position ``pos`` is ``table[edge] - pos`` before
         the merge point (negative: past it)."""
         return {r.edge_id: r.start_to_merge_m for r in self.route(side)}
-
-    def with_prefix(self, prefix: str, path: Path) -> MergeSite:
-        """This site in a multi-copy net (sim/multinet.py, file ``path``) as the copy whose ids carry
-        ``prefix``: every edge id (a junction-internal one after its colon) and the junction id."""
-        from idas_sumo.sim.multinet import global_edge_id
-
-        def lanes(xs: tuple[RouteLane, ...]) -> tuple[RouteLane, ...]:
-            return tuple(dataclasses.replace(x, edge_id=global_edge_id(prefix, x.edge_id)) for x in xs)
-
-        def approach(a: Approach) -> Approach:
-            return dataclasses.replace(a, lanes=lanes(a.lanes), through=lanes(a.through))
-
-        return dataclasses.replace(
-            self,
-            path=path,
-            junction_id=prefix + self.junction_id,
-            main=approach(self.main),
-            merge=approach(self.merge),
-            out=lanes(self.out),
-        )
 
     def as_merge_net(self) -> MergeNet:
         """The site as the engine's ``MergeNet`` today (two one-lane roads of one edge each into one

@@ -11,11 +11,10 @@ edge and junction id, hence every lane and junction-internal id, gets the prefix
 more netconvert merges the K copies. Normalisation is off in both steps so copy 0 keeps the source's
 coordinates. Reading a net, netconvert recomputes junction shapes and junction-internal lanes; on a
 shifted copy the coordinates round differently in binary, and at one of netconvert's thresholds the
-result changes (a 45 degree merge gave some copies a 7.70 m internal lane for the source's 7.49 m). So
-the copies are built from the source with its internal lanes pinned (``pin_internal_lanes``). A
-junction's outline may still come out otherwise in a copy: the cars drive on the lanes (on a 45
-degree net, the same cars in copies with either outline drove identical trajectories, collisions on
-junctions checked).
+result changes (on a 45 degree merge some copies' internal lanes came out longer). So the copies
+are built from the source with its internal lanes pinned (``pin_internal_lanes``). A junction's
+outline may still come out otherwise in a copy: the cars drive on the lanes (on a 45 degree net, the
+same cars in copies with either outline drove identical trajectories, collisions on junctions checked).
 
 The result is checked with sumolib against the source: every edge of every copy, the junction-internal
 ones included, has the source's lanes with the same lengths and speed limits, the same priority and
@@ -41,7 +40,7 @@ from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
 from idas_sumo.io_utils import atomic_open, atomic_path, file_digest, remove_stale_temps
-from idas_sumo.sim.merge_detect import MergeSite, as_site
+from idas_sumo.sim.merge_detect import Approach, MergeSite, RouteLane, as_site
 from idas_sumo.sim.netgen import MergeNet, sumo_binary
 
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
@@ -73,6 +72,26 @@ def global_edge_id(prefix: str, local_edge_id: str) -> str:
     if local_edge_id.startswith(":"):
         return f":{prefix}{local_edge_id[1:]}"
     return prefix + local_edge_id
+
+
+def prefixed_site(site: MergeSite, prefix: str, path: Path) -> MergeSite:
+    """``site`` in a multi-copy net (file ``path``) as the copy whose ids carry ``prefix``: every edge
+    id (a junction-internal one after its colon) and the junction id."""
+
+    def lanes(xs: tuple[RouteLane, ...]) -> tuple[RouteLane, ...]:
+        return tuple(dataclasses.replace(x, edge_id=global_edge_id(prefix, x.edge_id)) for x in xs)
+
+    def approach(a: Approach) -> Approach:
+        return dataclasses.replace(a, lanes=lanes(a.lanes), through=lanes(a.through))
+
+    return dataclasses.replace(
+        site,
+        path=path,
+        junction_id=prefix + site.junction_id,
+        main=approach(site.main),
+        merge=approach(site.merge),
+        out=lanes(site.out),
+    )
 
 
 def default_cache_dir() -> Path:
@@ -340,7 +359,7 @@ class MultiNet:
 
     def copy_site(self, k: int) -> MergeSite:
         """Copy ``k``'s merge site (global edge and junction ids; ``path`` the K-copy file)."""
-        return self.site.with_prefix(self.prefix(k), self.path)
+        return prefixed_site(self.site, self.prefix(k), self.path)
 
     @property
     def source(self) -> MergeNet:
@@ -394,4 +413,5 @@ __all__ = [
     "global_edge_id",
     "multi_net",
     "pin_internal_lanes",
+    "prefixed_site",
 ]

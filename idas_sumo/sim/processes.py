@@ -1,17 +1,10 @@
 """Worker processes that call back: what ``train --workers`` and ``evaluate --workers`` share.
 
-A worker is a fresh interpreter started with subprocess (as sim/backend.py starts its SUMO child), not
-multiprocessing's spawn: spawn re-imports the user's ``__main__``, so a script calling ``run_training``
-or ``run_evaluation`` without an ``if __name__ == "__main__":`` guard would run itself again. It runs
-in its own session, so a Ctrl-C in the terminal reaches only the parent, which owns the workers and
-stops them. Each worker calls back on a loopback socket that only holders of a fresh random key can
-use (the key goes on its stdin, not its command line, where other users could read it), then runs the
-entry function named by the parent with the connection: messages are pickled over it, not over the
-worker's stdout, where libsumo prints.
-
-Start-up stays interruptible: the parent waits for call-backs in short slices, so Ctrl-C or SIGTERM
-is seen within a fraction of a second; on any failure or interruption every started worker is killed
-at once (not waited for, which with many workers once took minutes), and a worker whose parent is gone
+A worker is a child started by sim/rpc.py (as the SUMO child of sim/backend.py is): a fresh interpreter
+in its own session that calls back on an authenticated loopback socket and then runs the entry function
+named by the parent with the connection. Start-up stays interruptible: the parent waits for call-backs
+in short slices, so Ctrl-C or SIGTERM is seen within a fraction of a second; on any failure or
+interruption every started worker is killed at once (not waited for), and a worker whose parent is gone
 before it connected exits without a traceback.
 
 What the workers do is a ``Server`` (built from a start-up value, then asked requests); ``WorkerPool``
@@ -24,22 +17,17 @@ from __future__ import annotations
 import contextlib
 import importlib
 import os
-import signal
-import socket
 import subprocess
-import sys
 import tempfile
 import time
-import traceback
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Collection, Mapping, Sequence
-from multiprocessing import AuthenticationError
-from multiprocessing.connection import Client, Connection, answer_challenge, deliver_challenge
-from pathlib import Path
+from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import IO, Any, Protocol
 
 from idas_sumo.errors import InputError, SimulationError
+from idas_sumo.sim.rpc import CallBackServer, NoCallBack
 
 __all__ = [
     "SEED_LIMIT",
@@ -63,10 +51,6 @@ CLOSE_TIMEOUT_S = 10.0
 KILL_GRACE_S = 3.0
 """How long a worker told to stop at once (SIGTERM) may take to clean up before it is killed."""
 _POLL_S = 0.2
-_CHILD_CODE = (
-    "import sys; sys.path.append(sys.argv[1]); "
-    "from idas_sumo.sim.processes import _child_main; _child_main(sys.argv[2], sys.argv[3], int(sys.argv[4]))"
-)
 
 
 def max_workers() -> int:
@@ -100,61 +84,31 @@ class WorkerProcesses:
         self.conns: list[Connection] = []
         self.procs: list[subprocess.Popen[bytes]] = []
         self._stderr: list[IO[bytes]] = []
-        authkey = os.urandom(32)
-        package_root = str(Path(__file__).resolve().parents[2])
         try:
-            with socket.create_server(("127.0.0.1", 0)) as server:
-                server.settimeout(_POLL_S)
-                host, port = server.getsockname()[:2]
+            with CallBackServer() as server:
                 for _ in range(count):
                     # Anonymous (no name to leak), closed in kill() with its worker.
                     err: IO[bytes] | None = tempfile.TemporaryFile() if capture_stderr else None  # noqa: SIM115
                     if err is not None:
                         self._stderr.append(err)
-                    proc = subprocess.Popen(
-                        [sys.executable, "-P", "-c", _CHILD_CODE, package_root, entry, host, str(port)],
-                        stdin=subprocess.PIPE,
-                        stdout=subprocess.DEVNULL,  # libsumo prints on stdout
-                        stderr=err,
-                        start_new_session=True,  # Ctrl-C is the parent's to handle
-                    )
-                    self.procs.append(proc)
-                    assert proc.stdin is not None
-                    with contextlib.suppress(BrokenPipeError):
-                        proc.stdin.write(authkey)
-                    proc.stdin.close()
+                    # stdout goes nowhere: libsumo prints there.
+                    self.procs.append(server.launch(entry, stdout=subprocess.DEVNULL, stderr=err))
                 deadline = time.monotonic() + CONNECT_TIMEOUT_S
                 while len(self.conns) < count:
-                    self.conns.append(self._accept(server, authkey, deadline))
+                    self.conns.append(self._accept(server, deadline))
         except BaseException:
             self.kill()
             raise
 
-    def _accept(self, server: socket.socket, authkey: bytes, deadline: float) -> Connection:
-        """The next worker's authenticated connection, waited for in short slices (so a signal is
-        handled at once); an error if every worker died or none called back in time. A caller
-        without the key (another local program) is dropped, and the wait goes on."""
-        while True:
-            try:
-                sock, _ = server.accept()
-            except TimeoutError:
-                if all(p.poll() is not None for p in self.procs):
-                    raise SimulationError(self._failed_to_start()) from None
-                if time.monotonic() > deadline:
-                    raise SimulationError(f"{self._a} did not start within {CONNECT_TIMEOUT_S:g} s") from None
-                continue
-            sock.setblocking(True)
-            conn = Connection(sock.detach())
-            try:
-                deliver_challenge(conn, authkey)
-                answer_challenge(conn, authkey)
-            except (AuthenticationError, EOFError, OSError):
-                conn.close()
-                continue
-            except BaseException:
-                conn.close()
-                raise
-            return conn
+    def _accept(self, server: CallBackServer, deadline: float) -> Connection:
+        """The next worker's authenticated connection (``CallBackServer.accept``); an error if every
+        worker died or none called back in time."""
+        try:
+            return server.accept(self.procs, deadline)
+        except NoCallBack as err:
+            if err.exited:
+                raise SimulationError(self._failed_to_start()) from None
+            raise SimulationError(f"{self._a} did not start within {CONNECT_TIMEOUT_S:g} s") from None
 
     def _failed_to_start(self) -> str:
         tail = self.stderr_tail(0) if self._stderr else ""
@@ -220,32 +174,6 @@ def wait_any(conns: Sequence[Connection], timeout_s: float = _POLL_S) -> list[Co
     from multiprocessing.connection import wait
 
     return [c for c in wait(list(conns), timeout=timeout_s) if isinstance(c, Connection)]
-
-
-def _exit_on_sigterm(signum: int, frame: object) -> None:
-    """SIGTERM from the parent (``kill``): exit through the finally blocks, so SUMO is closed and its
-    temporary folder removed, quietly (SystemExit prints no traceback)."""
-    sys.exit(128 + signum)
-
-
-def _child_main(entry: str, host: str, port: int) -> None:
-    """A worker: read the key on stdin, call back, run ``entry(conn)``. A parent that is gone (it
-    failed, was interrupted, or killed us while we started) is not an error worth a traceback."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns Ctrl-C and stops us
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    try:
-        authkey = sys.stdin.buffer.read()
-        conn = Client((host, port), authkey=authkey)
-    except (OSError, EOFError, AuthenticationError):
-        sys.exit(1)
-    module, _, function = entry.partition(":")
-    try:
-        getattr(importlib.import_module(module), function)(conn)
-    except (EOFError, BrokenPipeError, ConnectionResetError):
-        sys.exit(1)  # the parent went away mid-task
-    except Exception:
-        traceback.print_exc()
-        sys.exit(1)
 
 
 # --- the worker pool: what training and evaluation ask of their workers, whichever backend runs them ----
