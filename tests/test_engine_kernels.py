@@ -108,7 +108,9 @@ def test_impede_and_flow_parts_keep_the_former_kernels_arithmetic(n_brakes: int)
     want[:, 3] = (-1.0 * zone_brakes)[copy]
     want[:, 2] = -5.0 * np.bincount(impeded_by, minlength=n_rows)[egos]
     z = np.zeros(n_rows)
-    before = TrafficSnapshot(tuple(map(str, range(n_rows))), np.full(n_rows, MAIN), z, z, z, z + 5.0, z + 20.0)
+    before = TrafficSnapshot(
+        tuple(map(str, range(n_rows))), np.full(n_rows, MAIN), z, z, z, z + 5.0, z + 20.0
+    )
     ctx = StepContext(
         config=RewardConfig(),
         copies=k,

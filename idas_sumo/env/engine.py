@@ -17,7 +17,6 @@ or time ran out.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +43,7 @@ from idas_sumo.env.front_cars import front_cars
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
+    HardBrakes,
     _all_allowed,
     _checked_actions,
     _end_codes,
@@ -51,11 +51,7 @@ from idas_sumo.env.kernels import (
     _next_speeds,
 )
 from idas_sumo.env.layout import (
-    ACCEL_SCALE_MPS2,
-    B_TYPE_SCALE,
-    DIST_SCALE_M,
     OBS_DIM,
-    SPEED_SCALE_MPS,
 )
 from idas_sumo.env.observation import build_observations
 from idas_sumo.env.outcome import END_REASONS, EpisodeOutcome, is_perfect, is_success
@@ -64,13 +60,10 @@ from idas_sumo.env.routes import Routes
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.env.scoring import Scores, StepContext, check_terms, impeding_vehicles, score
 from idas_sumo.env.snapshot import (
-    MAIN,
-    MERGE,
-    OUT,
     TrafficSnapshot,
 )
 from idas_sumo.env.solo import _SoloBackend
-from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.env.state_layout import critic_state
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import (
     STEP_LENGTH_S,
@@ -87,19 +80,6 @@ from idas_sumo.sim.netgen import MergeNet
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 _IMPEDE = REWARD_PART_NAMES.index("impede")
-
-
-@dataclass(frozen=True)
-class _Brakes:
-    """A step's hard brakes, placed where each braking car was when it decided (the step's start)."""
-
-    rows: IntArray
-    """Rows of the step's first snapshot: the agents' (batch order), then SUMO's cars'."""
-    per_copy: IntArray
-    zone_per_copy: IntArray
-    """Of those, within the merging zone (each costs the flow penalty)."""
-    ids: list[list[str]]
-    """Per copy: the braking vehicles, in the order counted."""
 
 
 class MergeEngine:
@@ -173,17 +153,7 @@ class MergeEngine:
             raise ValueError(f"{len(scenarios)} scenarios for {self.copies} slots")
         if self._backend is None:
             self._backend = self._make_backend()
-        self.slots = []
-        for s in scenarios:
-            self.slots.append(
-                _Slot(
-                    scenario=s,
-                    spec={v.id: v for v in s.vehicles},
-                    order={v.id: i for i, v in enumerate(s.vehicles)},
-                    state_slot={v.id: i for i, v in enumerate(s.vehicles) if i < STATE_SLOTS},
-                    outcome=EpisodeOutcome(s),
-                )
-            )
+        self.slots = [_Slot.of(s) for s in scenarios]
         # b_prio by (slot, road): the outgoing road takes the higher of the two incoming priorities.
         self._prio_by_road = np.array(
             [
@@ -470,31 +440,9 @@ class MergeEngine:
 
     def state(self, k: int) -> npt.NDArray[np.float32]:
         """Slot k's global state for the centralised critic (layout in ``env/state_layout.py``)."""
-        slot = self.slots[k]
-        state = np.zeros((STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
-        snap = self.snapshot
-        table = self._prio_by_road[k]
-        rows = self.rows_of(k)
-        for i in range(rows.start, rows.stop):
-            vid = snap.ids[i]
-            place = slot.state_slot.get(vid)
-            if place is None:
-                continue
-            spec = slot.spec[vid]
-            road = int(snap.road[i])
-            state[place] = (
-                1.0,
-                road == MAIN,
-                road == MERGE,
-                road == OUT,
-                snap.dist_to_merge_m[i] / DIST_SCALE_M,
-                snap.speed_mps[i] / SPEED_SCALE_MPS,
-                snap.accel_mps2[i] / ACCEL_SCALE_MPS2,
-                table[road],
-                spec.b_type / B_TYPE_SCALE,
-                float(self._cars.state[self._car[i]] == ACTIVE),
-            )
-        return state.reshape(STATE_DIM)
+        slot, rows = self.slots[k], self.rows_of(k)
+        acting = self._cars.state[self._car[rows]] == ACTIVE
+        return critic_state(self.snapshot, rows, slot.state_slot, slot.spec, self._prio_by_road[k], acting)
 
     # -- stepping: simulate -> observe -> score -> terminate -> info ----------------------------
     def step(self, actions: npt.ArrayLike) -> StepResult:
@@ -578,7 +526,7 @@ class MergeEngine:
         before: TrafficSnapshot,
         rows_before: IntArray,
         acting: npt.NDArray[np.bool_],
-    ) -> _Brakes:
+    ) -> HardBrakes:
         """The step's hard brakes: agents that chose the hard brake, then SUMO-driven cars of acting copies
         that braked hard on their own, each placed where it was when it decided."""
         cars = self._cars
@@ -598,7 +546,7 @@ class MergeEngine:
         ids: list[list[str]] = [[] for _ in self.slots]
         for r, k in zip(rows.tolist(), copy.tolist(), strict=True):
             ids[k].append(before.ids[r])
-        return _Brakes(rows, per_copy, zone_per_copy, ids)
+        return HardBrakes(rows, per_copy, zone_per_copy, ids)
 
     def _observe_ends(self, batch: AgentBatch, agents: _Agents, events: BatchStepEvents) -> IntArray:
         """Each agent's end reason code, the first that holds: collided, removed, finished, else timeout
@@ -637,7 +585,7 @@ class MergeEngine:
         batch: AgentBatch,
         agents: _Agents,
         scores: Scores,
-        brakes: _Brakes,
+        brakes: HardBrakes,
         events: BatchStepEvents,
         acting: npt.NDArray[np.bool_],
     ) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import numpy.typing as npt
 
@@ -12,6 +14,20 @@ from idas_sumo.env.jit import kernel
 from idas_sumo.env.outcome import END_REASONS, HARD_BRAKE_DETECT_MPS2
 
 IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class HardBrakes:
+    """A step's hard brakes, placed where each braking car was when it decided (the step's start)."""
+
+    rows: IntArray
+    """Rows of the step's first snapshot: the agents' (batch order), then SUMO's cars'."""
+    per_copy: IntArray
+    zone_per_copy: IntArray
+    """Of those, within the merging zone (each costs the flow penalty)."""
+    ids: list[list[str]]
+    """Per copy: the braking vehicles, in the order counted."""
+
 
 _REASON_BY_CODE: tuple[str, ...] = ("", *END_REASONS)
 _REASON_CODE = {reason: code for code, reason in enumerate(_REASON_BY_CODE)}

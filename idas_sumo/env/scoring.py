@@ -129,10 +129,10 @@ def score(ctx: StepContext) -> Scores:
         else:
             parts[:, j] = term.fn(ctx)
             own.append(j)
-    rewards = parts[:, own[0]] if own else np.zeros(n)
+    rewards = parts[:, own[0]].copy() if own else np.zeros(n)
     for j in own[1:]:
         rewards = rewards + parts[:, j]
-    joint = np.bincount(ctx.copy, weights=rewards, minlength=ctx.copies)
+    joint: FloatArray = np.bincount(ctx.copy, weights=rewards, minlength=ctx.copies).astype(np.float64)
     for per_copy in shared:
         joint = joint + per_copy
     return Scores(parts, rewards, joint)
