@@ -56,7 +56,7 @@ class AgentBatch:
             self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type
         )
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
-        # scalars or the speeds are not is every entry tested (a fifth of a step's observation time).
+        # scalars or the speeds are not is every entry tested.
         speed = self.snapshot.speed_mps
         spread = float(np.ptp(speed)) if len(speed) else 0.0
         if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):

@@ -50,18 +50,14 @@ from idas_sumo.env.kernels import (
     _hard_brakes,
     _next_speeds,
 )
-from idas_sumo.env.layout import (
-    OBS_DIM,
-)
+from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.observation import build_observations
 from idas_sumo.env.outcome import END_REASONS, EpisodeOutcome, is_perfect, is_success
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M, MERGE_ZONE_RADIUS_M, REWARD_PART_NAMES
 from idas_sumo.env.routes import Routes
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.env.scoring import Scores, StepContext, check_terms, impeding_vehicles, score
-from idas_sumo.env.snapshot import (
-    TrafficSnapshot,
-)
+from idas_sumo.env.snapshot import TrafficSnapshot
 from idas_sumo.env.solo import _SoloBackend
 from idas_sumo.env.state_layout import critic_state
 from idas_sumo.errors import SimulationError
@@ -646,6 +642,7 @@ class MergeEngine:
         self._closed = True
 
 
+# The engine and, re-exported from their modules, the names the packages above import from here.
 __all__ = [
     "DEFAULT_MAX_EPISODE_S",
     "DEFAULT_SAFETY_MASK",

@@ -43,7 +43,7 @@ class EpisodeOutcome:
     impedes: int = 0
     """Agent-steps with an impede penalty."""
     returns: dict[str, float] = field(default_factory=dict)
-    """Per agent: the sum of its rewards (finish + collide + impede)."""
+    """Per agent: the sum of its rewards (its own parts: finish + collide + impede, and any extra own term)."""
     finish_times_s: dict[str, float] = field(default_factory=dict)
     """Per finished agent: the simulated time it crossed the finish line."""
     decision_steps: int = 0
