@@ -19,9 +19,11 @@ import numpy as np
 import pytest
 
 from idas_sumo.baselines.policies import RuleBasedPolicy
-from idas_sumo.env.actions import DELTA_ACCEL_MPS2, HARD_BRAKE
-from idas_sumo.env.engine import AgentBatch, EnvConfig, MergeEngine, Policy, StepResult, run_episodes
-from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec
+from idas_sumo.env.config import EnvConfig
+from idas_sumo.env.contracts import AgentBatch, Policy, StepResult
+from idas_sumo.env.engine import MergeEngine
+from idas_sumo.env.episodes import run_episodes
+from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.single import SingleEpisode
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot, lane_relations, leaders
 from idas_sumo.evaluation.protocol import suite_cases
@@ -188,7 +190,6 @@ def single_path_records(net_path: Path) -> list[dict[str, object]]:
     The golden file came from the old ``MergeSimulation`` on this loop; it keeps that value.
     """
     from idas_sumo.baselines.policies import fsm_idm_actions, idm_actions
-    from idas_sumo.env.single import SingleEpisode
 
     cases = golden_cases(net_path)
     sim = SingleEpisode(net_path, config=GOLDEN_ENV)
@@ -379,30 +380,3 @@ def test_copies_side_by_side_see_what_each_copy_alone_sees() -> None:
         np.testing.assert_array_equal(other_gap[part], alone_other_gap)
         start += size
     assert np.count_nonzero(obs[:, 5:]) > 0 and np.any(lead >= 0) and np.any(other >= 0)
-
-
-@pytest.mark.sumo
-def test_standstill_at_rest_lets_one_step_of_acceleration_move_a_stopped_car(net_path) -> None:  # type: ignore[no-untyped-def]
-    """A car hard-brakes from 3 m/s to rest. Under the default ('keeps_command') it keeps -4 m/s² at rest, so
-    Δa actions stay masked (-3.8 is outside [-2, 2]) and only a release gets it going; under the labelled
-    variant ('at_rest') its acceleration at rest is 0, and one Δa = +0.1 moves it."""
-    scenario = Scenario("stop", (VehicleSpec("car", "main", 100.0, 3.0),))
-    up = DELTA_ACCEL_MPS2.index(0.1)
-    for standstill, accel_at_rest in (("keeps_command", -4.0), ("at_rest", 0.0)):
-        sim = SingleEpisode(net_path, config=EnvConfig(standstill=standstill))  # type: ignore[arg-type]
-        try:
-            sim.reset(scenario)
-            for _ in range(4):  # 3.0 → 2.2 → 1.4 → 0.6 → 0 m/s
-                sim.step({"car": HARD_BRAKE})
-            assert sim.snapshot.speed_mps[0] == 0.0
-            assert sim.prev_accel("car") == accel_at_rest
-            allowed = bool(sim.batch.masks[0, up])
-            assert allowed is (standstill == "at_rest")
-            if allowed:
-                sim.step({"car": up})
-                sim.step({"car": 2})  # Δa = 0: keep the +0.1
-                assert sim.snapshot.speed_mps[0] > 0.0
-        finally:
-            sim.close()
-    with pytest.raises(ValueError, match="standstill"):
-        EnvConfig(standstill="frozen")  # type: ignore[arg-type]

@@ -7,21 +7,21 @@ from typing import Any
 import numpy as np
 import pytest
 
-from idas_sumo.env.engine import (
+from idas_sumo.env.cars import ACTIVE, ENDED, WAITING
+from idas_sumo.env.kernels import (
     _COLLIDED,
     _FINISHED,
     _REMOVED,
-    ACTIVE,
-    ENDED,
-    HARD_BRAKE_DETECT_MPS2,
-    WAITING,
     _all_allowed,
     _end_codes,
     _first_outside,
     _hard_brakes,
     _next_speeds,
-    _penalty_parts,
 )
+from idas_sumo.env.outcome import HARD_BRAKE_DETECT_MPS2
+from idas_sumo.env.rewards import RewardConfig
+from idas_sumo.env.scoring import StepContext, score
+from idas_sumo.env.snapshot import MAIN, TrafficSnapshot
 
 
 def numpy_hard_brakes(*args: Any) -> tuple[np.ndarray, ...]:
@@ -95,18 +95,36 @@ def test_end_codes_match_numpy() -> None:
 
 
 @pytest.mark.parametrize("n_brakes", [0, 1, 7])
-def test_penalty_parts_match_numpy(n_brakes: int) -> None:
+def test_impede_and_flow_parts_keep_the_former_kernels_arithmetic(n_brakes: int) -> None:
+    """The impede and flow terms give, bit for bit (-0.0 included), what the former ``_penalty_parts`` kernel
+    wrote: the copy's flow penalty, and -5 times the brakes each agent caused."""
     rng = np.random.default_rng(n_brakes)
     n, n_rows, k = 12, 20, 3
     copy = np.sort(rng.integers(0, k, n))
     egos = rng.permutation(n_rows)[:n].astype(np.int64)
-    flow = -1.0 * rng.integers(0, 3, k)
+    zone_brakes = rng.integers(0, 3, k)
     impeded_by = rng.integers(0, n_rows, n_brakes).astype(np.int64)
     want = np.zeros((n, 4))
-    want[:, 3] = flow[copy]
+    want[:, 3] = (-1.0 * zone_brakes)[copy]
     want[:, 2] = -5.0 * np.bincount(impeded_by, minlength=n_rows)[egos]
-    got = np.zeros((n, 4))
-    _penalty_parts(got, copy, egos, flow, impeded_by, n_rows, -5.0, 3, 2)
+    z = np.zeros(n_rows)
+    before = TrafficSnapshot(
+        tuple(map(str, range(n_rows))), np.full(n_rows, MAIN), z, z, z, z + 5.0, z + 20.0
+    )
+    ctx = StepContext(
+        config=RewardConfig(),
+        copies=k,
+        copy=copy,
+        b_type=np.zeros(n),
+        b_prio=np.zeros(n),
+        egos=egos,
+        end_code=np.zeros(n, dtype=np.int64),
+        before=before,
+        brakes=np.zeros(0, dtype=np.int64),
+        zone_brakes=zone_brakes,
+        impeded_by=impeded_by,
+    )
+    got = score(ctx).parts
     assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist()
 
 

@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from idas_sumo.env.actions import HARD_BRAKE, N_DELTA_ACTIONS
-from idas_sumo.env.engine import EnvConfig, _impeding_vehicles
-from idas_sumo.env.rewards import (
-    FLOW_PENALTY_PER_HARD_BRAKE,
-    RewardConfig,
-    collide_reward,
-    finish_reward,
-    flow_penalty,
-    hard_brakes_in_merge_zone,
-)
+from idas_sumo.config import load_toml
+from idas_sumo.env import scoring
+from idas_sumo.env.actions import HARD_BRAKE
+from idas_sumo.env.config import EnvConfig
+from idas_sumo.env.engine import MergeEngine
+from idas_sumo.env.rewards import RewardConfig, collide_reward, finish_reward
 from idas_sumo.env.scenario import Scenario, VehicleSpec
+from idas_sumo.env.scoring import StepContext, impeding_vehicles, register_reward_term
 from idas_sumo.env.single import SingleEpisode
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot
 from idas_sumo.errors import InputError
@@ -25,14 +24,6 @@ from idas_sumo.errors import InputError
 def test_finish(b_type: float, expected: float) -> None:
     # (15·b_type + 50)/4: (-30 + 50)/4 = 5, 50/4 = 12.5, (30 + 50)/4 = 20.
     assert float(finish_reward(b_type)) == expected
-
-
-@pytest.mark.parametrize(("b_type", "expected"), [(-2.0, 20.0), (0.0, 12.5), (2.0, 5.0)])
-def test_finish_slope_cooperative_waits(b_type: float, expected: float) -> None:
-    # (-15·b_type + 50)/4: (30 + 50)/4 = 20, 12.5, (-30 + 50)/4 = 5; the config's method gives the same.
-    assert float(finish_reward(b_type, "cooperative_waits")) == expected
-    assert float(RewardConfig(finish_slope="cooperative_waits").finish(b_type)) == expected
-    assert float(RewardConfig().finish(b_type)) == float(finish_reward(b_type))
 
 
 @pytest.mark.parametrize(
@@ -49,20 +40,6 @@ def test_collide(prio: int, sign: str, expected: float) -> None:
     assert float(collide_reward(prio, sign)) == expected  # type: ignore[arg-type]
 
 
-def test_flow_counts_hard_brakes_within_50_m() -> None:
-    # Hard brakes at these distances to the merge point; |d| <= 50 counts: 10, -30, 50, -50 -> -4.
-    assert flow_penalty([10.0, -30.0, 50.0, -50.0, 50.1, -60.0, 200.0]) == -4.0
-    assert flow_penalty([]) == 0.0
-
-
-def test_flow_penalty_is_minus_one_per_merge_zone_hard_brake() -> None:
-    # StepOutcome.hard_brakes_merge_zone counts these brakes; the paper's flow penalty is -1 for each.
-    distances = [10.0, -30.0, 50.0, -50.0, 50.1, -60.0, 200.0]
-    assert hard_brakes_in_merge_zone(distances) == 4
-    assert FLOW_PENALTY_PER_HARD_BRAKE == -1.0
-    assert flow_penalty(distances) == -hard_brakes_in_merge_zone(distances)
-
-
 def _snapshot(rows: list[tuple[str, int, float]]) -> TrafficSnapshot:
     n = len(rows)
     return TrafficSnapshot(
@@ -77,7 +54,7 @@ def _snapshot(rows: list[tuple[str, int, float]]) -> TrafficSnapshot:
 
 
 def _blamed(snap: TrafficSnapshot, brake_rows: list[int]) -> list[str]:
-    return [snap.ids[i] for i in _impeding_vehicles(snap, np.array(brake_rows, dtype=np.int64))]
+    return [snap.ids[i] for i in impeding_vehicles(snap, np.array(brake_rows, dtype=np.int64))]
 
 
 def test_impede_goes_to_the_vehicle_directly_ahead() -> None:
@@ -162,7 +139,7 @@ def test_merge_zone_hard_brakes_are_counted_not_read_off_the_flow_penalty(
         assert out.hard_brakes_merge_zone == 2
         assert out.reward_parts["back"]["flow"] == -out.hard_brakes_merge_zone
 
-        monkeypatch.setattr("idas_sumo.env.engine.FLOW_PENALTY_PER_HARD_BRAKE", -3.0)
+        monkeypatch.setattr("idas_sumo.env.scoring.FLOW_PENALTY_PER_HARD_BRAKE", -3.0)
         sim.reset(_two_on_main(220.0, gap_m=15.0))
         out = sim.step({"back": HARD_BRAKE, "front": HARD_BRAKE})
         assert out.reward_parts["back"]["flow"] == -6.0
@@ -173,20 +150,16 @@ def test_merge_zone_hard_brakes_are_counted_not_read_off_the_flow_penalty(
 
 @pytest.mark.sumo
 def test_collision_sign_config_is_used(net_path) -> None:  # type: ignore[no-untyped-def]
-    # A fast car runs into a stopped one on the main road (prio 1): paper -10, other sign -5; the labelled
-    # price variant (collide_scale) multiplies either.
+    # A fast car runs into a stopped one on the main road (prio 1): paper -5·1 - 5 = -10, the other sign
+    # -5·(1 - 1) - 5 = -5; both cars came from the main road, so both pay it.
     scenario = Scenario(
         "crash",
         (VehicleSpec("fast", "main", 100.0, 20.0), VehicleSpec("stopped", "main", 112.0, 0.0)),
         main_prio=1,
         merge_prio=0,
     )
-    for sign, scale, expected in (
-        ("paper", 1.0, -10.0),
-        ("lower_priority_pays", 1.0, -5.0),
-        ("paper", 4.0, -40.0),
-    ):
-        reward = RewardConfig(collision_sign=sign, collide_scale=scale)  # type: ignore[arg-type]
+    for sign, expected in (("paper", -10.0), ("lower_priority_pays", -5.0)):
+        reward = RewardConfig(collision_sign=sign)  # type: ignore[arg-type]
         sim = SingleEpisode(net_path, config=EnvConfig(reward=reward))
         try:
             sim.reset(scenario)
@@ -203,74 +176,120 @@ def test_collision_sign_config_is_used(net_path) -> None:  # type: ignore[no-unt
             sim.close()
 
 
-@pytest.mark.parametrize("scale", [0.0, -1.0, float("nan"), float("inf")])
-def test_collide_scale_must_be_a_positive_number(scale: float) -> None:
-    with pytest.raises(InputError, match="collide_scale"):
-        RewardConfig(collide_scale=scale)
-
-
 @pytest.mark.sumo
-def test_impede_blame_braker_if_unforced_charges_a_chosen_brake_to_the_braker(net_path) -> None:  # type: ignore[no-untyped-def]
-    """The labelled variant (RewardConfig.impede_blame): a brake chosen while a Δa action was allowed is
-    paid by the braker (-5), with or without a car ahead; a brake the mask forced still goes to the car
-    ahead, as under the default."""
-    variant = EnvConfig(max_episode_s=10.0, reward=RewardConfig(impede_blame="braker_if_unforced"))
-    sim = SingleEpisode(net_path, config=variant)
+def test_a_finish_pays_the_drivers_type_once(net_path) -> None:  # type: ignore[no-untyped-def]
+    """A car of b_type 2 that crosses the finish line (50 m past the merge point) gets (15·2 + 50)/4 = 20 in
+    its finish part and its reward, once; the steps before pay nothing."""
+    scenario = Scenario("finish", (VehicleSpec("car", "main", 240.0, 20.0, b_type=2.0),))
+    sim = SingleEpisode(net_path, config=EnvConfig(max_episode_s=20.0))
     try:
-        # Chosen: 20 m apart at the same speed, every Δa is allowed, and back brakes anyway.
-        sim.reset(_two_on_main(150.0))
-        _, masks = sim.observe(["back"])
-        assert masks[0, :N_DELTA_ACTIONS].any()
-        out = sim.step({"back": HARD_BRAKE, "front": 2})
-        assert out.rewards == {"back": -5.0, "front": 0.0}
-        assert out.hard_brakes == 1 and out.joint_reward == -5.0
-        # Alone on the road: under the default nobody pays, under the variant the braker does.
-        alone = Scenario("alone", (VehicleSpec("solo", "main", 100.0, 10.0, b_type=0.0),))
-        sim.reset(alone)
-        assert sim.step({"solo": HARD_BRAKE}).rewards == {"solo": -5.0}
-        # Forced: 6 m behind a car 8 m/s slower, only the hard brake is allowed; the car ahead pays.
-        forced = Scenario(
-            "forced",
-            (
-                VehicleSpec("back", "main", 150.0, 16.0, b_type=0.0),
-                VehicleSpec("front", "main", 161.0, 8.0, b_type=0.0),
-            ),
-        )
-        sim.reset(forced)
-        _, masks = sim.observe(["back"])
-        assert not masks[0, :N_DELTA_ACTIONS].any()
-        out = sim.step({"back": HARD_BRAKE, "front": 2})
-        assert out.rewards == {"back": 0.0, "front": -5.0}
+        sim.reset(scenario)
+        finish_parts = []
+        while sim.active_agents:
+            out = sim.step({"car": 2})
+            finish_parts.append(out.reward_parts["car"]["finish"])
+        assert out.end_reason == {"car": "finished"}
+        assert finish_parts[-1] == 20.0 and out.rewards == {"car": 20.0} and out.joint_reward == 20.0
+        assert set(finish_parts[:-1]) == {0.0}
     finally:
         sim.close()
-    default = SingleEpisode(net_path, config=EnvConfig(max_episode_s=10.0))
-    try:
-        default.reset(Scenario("alone", (VehicleSpec("solo", "main", 100.0, 10.0, b_type=0.0),)))
-        assert default.step({"solo": HARD_BRAKE}).rewards == {"solo": 0.0}
-    finally:
-        default.close()
 
 
 @pytest.mark.sumo
-def test_brake_count_manoeuvre_prices_a_brake_once_while_the_statistics_count_every_step(net_path) -> None:  # type: ignore[no-untyped-def]
-    """The labelled variant (RewardConfig.brake_count = 'manoeuvre'): a car that brakes hard two steps in a
-    row costs the car ahead -5 and the merging zone -1 once, at the first step; the default prices both
-    steps. The hard-brake counts (the evaluation's) stay per step under both."""
-    for count, impede, flow in (
-        ("step", [-5.0, -5.0], [-2.0, -2.0]),
-        ("manoeuvre", [-5.0, 0.0], [-2.0, 0.0]),
-    ):
-        config = EnvConfig(max_episode_s=10.0, reward=RewardConfig(brake_count=count))  # type: ignore[arg-type]
-        sim = SingleEpisode(net_path, config=config)
-        try:
-            sim.reset(_two_on_main(220.0, gap_m=15.0))  # both in the merging zone, back 15 m behind front
-            seen_impede, seen_flow = [], []
-            for _ in range(2):
-                out = sim.step({"back": HARD_BRAKE, "front": HARD_BRAKE})
-                assert out.hard_brakes == 2 and out.hard_brakes_merge_zone == 2
-                seen_impede.append(out.reward_parts["front"]["impede"])
-                seen_flow.append(out.reward_parts["back"]["flow"])
-            assert seen_impede == impede, count
-            assert seen_flow == flow, count
-        finally:
-            sim.close()
+def test_a_term_registered_from_outside_is_scored_in_its_own_column(
+    net_path, monkeypatch: pytest.MonkeyPatch
+) -> None:  # type: ignore[no-untyped-def]
+    """The registry is the extension point: a term registered by name and named in ``extra_terms`` is called
+    with the step's context; its part lands in its own column of ``reward_parts``, an individual one in the
+    agent's reward, a shared one once per copy in the joint reward. The paper's parts are as without it."""
+    monkeypatch.setattr(scoring, "_TERMS", dict(scoring._TERMS))
+    seen: list[StepContext] = []
+
+    def brake_tax(ctx: StepContext) -> np.ndarray:
+        seen.append(ctx)
+        return -0.5 * np.isin(ctx.egos, ctx.brakes)  # -0.5 for each agent that braked hard
+
+    register_reward_term("brake_tax", brake_tax)
+    register_reward_term("per_copy", lambda ctx: np.full(ctx.copies, -0.25), shared=True)
+    with pytest.raises(ValueError, match="registered already"):
+        register_reward_term("brake_tax", brake_tax)
+    config = EnvConfig(max_episode_s=10.0, reward=RewardConfig(extra_terms=("brake_tax", "per_copy")))
+    sim = SingleEpisode(net_path, config=config)
+    try:
+        sim.reset(_two_on_main(150.0))
+        out = sim.step({"back": HARD_BRAKE, "front": 2})
+        assert len(seen) == 1 and seen[0].brakes.tolist() == [seen[0].egos[0]]
+        assert out.reward_parts["back"] == {
+            "finish": 0.0,
+            "collide": 0.0,
+            "impede": 0.0,
+            "flow": 0.0,
+            "brake_tax": -0.5,
+            "per_copy": -0.25,
+        }
+        assert out.reward_parts["front"]["impede"] == -5.0 and out.reward_parts["front"]["brake_tax"] == 0.0
+        assert out.rewards == {"back": -0.5, "front": -5.0}
+        assert out.joint_reward == -5.5 - 0.25
+    finally:
+        sim.close()
+
+
+def test_an_unregistered_term_is_refused_before_any_simulation(net_path) -> None:  # type: ignore[no-untyped-def]
+    config = EnvConfig(reward=RewardConfig(extra_terms=("no_such_term",)))
+    with pytest.raises(InputError, match="unknown reward term 'no_such_term'; registered: finish, collide"):
+        MergeEngine(net_path, config=config)
+
+
+@pytest.mark.parametrize(
+    ("table", "key", "former"),
+    [
+        ("reward", "impede_blame", "car_ahead"),
+        ("reward", "brake_count", "step"),
+        ("reward", "collide_scale", 1.0),
+        ("reward", "timeout", "free"),
+        ("reward", "finish_slope", "paper"),
+        (None, "standstill", "keeps_command"),
+    ],
+)
+def test_retired_switches_load_at_their_former_default_and_refuse_a_variant(
+    tmp_path, table: str | None, key: str, former: object
+) -> None:  # type: ignore[no-untyped-def]
+    """A TOML (or a checkpoint's stored config) holding a retired switch at its former default loads as if
+    it were not there; any other value is refused with one line that names the key."""
+    from idas_sumo.training.config import load_train_config
+
+    def write(name: str, value: object | None) -> Path:
+        line = "" if value is None else f"{key} = {value!r}".replace("'", '"') + "\n"
+        path = tmp_path / f"{name}.toml"
+        path.write_text(f"[{table}]\n{line}" if table else line)
+        return path
+
+    assert load_train_config(write("former", former)) == load_train_config(write("without", None))
+    variant = {"impede_blame": "braker_if_unforced", "brake_count": "manoeuvre", "collide_scale": 20.0}
+    with pytest.raises(InputError) as err:
+        load_train_config(write("variant", variant.get(key, "other")))
+    assert "\n" not in str(err.value) and key in str(err.value) and "retired" in str(err.value)
+
+
+def test_a_brake_count_manoeuvre_toml_is_refused_with_one_line(tmp_path: Path) -> None:
+    from idas_sumo.training.config import load_train_config
+
+    path = tmp_path / "manoeuvre.toml"
+    path.write_text('[reward]\nbrake_count = "manoeuvre"\n')
+    assert load_toml(path) == {"reward": {"brake_count": "manoeuvre"}}
+    with pytest.raises(InputError) as err:
+        load_train_config(path)
+    assert str(err.value) == (
+        f"{path}.reward.brake_count: 'manoeuvre' is a retired experiment variant (experiments/README.md); "
+        "this build runs only 'step'"
+    )
+
+
+def test_the_shipped_idas_checkpoint_still_loads_its_training_config() -> None:
+    """idas.pt stores the config it was trained with, retired switches at their defaults included."""
+    from idas_sumo.resources import POLICY_DIR
+    from idas_sumo.training.checkpoint import load_checkpoint
+
+    checkpoint = load_checkpoint(POLICY_DIR / "idas.pt")
+    assert checkpoint.config.reward == RewardConfig()
+    assert checkpoint.config.env_config().reward.part_names == ("finish", "collide", "impede", "flow")

@@ -679,17 +679,17 @@ def test_invalid_action_names_the_agent(parallel_env: Any, bad: Any) -> None:
 
 @pytest.mark.sumo
 def test_non_finite_observation_names_the_agent(parallel_env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    import idas_sumo.env.engine as engine
+    import idas_sumo.env.contracts as contracts
     from idas_sumo.errors import SimulationError
 
-    real = engine.build_observations_checked
+    real = contracts.build_observations_checked
 
     def poisoned(snapshot: Any, egos: Any, prev_accel: Any, *args: Any) -> Any:
         prev_accel = np.array(prev_accel, dtype=np.float64)
         prev_accel[-1] = np.nan  # the last agent asked for: a NaN in its acceleration scalar
         return real(snapshot, egos, prev_accel, *args)
 
-    monkeypatch.setattr(engine, "build_observations_checked", poisoned)
+    monkeypatch.setattr(contracts, "build_observations_checked", poisoned)
     with pytest.raises(SimulationError, match=r"non-finite observation for agent 'g0' at t = "):
         parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
 

@@ -10,7 +10,8 @@ import numpy.typing as npt
 from gymnasium import Env, spaces
 
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask
-from idas_sumo.env.engine import EnvConfig, Policy, placeholder_mask, with_safety_mask
+from idas_sumo.env.config import EnvConfig, with_safety_mask
+from idas_sumo.env.contracts import Policy, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.parallel import DEFAULT_NET
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, check_against_net, generate_scenario

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S
+from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S
 from idas_sumo.env.layout import VISIBILITY_M
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.errors import InputError

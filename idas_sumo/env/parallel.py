@@ -10,7 +10,8 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask
-from idas_sumo.env.engine import EnvConfig, placeholder_mask, with_safety_mask
+from idas_sumo.env.config import EnvConfig, with_safety_mask
+from idas_sumo.env.contracts import placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
 from idas_sumo.env.single import SingleEpisode, StepOutcome

@@ -14,8 +14,9 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.engine import AgentBatch, EnvConfig, MergeEngine
-from idas_sumo.env.rewards import REWARD_PART_NAMES
+from idas_sumo.env.config import EnvConfig
+from idas_sumo.env.contracts import AgentBatch
+from idas_sumo.env.engine import MergeEngine
 from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.snapshot import ROAD_NAMES, TrafficSnapshot
 from idas_sumo.errors import SimulationError
@@ -168,7 +169,7 @@ class SingleEpisode:
         ).reshape(len(acting))
         result = self.engine.step(requested)
         parts = {
-            a: dict(zip(REWARD_PART_NAMES, map(float, result.reward_parts[i]), strict=True))
+            a: dict(zip(result.part_names, map(float, result.reward_parts[i]), strict=True))
             for i, a in enumerate(acting)
         }
         end_reason = {a: r for a, r in zip(acting, result.end_reason, strict=True) if r}

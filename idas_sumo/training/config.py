@@ -9,11 +9,11 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, EnvConfig, SafetyMask, Standstill
+from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, EnvConfig, SafetyMask
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -124,9 +124,8 @@ class TrainConfig:
     instead of from the policy (ours, a labelled variant; 0: none, the paper). Those rows train the critics but
     not the actor, and under ``[learner] central_action_rows = "explored"`` they alone teach Q what each
     action leads to (docs/results.md, "Declared: a critic that learns actions from random ones")."""
-    standstill: Standstill = "keeps_command"
-    """The acceleration an agent at rest drives on with in training and validation (``EnvConfig.standstill``):
-    'keeps_command' (the default) or 'at_rest' (ours, a labelled variant). Evaluation keeps the default."""
+    RETIRED_KEYS: ClassVar[dict[str, Any]] = {"standstill": "keeps_command"}
+    """Experiment switches measured and retired (experiments/README.md): files holding the default still load."""
     junction: str = ""
     """Which merge of a net with several to train on (its junction id, ``idas-sumo nets inspect``);
     "": the net's only merge (``EnvConfig.junction``)."""
@@ -142,7 +141,6 @@ class TrainConfig:
             reward=self.reward,
             safety_mask=self.safety_mask,
             junction=self.junction or None,
-            standstill=self.standstill,
         )
 
     def __post_init__(self) -> None:

@@ -1,0 +1,127 @@
+"""What the engine and the policies exchange: the batch of agents a step acts on, the policy contract, a step's result."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.layout import OBS_DIM, RELATIVE_SPEED_SCALE_MPS
+from idas_sumo.env.observation import build_observations_checked
+from idas_sumo.env.rewards import REWARD_PART_NAMES
+from idas_sumo.env.snapshot import TrafficSnapshot
+from idas_sumo.errors import SimulationError
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+_FLOAT32_SAFE = 3e38
+"""Below float32's largest value (3.4e38) with room for rounding: a relative speed under it stays finite."""
+
+
+@dataclass
+class AgentBatch:
+    """Every active agent of every copy at one step (row i: agent ``ids[i]`` of copy ``copy[i]``)."""
+
+    ids: tuple[str, ...]
+    """Copy-local agent ids (the same id may appear in several copies)."""
+    copy: IntArray
+    egos: IntArray
+    """Each agent's row in ``snapshot``."""
+    prev_accel: FloatArray
+    """The acceleration each agent drives with (m/s²)."""
+    masks: npt.NDArray[np.int8]
+    """(n, N_ACTIONS) allowed actions."""
+    snapshot: TrafficSnapshot
+    """Every vehicle of every copy (copy-aware)."""
+    b_prio: FloatArray
+    b_type: FloatArray
+    time_s: float
+    job: IntArray | None = None
+    """Each agent's job (its scenario's index in ``run_episodes``), set by the episode loop."""
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @functools.cached_property
+    def obs(self) -> npt.NDArray[np.float32]:
+        """(n, OBS_DIM) observations, built on first use (rule-based policies never need them)."""
+        if not len(self.ids):
+            return np.zeros((0, OBS_DIM), dtype=np.float32)
+        obs, scalars_finite = build_observations_checked(
+            self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type
+        )
+        # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
+        # scalars or the speeds are not is every entry tested.
+        speed = self.snapshot.speed_mps
+        spread = float(np.ptp(speed)) if len(speed) else 0.0
+        if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
+            finite = np.isfinite(obs).all(axis=1)
+            if not finite.all():
+                bad = self.ids[int(np.argmin(finite))]
+                raise SimulationError(
+                    f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
+                )
+        return obs
+
+    @functools.cached_property
+    def copy_runs(self) -> list[tuple[int, int, int]]:
+        """(copy, lo, hi): the rows of each copy's agents (a batch comes copy by copy)."""
+        return _copy_runs(self.copy)
+
+
+class Policy(Protocol):
+    """How a method acts: actions (len(rows),) for the agents ``rows`` of ``batch``, never a masked one.
+
+    A policy holds its own choices (greedy or sampling, its seeded generator); learned actors answer
+    all the rows in one forward pass.
+    """
+
+    def act(self, batch: AgentBatch, rows: IntArray) -> IntArray: ...
+
+
+@dataclass
+class StepResult:
+    """One step, per agent of the batch that acted (aligned with it) and per copy."""
+
+    rewards: FloatArray
+    """The sum of the agent's own parts: finish + collide + impede (+ any extra individual term)."""
+    reward_parts: FloatArray
+    """(n, len(part_names)): the named parts; a shared part ('flow') is the agent's copy's value."""
+    end_reason: tuple[str, ...]
+    """'' while the agent goes on, else one of END_REASONS."""
+    applied: IntArray
+    """The actions applied (a masked request replaced by the closest allowed one)."""
+    joint_reward: FloatArray
+    """Per copy: the sum of its agents' rewards plus its flow penalty (the central critic's reward)."""
+    collisions: list[list[tuple[str, str]]]
+    """Per copy: collision pairs."""
+    hard_brakes: IntArray
+    """Per copy."""
+    hard_brakes_merge_zone: IntArray
+    """Per copy."""
+    hard_brake_ids: list[list[str]]
+    """Per copy: the vehicles counted in ``hard_brakes``, in the order counted (agents, then SUMO's cars)."""
+    part_names: tuple[str, ...] = REWARD_PART_NAMES
+    """The columns of ``reward_parts`` (``RewardConfig.part_names``)."""
+
+
+def placeholder_mask() -> npt.NDArray[np.int8]:
+    """The action mask handed back with an agent's last observation: one action, never used."""
+    mask = np.zeros(N_ACTIONS, dtype=np.int8)
+    mask[0] = 1
+    return mask
+
+
+def _copy_runs(copy: IntArray) -> list[tuple[int, int, int]]:
+    """(copy, lo, hi) for each run of equal entries in ``copy`` (a batch comes copy by copy)."""
+    if len(copy) == 0:
+        return []
+    starts = np.flatnonzero(np.diff(copy)) + 1
+    lo = [0, *starts.tolist()]
+    hi = [*starts.tolist(), len(copy)]
+    return list(zip(copy[lo].tolist(), lo, hi, strict=True))

@@ -1,0 +1,158 @@
+"""The engine's compiled step loops (numba) and the end-reason codes they return."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.cars import ACTIVE
+from idas_sumo.env.contracts import AgentBatch
+from idas_sumo.env.jit import kernel
+from idas_sumo.env.outcome import END_REASONS, HARD_BRAKE_DETECT_MPS2
+
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class HardBrakes:
+    """A step's hard brakes, placed where each braking car was when it decided (the step's start)."""
+
+    rows: IntArray
+    """Rows of the step's first snapshot: the agents' (batch order), then SUMO's cars'."""
+    per_copy: IntArray
+    zone_per_copy: IntArray
+    """Of those, within the merging zone (each costs the flow penalty)."""
+    ids: list[list[str]]
+    """Per copy: the braking vehicles, in the order counted."""
+
+
+_REASON_BY_CODE: tuple[str, ...] = ("", *END_REASONS)
+_REASON_CODE = {reason: code for code, reason in enumerate(_REASON_BY_CODE)}
+_COLLIDED, _REMOVED, _FINISHED = _REASON_CODE["collided"], _REASON_CODE["removed"], _REASON_CODE["finished"]
+
+
+def _checked_actions(batch: AgentBatch, actions: npt.ArrayLike) -> IntArray:
+    """Actions as int64 (n,), or a ValueError naming the first bad one's agent and the time."""
+    raw = np.asarray(actions)
+    n = len(batch)
+    if raw.shape != (n,):
+        raise ValueError(f"{raw.shape} actions for {n} agents")
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if raw.dtype.kind not in "iu":
+        bad = 0
+        for i, v in enumerate(raw.tolist()):
+            if isinstance(v, bool) or not isinstance(v, int):
+                bad = i
+                break
+        else:
+            raw = raw.astype(np.int64)
+        if raw.dtype.kind not in "iu":
+            raise ValueError(
+                f"invalid action {raw[bad]!r} for agent {batch.ids[bad]!r} at t = {batch.time_s:.1f} s: "
+                f"expected an int in [0, {N_ACTIONS})"
+            )
+    out = raw.astype(np.int64)
+    i = _first_outside(out, N_ACTIONS)
+    if i >= 0:
+        raise ValueError(
+            f"invalid action {int(out[i])} for agent {batch.ids[i]!r} at t = {batch.time_s:.1f} s: "
+            f"expected an int in [0, {N_ACTIONS})"
+        )
+    return out
+
+
+@kernel
+def _first_outside(actions, n_actions):
+    """The first index whose action is not in [0, n_actions), or -1."""
+    for i in range(actions.shape[0]):
+        if not 0 <= actions[i] < n_actions:
+            return i
+    return -1
+
+
+@kernel
+def _all_allowed(masks, actions):
+    """Whether each agent's action (all in range: ``_checked_actions``) is allowed by its mask row."""
+    for i in range(actions.shape[0]):  # noqa: SIM110 (numba compiles the loop, not a generator in all())
+        if masks[i, actions[i]] == 0:
+            return False
+    return True
+
+
+@kernel
+def _next_speeds(speed, egos, accel, step_s):
+    """The speed (m/s) each agent is told to reach in this step: v + a·dt, at least 0, as
+    ``np.maximum(v + a * dt, 0.0)`` gives it (a NaN stays NaN, -0.0 becomes 0.0)."""
+    out = np.empty(egos.shape[0])
+    for i in range(egos.shape[0]):
+        v = speed[egos[i]] + accel[i] * step_s
+        out[i] = v if v > 0.0 or v != v else 0.0
+    return out
+
+
+@kernel
+def _hard_brakes(
+    egos,
+    agent_brake,
+    accel,
+    car_of_row,
+    acting,
+    car_copy,
+    car_state,
+    rows_before,
+    copy_before,
+    dist_before,
+    zone_m,
+):
+    """The step's hard brakes as rows of the step's first snapshot: the agents' (``agent_brake``, batch
+    order), then those of the cars now braking at ``HARD_BRAKE_DETECT_MPS2`` or harder (rows of the new
+    snapshot, in order) that are no agents, drive in an acting copy and were on the road before.
+
+    Returns (rows, their copies, within ``zone_m`` of the merge point, brakes per copy, of those within
+    ``zone_m`` per copy); ``acting`` has one entry per copy."""
+    rows = np.empty(egos.shape[0] + accel.shape[0], dtype=np.int64)
+    m = 0
+    for i in range(egos.shape[0]):
+        if agent_brake[i]:
+            rows[m] = egos[i]
+            m += 1
+    for r in range(accel.shape[0]):
+        if accel[r] <= HARD_BRAKE_DETECT_MPS2:
+            c = car_of_row[r]
+            if acting[car_copy[c]] and car_state[c] != ACTIVE and rows_before[c] >= 0:
+                rows[m] = rows_before[c]
+                m += 1
+    rows = rows[:m].copy()
+    copy = np.empty(m, dtype=np.int64)
+    in_zone = np.empty(m, dtype=np.bool_)
+    per_copy = np.zeros(acting.shape[0], dtype=np.int64)
+    zone_per_copy = np.zeros(acting.shape[0], dtype=np.int64)
+    for i in range(m):
+        copy[i] = copy_before[rows[i]]
+        in_zone[i] = np.abs(dist_before[rows[i]]) <= zone_m
+        per_copy[copy[i]] += 1
+        if in_zone[i]:
+            zone_per_copy[copy[i]] += 1
+    return rows, copy, in_zone, per_copy, zone_per_copy
+
+
+@kernel
+def _end_codes(collided, row, dist, finish_below_m, otherwise):
+    """Each agent's end reason (``_REASON_CODE``), the first that holds: collided, removed (no ``row`` in
+    the new snapshot), finished (its distance to the merge point at or below ``finish_below_m``), else
+    ``otherwise`` (timeout, or going on)."""
+    code = np.empty(collided.shape[0], dtype=np.int64)
+    for i in range(collided.shape[0]):
+        if collided[i]:
+            code[i] = _COLLIDED
+        elif row[i] < 0:
+            code[i] = _REMOVED
+        elif dist[row[i]] <= finish_below_m:
+            code[i] = _FINISHED
+        else:
+            code[i] = otherwise
+    return code

@@ -1,0 +1,74 @@
+"""One scenario on a single-simulation backend behind the calls the engine makes of a ``BatchBackend``."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from idas_sumo.env.scenario import Scenario
+from idas_sumo.errors import SimulationError
+from idas_sumo.sim.backend import Backend, StepEvents
+from idas_sumo.sim.batch import BatchStates, BatchStepEvents
+
+
+class _SoloBackend:
+    """One scenario on a single-simulation backend (in-process, a subprocess, or sumo-gui), behind the
+    ``BatchBackend`` calls the engine makes: the K = 1 engine of the environments and of ``--gui``."""
+
+    copies = 1
+
+    def __init__(self, backend: Backend) -> None:
+        self._backend = backend
+        self._index: dict[str, int] = {}
+        """Vehicle id -> its index in the scenario."""
+
+    def reset(self, scenarios: Sequence[Scenario], extra_args: Sequence[str] = ()) -> None:
+        if len(scenarios) != 1:
+            raise SimulationError(f"{len(scenarios)} scenarios for a single simulation (a bug)")
+        self._backend.reset(scenarios[0], extra_args)
+        self._index = {v.id: i for i, v in enumerate(scenarios[0].vehicles)}
+
+    def global_id(self, copy: int, vehicle_id: str) -> str:
+        return vehicle_id
+
+    def step(self) -> BatchStepEvents:
+        events: StepEvents = self._backend.step()
+        return BatchStepEvents(events.time_s, [events])
+
+    def vehicle_states(self) -> BatchStates:
+        s = self._backend.vehicle_states()
+        n = len(s.ids)
+        zeros = np.zeros(n, dtype=np.int64)
+        return BatchStates(
+            s.ids,
+            zeros,
+            np.fromiter(map(self._index.get, s.ids, itertools.repeat(-1)), np.int64, n),
+            s.edge,
+            zeros,
+            s.lane_pos_m,
+            s.speed_mps,
+            s.accel_mps2,
+            np.array([0, n]),
+            s.lane_index,
+        )
+
+    def set_speeds(
+        self, vehicle_ids: Sequence[str], speeds_mps: npt.ArrayLike, copy: npt.ArrayLike | None = None
+    ) -> None:
+        speeds = np.asarray(speeds_mps, dtype=np.float64).tolist()
+        self._backend.set_speeds(dict(zip(vehicle_ids, speeds, strict=True)))
+
+    def release(self, vehicle_id: str, copy: int) -> None:
+        self._backend.release(vehicle_id)
+
+    def remove(self, vehicle_id: str, copy: int) -> None:
+        self._backend.remove(vehicle_id)
+
+    def clear_copy(self, copy: int) -> None:
+        """Nothing to do: the next reset reloads the simulation."""
+
+    def close(self) -> None:
+        self._backend.close()
