@@ -31,7 +31,7 @@ def measure(net: Path, stage: str, workers: int, episodes: int, init_from: str =
 
     The run is a real ``idas-sumo`` process, as a user starts it, not ``run_training`` in this one: this
     script imports torch before idas_sumo, and torch's OpenMP threads then spin instead of sleeping
-    (``idas_sumo/__init__.py``), which made the learner up to 10x slower here beside any other job.
+    (``idas_sumo/__init__.py``), which slowed the learner down beside any other job.
     ``init_from``: the checkpoint to start from (empty: random weights).
     """
     default = DEFAULT_TRAIN_CONFIG.read_text(encoding="utf-8")

@@ -66,17 +66,15 @@ def _mlp(sizes: list[int]) -> nn.Sequential:
 # correlation is one dense (Toeplitz) matrix built from the kernel. 371 = 7 × 53 output cells, so 7
 # blocks read the 400 cells exactly, and the conv is one GEMM (B·7, 4·82) @ (4·82, 4·53) with the bias
 # fused. Its output stays in (block, filter·row, cell) order: instead of permuting activations, the
-# first joint layer's weight columns are permuted to match. Measured on 2 cores: the learner update
-# is 1.7× faster than with torch's conv2d (benchmarks/learner_update.py); the result is the same to
-# float rounding (tests/test_networks.py). The Conv2d and Linear modules stay the parameters' homes, so
-# checkpoints keep their keys and layout.
+# first joint layer's weight columns are permuted to match. Faster than torch's conv2d
+# (benchmarks/learner_update.py); the result is the same to float rounding (tests/test_agents_networks.py).
+# The Conv2d and Linear modules stay the parameters' homes, so checkpoints keep their keys and layout.
 BLOCK_CELLS = 53
 # A learner batch goes through the encoder in slices of this many rows (the same maths; the float rounding
 # of a GEMM depends on its row count, and the weight gradient sums the slices in turn). A slice's windows
-# (2048 · 7 · 328 floats, 19 MB) stay in this machine's 32 MB L3 cache, where a whole stage-2 batch of 16
-# episodes (about 9,600 rows, 88 MB of windows) did not: one update on such a batch of real intelligent-world
-# rows ran 1.6× faster (14,500 against 23,500 rows/s on 2 threads). Batches up to this size, every rollout's
-# and evaluation's, take the path they took before.
+# (2048 · 7 · 328 floats, 19 MB) fit a common L3 cache, where a whole stage-2 batch of 16 episodes (about
+# 9,600 rows, 88 MB of windows) does not. Batches up to this size, every rollout's and evaluation's, go
+# through in one piece.
 ENCODER_CHUNK_ROWS = 2048
 _BLOCKS = CONV_OUT_CELLS // BLOCK_CELLS  # 7
 assert _BLOCKS * BLOCK_CELLS == CONV_OUT_CELLS, "blocks must tile the conv output exactly"
@@ -163,8 +161,8 @@ class ObsWindows:
     """A batch of observations cut into the conv's windows once, for every encoder that reads it.
 
     The learner runs the actor, V and (with one-step targets) V̂ on the same rows; cutting a batch (a copy of
-    its grids, the occupancy test and the gather of the occupied windows) was about a sixth of each encoder
-    pass. The cut depends on the observations only, so the networks compute what they would from ``obs``,
+    its grids, the occupancy test and the gather of the occupied windows) is a noticeable share of each
+    encoder pass. The cut depends on the observations only, so the networks compute what they would from ``obs``,
     bit for bit. Batches above ``ENCODER_CHUNK_ROWS`` are cut in chunks of that many rows.
     """
 

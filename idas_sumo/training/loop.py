@@ -370,9 +370,8 @@ class _GeometryDraws:
 
     def prefetch(self, rng: np.random.Generator) -> None:
         """Build, while the round runs, the nets the next round will most likely draw: its geometry
-        is the next draw of ``rng``, read from a copy (``rng`` itself does not move). A new net costs
-        a worker about 2 s (its multi-copy net; 0.3 s the net itself); built ahead, the workers read
-        both from the caches. Only the caches see it: a wrong guess (a stage's last round) or a failed
+        is the next draw of ``rng``, read from a copy (``rng`` itself does not move). Built ahead, the
+        workers read the net and its multi-copy net from the caches. Only the caches see it: a wrong guess (a stage's last round) or a failed
         build changes nothing, the round builds what it draws itself."""
         peek = np.random.Generator(type(rng.bit_generator)())
         peek.bit_generator.state = rng.bit_generator.state
