@@ -10,7 +10,6 @@ from idas_sumo.agents.coma import (
     coma_advantage,
     coma_baseline,
     combined_policy_loss,
-    subtract_action_means,
 )
 from idas_sumo.agents.returns import GAMMA, lambda_targets, td_advantages, td_targets
 
@@ -65,15 +64,6 @@ def test_coma_advantage_is_zero_in_expectation() -> None:
     probs = torch.softmax(torch.randn(4, 7, dtype=torch.float64), dim=1)
     expected = sum(probs[:, a] * coma_advantage(q, probs, torch.full((4,), a)) for a in range(7))
     torch.testing.assert_close(expected, torch.zeros(4, dtype=torch.float64))
-
-
-def test_subtract_action_means_by_hand() -> None:
-    """Action 0 taken by choice at 1 and 2 (mean 1.5), action 1 at 3 and 6 (mean 4.5), action 2 once by
-    choice at 10 and once forced at 7: 1 - 1.5, 2 - 1.5, 3 - 4.5, 6 - 4.5, 10 - 10, and the forced row keeps 7."""
-    adv = t(1.0, 2.0, 3.0, 6.0, 10.0, 7.0)
-    actions = torch.tensor([0, 0, 1, 1, 2, 2])
-    chosen = torch.tensor([True, True, True, True, True, False])
-    torch.testing.assert_close(subtract_action_means(adv, actions, chosen), t(-0.5, 0.5, -1.5, 1.5, 0.0, 7.0))
 
 
 def test_combined_policy_loss_alpha_07() -> None:

@@ -13,14 +13,25 @@ import copy
 import dataclasses
 import math
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 import pytest
 import torch
 from torch import nn
 
+from idas_sumo.agents import critics
+from idas_sumo.agents.checkpoint_file import load_actor
 from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
-from idas_sumo.agents.networks import STATE_DIM, STATE_SLOTS, Actor, CentralCritic, ValueCritic
+from idas_sumo.agents.networks import (
+    STATE_DIM,
+    STATE_SLOTS,
+    Actor,
+    CentralCritic,
+    CentralCriticBase,
+    ValueCritic,
+)
+from idas_sumo.config import from_dict
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.errors import InputError
@@ -382,69 +393,118 @@ def test_an_update_without_agent_steps_changes_nothing() -> None:
             assert torch.equal(learner2.state_dict()[net][name], tensor), f"{net}.{name} moved"
 
 
-def test_state_value_head_hand_worked_targets_and_sgd_steps() -> None:
-    """``central_head = 'state_value'`` (ours, labelled): Q(s, a) = U(s) + D(s, a); U regresses to every
-    row's target, D(s, a) to target - U(s) on the rows that took a. One SGD step on the pinned biases,
-    worked out by hand; an action no row took keeps its D, so its Q follows U (the per-action head would
-    leave it where it was)."""
-    config = LearnerConfig(use_central_critic=True, central_head="state_value", max_grad_norm=NO_CLIP)
+# --- the critic registry: the centralised critic by name ---------------------------------------------
+
+Q_BIAS = [0.2, -0.4, 0.1, 0.6, -0.3, 0.5, -0.1]  # the registered test critic's Q(s, a) before its step
+
+
+class BiasOnlyCritic(CentralCriticBase):
+    """A registered test critic: Q(s, a) = b_a whatever the input, so its SGD step is worked out by hand."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bias = nn.Parameter(torch.tensor(Q_BIAS))
+
+    def forward(self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+        return self.bias.expand(state.shape[0], -1)
+
+
+@pytest.fixture
+def bias_only_critic(monkeypatch: pytest.MonkeyPatch) -> str:
+    """``BiasOnlyCritic`` registered as "bias_only" for one test (the registry is restored after it)."""
+    monkeypatch.setattr(critics, "CENTRAL_CRITICS", dict(critics.CENTRAL_CRITICS))
+    critics.register_central_critic("bias_only")(BiasOnlyCritic)
+    return "bias_only"
+
+
+def test_the_default_critic_is_the_papers_coma_critic() -> None:
+    assert LearnerConfig().central_critic == "coma"
+    assert type(Learner(LearnerConfig(), seed=0).central) is CentralCritic
+    with pytest.raises(InputError, match=r"'comma' is not a registered critic .*did you mean \"coma\""):
+        LearnerConfig(central_critic="comma")
+    with pytest.raises(ValueError, match="registered already"):
+        critics.register_central_critic("coma")(CentralCritic)
+
+
+def test_a_registered_critic_is_built_and_stepped_by_the_learner(bias_only_critic: str) -> None:
+    """A critic registered from here is the learner's Q and its target: the update regresses it to the hand-worked
+    SARSA targets R + γ·Q̂(a')·(1 - done) (Q̂ = Q before the step, no bootstrap without a next step), hands the
+    actor COMA's advantage from it, and steps it by -lr·∇ 0.5·mean((y - b_a)²)."""
+    config = LearnerConfig(central_critic=bias_only_critic, use_central_critic=True, max_grad_norm=NO_CLIP)
     learner = Learner(config, seed=3)
+    assert isinstance(learner.central, BiasOnlyCritic) and isinstance(learner.central_target, BiasOnlyCritic)
     learner.opt_central = torch.optim.SGD(learner.central.parameters(), lr=LR)
-    u_online, u_target = 1.5, 0.5
-    d_online = [0.1, -0.2, 0.0, 0.3, -0.1, 0.2, 0.05]
-    d_target = [0.0, 0.1, -0.1, 0.2, 0.0, -0.3, 0.4]
-    for net, u, d in ((learner.central, u_online, d_online), (learner.central_target, u_target, d_target)):
-        assert net.value_head is not None
-        pin_head(net.value_head, [u])
-        pin_head(net.head, d)
     pin_head(learner.actor.head, [0.0] * N_ACTIONS)  # uniform over the allowed actions: pi()
-    q_online = [u_online + d for d in d_online]
     learner.update(make_batch())
     record = learner.last_update
     assert record is not None and record.central is not None
 
-    # Targets: y = R + γ·(Û + D̂(a'))·(1 - done), no bootstrap where the batch holds no next step.
-    q_target = [
-        JOINT_REWARD[i]
-        + GAMMA * (1.0 - DONE[i]) * ((u_target + d_target[NEXT_ACTION[i]]) if NEXT_VALID[i] else 0.0)
+    target = [
+        JOINT_REWARD[i] + GAMMA * (1.0 - DONE[i]) * (Q_BIAS[NEXT_ACTION[i]] if NEXT_VALID[i] else 0.0)
         for i in range(ROWS)
     ]
-    assert q_target == approx([-0.46, -0.19, -0.55, -0.37, 12.5, 12.5])
-    assert floats(record.central.target) == approx(q_target)
-    assert floats(record.central.prediction) == approx([q_online[a] for a in ACTION])
-    # A2 is COMA's, on Q = U + D.
-    adv_q = [q_online[ACTION[i]] - sum(pi(i, a) * q_online[a] for a in range(N_ACTIONS)) for i in range(ROWS)]
-    assert floats(record.central.advantage) == approx(adv_q)
-
-    # U: ∂/∂b 0.5·mean((y - b)²) = mean(b - y), over every row.
-    u_bias = u_online - LR * sum(u_online - y for y in q_target) / ROWS
-    assert floats(learner.central.value_head.bias) == approx([u_bias])  # type: ignore[union-attr]
-    # D: ∂/∂b_a 0.5·mean((y - U - b_a)²) = mean over the rows that took a of (U + b_a - y); U held fixed.
-    d_bias = [
-        d_online[a]
-        - LR * sum(u_online + d_online[a] - q_target[i] for i in range(ROWS) if ACTION[i] == a) / ROWS
+    assert target == approx([-1.36, -1.09, -0.82, -0.46, 12.5, 12.5])
+    assert floats(record.central.target) == approx(target)
+    assert floats(record.central.prediction) == approx([Q_BIAS[a] for a in ACTION])
+    coma = [Q_BIAS[ACTION[i]] - sum(pi(i, a) * Q_BIAS[a] for a in range(N_ACTIONS)) for i in range(ROWS)]
+    assert floats(record.central.advantage) == approx(coma)
+    stepped = [
+        Q_BIAS[a] - LR * sum(Q_BIAS[a] - target[i] for i in range(ROWS) if ACTION[i] == a) / ROWS
         for a in range(N_ACTIONS)
     ]
-    assert floats(learner.central.head.bias) == approx(d_bias)
-    untaken = [a for a in range(N_ACTIONS) if a not in ACTION]
-    assert untaken == [4] and floats(learner.central.head.bias)[4] == pytest.approx(d_online[4])
+    assert floats(learner.central.bias) == approx(stepped)
+    assert floats(learner.central.bias)[4] == pytest.approx(Q_BIAS[4])  # no row took action 4
 
 
-def test_a_q_of_the_other_head_is_not_loaded() -> None:
-    """A checkpoint whose Q has the other head (a stage-1 run, where Q is never trained) starts a learner
-    with its actor and V, and leaves its Q as initialised."""
-    per_action = Learner(LearnerConfig(), seed=1)
-    state_value = Learner(LearnerConfig(central_head="state_value"), seed=2)
-    q_before = copy.deepcopy(state_value.central.state_dict())
-    state_value.load_state_dict(per_action.state_dict())
+def test_a_q_of_another_critic_is_not_loaded(bias_only_critic: str) -> None:
+    """A checkpoint whose Q is another critic (a stage-1 run never trains Q) starts a learner with its actor and
+    V, and leaves its Q as initialised."""
+    coma = Learner(LearnerConfig(), seed=1)
+    other = Learner(LearnerConfig(central_critic=bias_only_critic), seed=2)
+    q_before = copy.deepcopy(other.central.state_dict())
+    other.load_state_dict(coma.state_dict())
     assert all(
-        torch.equal(a, b)
-        for a, b in zip(state_value.actor.parameters(), per_action.actor.parameters(), strict=True)
+        torch.equal(a, b) for a, b in zip(other.actor.parameters(), coma.actor.parameters(), strict=True)
     )
-    assert all(torch.equal(v, state_value.central.state_dict()[k]) for k, v in q_before.items())
-    same = Learner(LearnerConfig(central_head="state_value"), seed=3)
-    same.load_state_dict(state_value.state_dict())
-    assert all(torch.equal(v, same.central.state_dict()[k]) for k, v in q_before.items())
+    assert all(torch.equal(v, other.central.state_dict()[k]) for k, v in q_before.items())
+    coma_again = Learner(LearnerConfig(), seed=3)
+    q_before = copy.deepcopy(coma_again.central.state_dict())
+    coma_again.load_state_dict(other.state_dict())
+    assert all(torch.equal(v, coma_again.central.state_dict()[k]) for k, v in q_before.items())
+
+
+def test_a_policy_trained_with_the_retired_state_value_head_still_acts() -> None:
+    """idas_explored10_collide.pt's Q had the retired U(s) + D(s, a) head: ``load_actor`` loads its actor and V,
+    and keeps this build's Q (not needed to act)."""
+    root = Path(__file__).resolve().parent.parent
+    found = sorted(root.glob("idas_sumo/policies/idas_explored10_collide.pt"))
+    found += sorted(root.glob("experiments/**/idas_explored10_collide.pt"))
+    assert found, "idas_explored10_collide.pt is in neither idas_sumo/policies/ nor experiments/"
+    stored = torch.load(found[0], weights_only=True, map_location="cpu")["learner"]
+    assert "value_head.weight" in stored["central"]  # the retired head: this build's Q cannot take it
+    learner = load_actor(found[0])
+    for name, tensor in learner.actor.state_dict().items():
+        assert torch.equal(tensor, stored["actor"][name]), name
+    assert "value_head.weight" not in learner.central.state_dict()
+    obs = torch.rand(3, OBS_DIM, generator=torch.Generator().manual_seed(0)).numpy()
+    mask = torch.ones(3, N_ACTIONS, dtype=torch.int8).numpy()
+    assert learner.act(obs, mask, torch.Generator().manual_seed(1)).shape == (3,)
+
+
+def test_retired_learner_switches_load_at_their_default_and_refuse_a_variant() -> None:
+    """Checkpoints and recipes store the retired switches: their former defaults load, a variant is one line."""
+    where = "recipe.toml: learner"
+    retired = {
+        "central_head": ("per_action", "state_value"),
+        "central_input": ("scenario_slots", "ego_first"),
+        "coma_actions": ("all", "delta_only"),
+        "coma_action_means": ("keep", "subtract"),
+        "central_action_rows": ("all", "explored"),
+    }
+    for key, (default, variant) in retired.items():
+        assert from_dict(LearnerConfig, {key: default}, where) == LearnerConfig()
+        with pytest.raises(InputError, match=f"{key}: '{variant}' is a retired experiment variant"):
+            from_dict(LearnerConfig, {key: variant}, where)
 
 
 # --- the anchor (ours, a labelled variant): KL(π ‖ π₀) in the actor loss ------------------------------

@@ -191,17 +191,22 @@ def test_a_checkpoint_on_disk_is_the_flat_dict_it_always_was(tmp_path: Path) -> 
 
 def test_shipped_policies_still_load(tmp_path: Path) -> None:
     """The committed policies were written before checkpoints were typed: they load, and saving one
-    again writes the same keys and the same weights."""
+    again writes the same keys and the same weights. One trained under a retired variant still acts
+    (``load_actor``); as a training checkpoint (``init_from``, ``--resume``) it is refused in one line."""
     from idas_sumo.resources import POLICY_DIR
 
     shipped = sorted(POLICY_DIR.glob("*.pt"))
     assert shipped, f"no policies in {POLICY_DIR}"
     for path in shipped:
         raw = torch.load(path, weights_only=True)
+        load_actor(path)
+        if raw["learner"]["config"].get("central_head", "per_action") != "per_action":
+            with pytest.raises(InputError, match="a retired experiment variant"):
+                load_checkpoint(path)
+            continue
         checkpoint = load_checkpoint(path)
         assert (checkpoint.stage, checkpoint.episode) == (raw["stage"], raw["episode"])
         assert (checkpoint.validation is None) == ("validation" not in raw)
-        load_actor(path)
         save_checkpoint(tmp_path / path.name, checkpoint)
         again = torch.load(tmp_path / path.name, weights_only=True)
         assert set(again) == set(raw) | {"content_sha256"}  # saved again, it carries a checksum
@@ -291,81 +296,6 @@ def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
 
 
 @pytest.mark.sumo
-def test_action_override_replaces_one_decision_and_nothing_before_it(net_path: Path) -> None:
-    """RolloutTask.override (the counterfactual probe's): the agent's decision-th action is the one given, every
-    row before it is the plain episode's, and two episodes with the same override are the same to the end."""
-    from idas_sumo.agents.rollout import ActionOverride, RolloutTask, collect_episodes
-    from idas_sumo.env.actions import HARD_BRAKE
-    from idas_sumo.env.engine import EnvConfig, MergeEngine
-    from idas_sumo.env.scenario import Scenario, VehicleSpec
-
-    scenario = Scenario(
-        "three",
-        (
-            VehicleSpec("m0", "main", 20.0, 10.0),
-            VehicleSpec("m1", "main", 60.0, 10.0),
-            VehicleSpec("r0", "merge", 30.0, 10.0),
-        ),
-    )
-    override = ActionOverride("r0", decision=5, action=HARD_BRAKE, continuation_seed=11)
-    held = dataclasses.replace(override, hold=3)
-    engine = MergeEngine(net_path, copies=4, config=EnvConfig(max_episode_s=4.0))
-    try:
-        plain, forced, again, three = collect_episodes(
-            engine,
-            Learner(LearnerConfig(), seed=0),
-            [
-                RolloutTask(scenario, 7),
-                RolloutTask(scenario, 7, override=override),
-                RolloutTask(scenario, 7, override=override),
-                RolloutTask(scenario, 7, override=held),
-            ],
-        )
-    finally:
-        engine.close()
-    r0_rows = np.flatnonzero(forced.slot == forced.slot[2])  # every car acts from the first step: r0 is third
-    row = int(r0_rows[5])
-    assert plain.action[row] != HARD_BRAKE and forced.action[row] == HARD_BRAKE
-    assert (three.action[r0_rows[5:8]] == HARD_BRAKE).all()  # hold = 3: decisions 5, 6 and 7
-    assert forced.action[r0_rows[6]] != HARD_BRAKE or forced.action[r0_rows[7]] != HARD_BRAKE
-    np.testing.assert_array_equal(plain.action[:row], forced.action[:row])
-    np.testing.assert_array_equal(plain.obs[: row + 1], forced.obs[: row + 1])
-    np.testing.assert_array_equal(forced.action, again.action)
-    np.testing.assert_array_equal(forced.joint_reward, again.joint_reward)
-
-
-@pytest.mark.sumo
-def test_exploring_episode_flags_its_uniform_actions_and_leaves_its_neighbours_alone(net_path: Path) -> None:
-    """RolloutTask.explore (TrainConfig.critic_exploration): about that share of the episode's rows is flagged
-    explored, every action stays allowed, the flags reach the batch, and an episode that does not explore, run
-    beside it, is the one it is alone (no flags, same actions)."""
-    from idas_sumo.agents.rollout import RolloutTask, batch_from_episodes, collect_episodes
-    from idas_sumo.env.engine import EnvConfig, MergeEngine
-    from idas_sumo.env.scenario import generate_scenario
-
-    rng = np.random.default_rng(4)
-    traffic = TrafficConfig(n_vehicles=0, min_vehicles_per_road=3, max_vehicles_per_road=3)
-    engine = MergeEngine(net_path, copies=2, config=EnvConfig(max_episode_s=15.0))
-    learner = Learner(LearnerConfig(use_central_critic=True), seed=0)
-    try:
-        scenarios = [generate_scenario(rng, traffic, engine.speed_limits_mps) for _ in range(2)]
-        exploring, plain = collect_episodes(
-            engine, learner, [RolloutTask(scenarios[0], 1, explore=0.5), RolloutTask(scenarios[1], 2)]
-        )
-        (alone,) = collect_episodes(engine, learner, [RolloutTask(scenarios[1], 2)])
-    finally:
-        engine.close()
-    assert exploring.explored is not None and plain.explored is None
-    assert 0.35 < exploring.explored.mean() < 0.65
-    assert exploring.mask[np.arange(len(exploring)), exploring.action].all()
-    np.testing.assert_array_equal(plain.action, alone.action)
-    batch = batch_from_episodes([exploring, plain])
-    assert batch.explored is not None
-    assert batch.explored.tolist() == exploring.explored.tolist() + [False] * len(plain)
-    assert batch_from_episodes([plain]).explored is None
-
-
-@pytest.mark.sumo
 def test_tiny_curriculum_end_to_end(net_path: Path, tmp_path: Path) -> None:
     from idas_sumo.training.loop import run_training
 
@@ -408,7 +338,7 @@ def test_interrupt_then_resume_continues_exactly(
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)
 
-    real_update = Learner.begin_update
+    real_update = Learner.update
     calls = {"n": 0}
 
     def update_then_interrupt(self: Learner, batch: Any) -> Any:
@@ -417,7 +347,7 @@ def test_interrupt_then_resume_continues_exactly(
             raise KeyboardInterrupt
         return real_update(self, batch)
 
-    monkeypatch.setattr(Learner, "begin_update", update_then_interrupt)
+    monkeypatch.setattr(Learner, "update", update_then_interrupt)
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         run_training(net_path, config, run, progress=False)
@@ -547,7 +477,7 @@ def test_resume_after_a_kill_in_stage_two_writes_no_row_twice(
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)
 
-    real_update = Learner.begin_update
+    real_update = Learner.update
     calls = {"n": 0}
 
     def update_then_die(self: Learner, batch: Any) -> Any:
@@ -556,7 +486,7 @@ def test_resume_after_a_kill_in_stage_two_writes_no_row_twice(
             raise RuntimeError("killed")
         return real_update(self, batch)
 
-    monkeypatch.setattr(Learner, "begin_update", update_then_die)
+    monkeypatch.setattr(Learner, "update", update_then_die)
     run = tmp_path / "run"
     with pytest.raises(RuntimeError, match="killed"):
         run_training(net_path, config, run, progress=False)
@@ -880,16 +810,14 @@ def test_validation_criterion_ranks_by_return_or_by_success_first() -> None:
         TrainConfig(validation_criterion="speed")  # type: ignore[arg-type]
 
 
-def test_critic_exploration_is_checked() -> None:
-    """critic_exploration lies in [0, 1), and Q's action part cannot learn from explored rows that never come."""
-    from idas_sumo.training.config import ConfigValueError, TrainConfig
+def test_critic_exploration_is_retired() -> None:
+    """Checkpoints and recipes store critic_exploration: its former default 0 loads, a share of random actions is
+    refused in one line."""
+    from idas_sumo.training.config import train_config_from_dict
 
-    with pytest.raises(ConfigValueError, match="critic_exploration must lie"):
-        TrainConfig(critic_exploration=1.0)
-    explored_q = LearnerConfig(central_head="state_value", central_action_rows="explored")
-    with pytest.raises(ConfigValueError, match="needs critic_exploration"):
-        TrainConfig(learner=explored_q)
-    assert TrainConfig(learner=explored_q, critic_exploration=0.02).critic_exploration == 0.02
+    assert train_config_from_dict({"critic_exploration": 0.0}, "recipe.toml") == TrainConfig()
+    with pytest.raises(InputError, match=r"critic_exploration: 0\.1 is a retired experiment variant"):
+        train_config_from_dict({"critic_exploration": 0.1}, "recipe.toml")
 
 
 def test_a_sum_of_zero_penalties_is_written_as_0_not_minus_0() -> None:

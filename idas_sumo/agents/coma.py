@@ -24,25 +24,6 @@ def coma_advantage(q_values: torch.Tensor, probs: torch.Tensor, actions: torch.T
     return q_taken - coma_baseline(q_values, probs)
 
 
-def subtract_action_means(
-    advantage: torch.Tensor, actions: torch.Tensor, chosen: torch.Tensor
-) -> torch.Tensor:
-    """Each chosen row's advantage minus the mean advantage of the chosen rows that took the same action:
-    (B,), (B,), (B,) bool -> (B,). Rows not chosen (their mask allowed one action) keep theirs.
-
-    What is left is how much better an action was *here* than where else it was taken: a critic whose
-    value of an action is off by the same amount in every state (the batch's mean advantage of that action)
-    no longer moves how often the policy takes it, only where.
-    """
-    n_actions = int(actions.max().item()) + 1 if actions.numel() else 0
-    index = actions.long()
-    weight = chosen.to(advantage.dtype)
-    sums = torch.zeros(n_actions, dtype=advantage.dtype).index_add_(0, index, advantage * weight)
-    counts = torch.zeros(n_actions, dtype=advantage.dtype).index_add_(0, index, weight)
-    means = sums / counts.clamp(min=1.0)
-    return advantage - means[index] * weight
-
-
 def combined_policy_loss(
     log_probs: torch.Tensor,
     adv_v: torch.Tensor,

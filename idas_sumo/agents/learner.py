@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -25,22 +24,17 @@ import torch
 from torch import nn
 from torch.distributions import kl_divergence
 
-from idas_sumo.agents.coma import ALPHA, coma_advantage, combined_policy_loss, subtract_action_means
+from idas_sumo.agents.coma import ALPHA, combined_policy_loss
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
-from idas_sumo.agents.networks import Actor, CentralCritic, ObsWindows, ValueCritic
+from idas_sumo.agents.critics import DEFAULT_CENTRAL_CRITIC, build_central_critic, check_central_critic
+from idas_sumo.agents.networks import Actor, ObsWindows, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
-from idas_sumo.env.actions import N_ACTIONS, N_DELTA_ACTIONS
+from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
-CentralHead = Literal["per_action", "state_value"]
-CentralInput = Literal["scenario_slots", "ego_first"]
-ComaActions = Literal["all", "delta_only"]
-ComaActionMeans = Literal["keep", "subtract"]
-CentralActionRows = Literal["all", "explored"]
-
-__all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "PendingUpdate", "UpdateRecord"]
+__all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "UpdateRecord"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -48,6 +42,15 @@ CHECKPOINT_FORMAT = 1
 @dataclass(frozen=True)
 class LearnerConfig:
     """Hyper-parameters of the learner; validated once on construction."""
+
+    RETIRED_KEYS: ClassVar[dict[str, Any]] = {
+        "central_head": "per_action",
+        "central_input": "scenario_slots",
+        "coma_actions": "all",
+        "coma_action_means": "keep",
+        "central_action_rows": "all",
+    }
+    """Variants measured and retired (experiments/README.md): files that hold their default still load."""
 
     lr_actor: float = 1e-4
     """Adam learning rate of the actor."""
@@ -75,42 +78,13 @@ class LearnerConfig:
     the λ-return of the joint reward along each agent's own steps (needs ``Batch.next_row``)."""
     normalize_advantages: bool = False
     """Standardise A1 and A2 over each batch before the policy gradient (ours; the paper does not)."""
-    central_head: CentralHead = "per_action"
-    """How Q gives its per-action values. 'per_action' (the default, COMA's critic head): one output per
-    own action, each trained only on the rows where the agent took that action. 'state_value' (ours, a
-    labelled variant): Q(s, a) = U(s) + D(s, a), U trained on every row's target whatever the action,
-    D (starting near 0) on what is left, target - U(s). A per-action output the agents rarely take
-    stays near its initial value while the targets move, so COMA's advantage of a rare action carries
-    that lag; under 'state_value' it stays near U(s), an advantage near 0. Measured (docs/results.md): it
-    removed that early bias but not stage 2's drift into collisions and stalls."""
-    central_input: CentralInput = "scenario_slots"
-    """The order of the vehicle slots Q reads. 'scenario_slots' (the default): the scenario's order, the agent's
-    own slot one-hot. 'ego_first' (ours, a labelled variant; ``networks.ego_first_slots``): per row the
-    agent's own slot first, then the others by how far their distance to the merge point is from its own.
-    The input's size is the same, so a checkpoint loads under either; its Q only means something under the
-    order it was trained with."""
-    coma_actions: ComaActions = "all"
-    """Which rows J2 (COMA's term) steps the actor on. 'all' (the default, the paper). 'delta_only' (ours, a
-    labelled diagnostic): only the rows whose action was a Δa; a hard brake's or a release's row gets no COMA
-    advantage (J1's only), and with ``normalize_advantages`` A2 is standardised over the Δa rows. It asks
-    whether the stage-2 drift needs J2's view of the brake (docs/results.md)."""
-    coma_action_means: ComaActionMeans = "keep"
-    """What J2 does with each action's mean COMA advantage over a batch. 'keep' (the default, the paper).
-    'subtract' (ours, a labelled variant; ``coma.subtract_action_means``): every row whose mask allowed a choice
-    gets its advantage minus the mean over the batch's chosen rows that took the same action, so a Q whose
-    value of an action is off by about the same amount everywhere (as measured for the hard brake,
-    docs/results.md) steers where the policy takes it, not how often; J1 alone sets how often."""
-    central_action_rows: CentralActionRows = "all"
-    """Which rows train Q's action part D(s, a) under ``central_head = "state_value"``. 'all' (the default).
-    'explored' (ours, a labelled variant): only the rows whose action was drawn uniformly from the allowed ones
-    (``Batch.explored``, ``TrainConfig.critic_exploration``), where the action taken does not depend on the
-    state: Q's differences between actions then cannot learn which situations an action is taken in, only what
-    it leads to (docs/results.md, "Declared: a critic that learns actions from random ones")."""
+    central_critic: str = DEFAULT_CENTRAL_CRITIC
+    """The centralised critic Q, by its name in ``agents/critics.py``'s registry: 'coma' (the paper's: one
+    Q-value per own action over the scenario's vehicle slots, COMA's baseline over all actions)."""
     anchor_coef: float = 0.0
-    """Weight of KL(π ‖ π₀) in the actor loss, π₀ the policy the stage started from (ours, a labelled variant;
-    0: none, the paper). A trust region around the warm start: the paper's stage 2 drifts from IDAS-V into
-    collisions and then a stall in every seed after ~2,500 episodes, both pushed by J2 (docs/results.md); with the
-    anchor a push that the returns do not back costs the policy its distance from π₀. Set by ``anchor_to_start``."""
+    """Weight of KL(π ‖ π₀) in the actor loss, π₀ the policy the stage started from (ours; 0: none, the paper).
+    A trust region around the warm start: a push of J2 that the returns do not back costs the policy its
+    distance from π₀. Set by ``anchor_to_start``."""
     device: str = "cpu"
     """Torch device the networks live on; sampling in ``act`` always draws on the CPU generator."""
 
@@ -130,8 +104,7 @@ class LearnerConfig:
         for name in ("entropy_coef", "anchor_coef"):
             if getattr(self, name) < 0.0:
                 raise InputError(f"{name} must be non-negative, got {getattr(self, name)}")
-        if self.central_action_rows == "explored" and self.central_head != "state_value":
-            raise InputError('central_action_rows = "explored" needs central_head = "state_value"')
+        check_central_critic(self.central_critic)
 
     @property
     def effective_alpha(self) -> float:
@@ -169,7 +142,6 @@ class Batch:
     next_valid: torch.Tensor | None = None  # (B,) float32
     next_row: torch.Tensor | None = None  # (B,) int64 row of the same agent's next step, -1: none
     bootstrap_obs: torch.Tensor | None = None  # (cut-off rows, OBS_DIM): o' where next_row is -1, done 0
-    explored: torch.Tensor | None = None  # (B,) bool: the action was drawn uniformly, not by the policy
 
     def to(self, device: torch.device | str) -> Batch:
         moved: dict[str, Any] = {
@@ -265,72 +237,8 @@ class _CentralForward:
 
     q_all: torch.Tensor
     """Q(s, ·) (B, N_ACTIONS), with gradient."""
-    state_value: torch.Tensor | None
-    """U(s) (B,), with gradient, under ``central_head = 'state_value'``; else None."""
     advantage: torch.Tensor
-    """A2 (COMA) from this Q and the policy before the actor's step."""
-
-
-_T = TypeVar("_T")
-
-
-class _Background(Generic[_T]):
-    """Work running in a thread of this process: ``wait`` for it, then take its ``result``.
-
-    A thread, not the main one, so Ctrl-C (delivered to the main thread) never stops the work halfway:
-    whoever catches the interrupt waits for it and finds the networks whole.
-    """
-
-    def __init__(self, work: Callable[[], _T]) -> None:
-        self._work = work
-        self._result: _T | None = None
-        self._error: BaseException | None = None
-        # An event, not Thread.join: a join interrupted by a signal (Ctrl-C, SIGTERM) can mark the thread
-        # stopped while it still runs (CPython 3.11), and a second join then returns at once.
-        self._finished = threading.Event()
-        threading.Thread(target=self._run, name="critic step", daemon=True).start()
-
-    def _run(self) -> None:
-        try:
-            self._result = self._work()
-        except BaseException as err:  # handed to whoever takes the result
-            self._error = err
-        finally:
-            self._finished.set()
-
-    def wait(self) -> None:
-        self._finished.wait()
-
-    def result(self) -> _T:
-        """What the work returned (re-raises what it raised); call after ``wait``."""
-        assert self._finished.is_set(), "result() before wait()"
-        if self._error is not None:
-            raise self._error
-        assert self._result is not None
-        return self._result
-
-
-class PendingUpdate:
-    """An update of ``Learner.begin_update``: its actor has stepped; its critics may still be stepping in
-    the background. ``stats`` waits for them and returns the update's metrics."""
-
-    def __init__(
-        self, done: dict[str, float] | None = None, critics: _Background[UpdateRecord] | None = None
-    ) -> None:
-        self._done, self._critics = done, critics
-
-    @property
-    def ready(self) -> bool:
-        """Whether ``stats`` returns without waiting (the serial update: the critics stepped already)."""
-        return self._done is not None
-
-    def stats(self) -> dict[str, float]:
-        """The scalar metrics (one row of metrics.csv columns), once the critics have stepped."""
-        if self._done is None:
-            assert self._critics is not None
-            self._critics.wait()
-            self._done = self._critics.result().stats()
-        return self._done
+    """A2 (the critic's ``advantage``, COMA's) from this Q and the policy before the actor's step."""
 
 
 @dataclass(frozen=True)
@@ -415,7 +323,7 @@ def _sample_grouped(
 class _LazyAdam:
     """A learner's Adam optimiser for one of its networks, built on first use.
 
-    Building the first optimiser of a process imports ``torch._dynamo`` (about 0.9 s here), which a learner
+    Building the first optimiser of a process imports ``torch._dynamo`` (slow to import), which a learner
     that only acts, a rollout worker's or an evaluated policy's, never needs. Adam keeps no state until its
     first step, so building it later changes nothing; a test may put another optimiser in its place.
     """
@@ -442,23 +350,15 @@ class _LazyAdam:
 class Learner:
     """Actor, V, Q, their targets and Adam optimisers; ``act`` for rollouts, ``update`` to learn.
 
-    ``critics_in_background``: ``begin_update`` returns once the actor has stepped, and the critics'
-    targets, backward passes, optimiser steps and target-network updates run in a thread meanwhile (the
-    training loop collects the next round with the new actor then). The arithmetic and its order per
-    tensor are those of the serial update, so the weights are bit for bit the same. The next update,
-    ``state_dict``, ``load_state_dict`` and ``finish_critics`` wait for that step; nothing else may read
-    the critics before one of them.
+    Q is the critic ``config.central_critic`` names in ``agents/critics.py``'s registry.
     """
 
     opt_actor = _LazyAdam("actor", "lr_actor")
     opt_value = _LazyAdam("value", "lr_value")
     opt_central = _LazyAdam("central", "lr_central")
 
-    def __init__(self, config: LearnerConfig, seed: int = 0, critics_in_background: bool = False) -> None:
+    def __init__(self, config: LearnerConfig, seed: int = 0) -> None:
         self.config = config
-        self.critics_in_background = critics_in_background
-        self._critic_step: _Background[UpdateRecord] | None = None
-        """The critics' step of the last update, while it runs in the background."""
         self.device = torch.device(config.device)
         # Seed only the initialisation, without touching the caller's global RNG; sampling in `act`
         # uses the caller's generator.
@@ -466,10 +366,7 @@ class Learner:
             torch.manual_seed(seed)
             self.actor = Actor().to(self.device)
             self.value = ValueCritic().to(self.device)
-            self.central = CentralCritic(
-                state_value=config.central_head == "state_value",
-                ego_first=config.central_input == "ego_first",
-            ).to(self.device)
+            self.central = build_central_critic(config.central_critic).to(self.device)
         self.value_target = _frozen_copy(self.value)
         self.central_target = _frozen_copy(self.central)
         self.last_update: UpdateRecord | None = None
@@ -526,36 +423,13 @@ class Learner:
         Losses are means over the batch (the paper writes sums; a mean keeps the step size
         independent of B). Critics step before the actor, but both advantages are computed from the
         critics as they were before their step. What each part regressed to and handed on is kept in
-        ``last_update``. With ``critics_in_background`` the same, waited for.
+        ``last_update``.
         """
-        return self.begin_update(batch).stats()
-
-    def begin_update(self, batch: Batch) -> PendingUpdate:
-        """``update``, returning once the actor has stepped; with ``critics_in_background`` the critics
-        step in a thread meanwhile (``PendingUpdate.stats`` waits for them), else they have stepped."""
-        self.finish_critics()
         if batch.action.numel() == 0:
             # A round in which no learning car acted (each entered too late, or the episodes were cut
             # short): nothing to learn from, so no step; the metrics row says so with zero losses.
-            return PendingUpdate(done=dict.fromkeys(UPDATE_STAT_NAMES, 0.0))
+            return dict.fromkeys(UPDATE_STAT_NAMES, 0.0)
         b = self._checked(batch)
-        if not self.critics_in_background:
-            return PendingUpdate(done=self._serial_update(b).stats())
-        self._critic_step = self._actor_first_update(b)
-        return PendingUpdate(critics=self._critic_step)
-
-    def finish_critics(self) -> None:
-        """Wait for the critics' step of the last update when it runs in the background (else a no-op);
-        re-raises what it raised."""
-        pending = self._critic_step
-        if pending is None:
-            return
-        pending.wait()  # a Ctrl-C here leaves it pending: the next call waits for it again
-        self._critic_step = None
-        pending.result()
-
-    def _serial_update(self, b: Batch) -> UpdateRecord:
-        """V steps, then Q, then the actor, each on its forward pass of the batch."""
         value_forward = self._value_forward(b)
         value_step = self._step_value_critic(b, value_forward)
         policy = self._policy(b, value_forward.obs)
@@ -564,43 +438,11 @@ class Learner:
             central_forward = self._central_forward(b, policy.probs.detach())
             central_step = self._step_central_critic(b, central_forward)
         actor_step = self._update_actor(
-            b.action,
-            b.mask,
-            b.explored,
-            policy,
-            value_forward.advantage,
-            None if central_forward is None else central_forward.advantage,
+            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
         )
         self._update_targets()
         self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
-        return self.last_update
-
-    def _actor_first_update(self, b: Batch) -> _Background[UpdateRecord]:
-        """``_serial_update`` with the critics' half moved after the actor's step, into a thread: the actor
-        needs only the critics' forward passes (the advantages), and nothing the actor does reads a
-        critic. The same operations on the same tensors, so the same bits, in another order."""
-        value_forward = self._value_forward(b)
-        policy = self._policy(b, value_forward.obs)
-        central_forward = (
-            self._central_forward(b, policy.probs.detach()) if self.config.use_central_critic else None
-        )
-        actor_step = self._update_actor(
-            b.action,
-            b.mask,
-            b.explored,
-            policy,
-            value_forward.advantage,
-            None if central_forward is None else central_forward.advantage,
-        )
-
-        def critics() -> UpdateRecord:
-            value_step = self._step_value_critic(b, value_forward)
-            central_step = None if central_forward is None else self._step_central_critic(b, central_forward)
-            self._update_targets()
-            self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
-            return self.last_update
-
-        return _Background(critics)
+        return self.last_update.stats()
 
     def _checked(self, batch: Batch) -> Batch:
         """The batch on this learner's device, refused when an action breaks its own mask."""
@@ -674,14 +516,14 @@ class Learner:
         return where.clamp(min=0), ended, cut_off
 
     def _central_forward(self, b: Batch, probs: torch.Tensor) -> _CentralForward:
-        """Q(s, ·) and COMA's advantage A2 = Q(s, a) - Σ_a' π(a'|o) Q(s, a'), from the Q before its step."""
+        """Q(s, ·) and the critic's advantage A2 (COMA's: Q(s, a) - Σ_a' π(a'|o) Q(s, a')), from the Q before its
+        step."""
         state = _require(b.state, "state")
         others = _require(b.others_actions, "others_actions")
         slot = _require(b.slot, "slot").long()
-        value, differences = self.central.parts(state, others, slot)
-        q_all = self.central.q_values(value, differences)
+        q_all = self.central(state, others, slot)
         return _CentralForward(
-            q_all=q_all, state_value=value, advantage=coma_advantage(q_all.detach(), probs, b.action.long())
+            q_all=q_all, advantage=self.central.advantage(q_all.detach(), probs, b.action.long())
         )
 
     def _step_central_critic(self, b: Batch, forward: _CentralForward) -> CriticStep:
@@ -706,22 +548,13 @@ class Learner:
             next_a = _require(b.next_action, "next_action").long().clamp(0, N_ACTIONS - 1)
             next_q_taken = next_q.gather(1, next_a.unsqueeze(1)).squeeze(1)
             target = joint_reward + cfg.gamma * next_valid * (1.0 - done) * next_q_taken
-        q_taken = forward.q_all.gather(1, action.unsqueeze(1)).squeeze(1)
         if cfg.q_lambda > 0.0:
             with torch.no_grad():
                 q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
                 target = lambda_targets(
                     target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
                 )
-        if forward.state_value is None:
-            loss = 0.5 * (target - q_taken).pow(2).mean()
-        else:  # U(s) regresses to every row's target; D(s, a) to what U leaves (U held fixed there)
-            value = forward.state_value
-            residual = (target - value.detach() - (q_taken - value)).pow(2)
-            if cfg.central_action_rows == "explored":  # D only where the action did not follow the state
-                explored = torch.zeros_like(target) if b.explored is None else b.explored.to(target.dtype)
-                residual = residual * explored * (len(explored) / explored.sum().clamp(min=1.0))
-            loss = 0.5 * (target - value).pow(2).mean() + 0.5 * residual.mean()
+        loss, q_taken = self.central.loss(forward.q_all, action, target)
         self.opt_central.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
@@ -747,33 +580,15 @@ class Learner:
             anchor_kl = kl_divergence(dist, start)  # masked actions have probability 0 in both: no term
         return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs, anchor_kl=anchor_kl)
 
-    def _update_actor(
-        self,
-        actions: torch.Tensor,
-        mask: torch.Tensor,
-        explored: torch.Tensor | None,
-        policy: _Policy,
-        adv_v: torch.Tensor,
-        adv_q: torch.Tensor | None,
-    ) -> ActorStep:
-        """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus; J2 on the
-        rows ``coma_actions`` names, less each action's mean where ``coma_action_means`` asks (``actions``,
-        ``mask``: the batch's)."""
+    def _update_actor(self, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None) -> ActorStep:
+        """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus, plus an
+        optional KL anchor."""
         cfg = self.config
         log_probs, entropy = policy.log_prob, policy.entropy
-        if explored is not None:  # an explored action is not the policy's: no policy gradient through it
-            log_probs = log_probs * (~explored).to(log_probs.dtype)
         if cfg.normalize_advantages:
             adv_v = _standardised(adv_v)
-        if adv_q is not None and cfg.coma_action_means == "subtract":
-            adv_q = subtract_action_means(adv_q, actions, mask.bool().sum(dim=1) > 1)
-        if adv_q is not None and cfg.coma_actions == "delta_only":
-            delta = actions < N_DELTA_ACTIONS
-            adv_q = torch.zeros_like(adv_q).masked_scatter(
-                delta, _standardised(adv_q[delta]) if cfg.normalize_advantages else adv_q[delta]
-            )
-        elif adv_q is not None and cfg.normalize_advantages:
-            adv_q = _standardised(adv_q)
+            if adv_q is not None:
+                adv_q = _standardised(adv_q)
         loss = combined_policy_loss(
             log_probs,
             adv_v,
@@ -804,9 +619,7 @@ class Learner:
         """Everything needed to resume: nets, targets, optimisers, config and layout ids.
 
         Plain tensors, numbers, strings and dicts only, so ``torch.load(weights_only=True)`` reads it.
-        Waits for a critics' step in the background: a checkpoint holds the critics after it.
         """
-        self.finish_critics()
         return {
             "format": CHECKPOINT_FORMAT,
             "obs_layout_id": OBS_LAYOUT_ID,
@@ -836,11 +649,10 @@ class Learner:
                 raise InputError(
                     f"checkpoint {key} {state.get(key)!r} does not match this build's {expected!r}"
                 )
-        self.finish_critics()  # its step must not land on the loaded weights
         self.actor.load_state_dict(state["actor"])
         self.value.load_state_dict(state["value"])
-        # A Q with another head (a stage-1 checkpoint, where Q is never trained, started under the other
-        # ``central_head``) is not this learner's: its Q stays as initialised.
+        # A Q of another critic (a checkpoint trained with a retired or another registered critic; a stage-1
+        # one never trains Q) is not this learner's: its Q stays as initialised, the actor and V load.
         same_central = state["central"].keys() == self.central.state_dict().keys()
         if same_central:
             self.central.load_state_dict(state["central"])

@@ -14,10 +14,11 @@ import torch
 from torch import nn
 from torch.distributions import Categorical
 
+from idas_sumo.agents.coma import coma_advantage
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import GRID_CELLS, N_CHANNELS, N_LANES, N_SCALARS, OBS_DIM
-from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURE_NAMES, STATE_FEATURES, STATE_SLOTS
+from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
 
 __all__ = [
     "CENTRAL_INPUT_DIM",
@@ -27,10 +28,10 @@ __all__ = [
     "STATE_SLOTS",
     "Actor",
     "CentralCritic",
+    "CentralCriticBase",
     "GridEncoder",
     "ObsWindows",
     "ValueCritic",
-    "ego_first_slots",
 ]
 
 CONV_FILTERS = 2
@@ -65,17 +66,15 @@ def _mlp(sizes: list[int]) -> nn.Sequential:
 # correlation is one dense (Toeplitz) matrix built from the kernel. 371 = 7 × 53 output cells, so 7
 # blocks read the 400 cells exactly, and the conv is one GEMM (B·7, 4·82) @ (4·82, 4·53) with the bias
 # fused. Its output stays in (block, filter·row, cell) order: instead of permuting activations, the
-# first joint layer's weight columns are permuted to match. Measured on 2 cores: the learner update
-# is 1.7× faster than with torch's conv2d (benchmarks/learner_update.py); the result is the same to
-# float rounding (tests/test_networks.py). The Conv2d and Linear modules stay the parameters' homes, so
-# checkpoints keep their keys and layout.
+# first joint layer's weight columns are permuted to match. Faster than torch's conv2d
+# (benchmarks/learner_update.py); the result is the same to float rounding (tests/test_agents_networks.py).
+# The Conv2d and Linear modules stay the parameters' homes, so checkpoints keep their keys and layout.
 BLOCK_CELLS = 53
 # A learner batch goes through the encoder in slices of this many rows (the same maths; the float rounding
 # of a GEMM depends on its row count, and the weight gradient sums the slices in turn). A slice's windows
-# (2048 · 7 · 328 floats, 19 MB) stay in this machine's 32 MB L3 cache, where a whole stage-2 batch of 16
-# episodes (about 9,600 rows, 88 MB of windows) did not: one update on such a batch of real intelligent-world
-# rows ran 1.6× faster (14,500 against 23,500 rows/s on 2 threads). Batches up to this size, every rollout's
-# and evaluation's, take the path they took before.
+# (2048 · 7 · 328 floats, 19 MB) fit a common L3 cache, where a whole stage-2 batch of 16 episodes (about
+# 9,600 rows, 88 MB of windows) does not. Batches up to this size, every rollout's and evaluation's, go
+# through in one piece.
 ENCODER_CHUNK_ROWS = 2048
 _BLOCKS = CONV_OUT_CELLS // BLOCK_CELLS  # 7
 assert _BLOCKS * BLOCK_CELLS == CONV_OUT_CELLS, "blocks must tile the conv output exactly"
@@ -162,8 +161,8 @@ class ObsWindows:
     """A batch of observations cut into the conv's windows once, for every encoder that reads it.
 
     The learner runs the actor, V and (with one-step targets) V̂ on the same rows; cutting a batch (a copy of
-    its grids, the occupancy test and the gather of the occupied windows) was about a sixth of each encoder
-    pass. The cut depends on the observations only, so the networks compute what they would from ``obs``,
+    its grids, the occupancy test and the gather of the occupied windows) is a noticeable share of each
+    encoder pass. The cut depends on the observations only, so the networks compute what they would from ``obs``,
     bit for bit. Batches above ``ENCODER_CHUNK_ROWS`` are cut in chunks of that many rows.
     """
 
@@ -311,75 +310,43 @@ class ValueCritic(nn.Module):
         return out
 
 
-class CentralCritic(nn.Module):
+class CentralCriticBase(nn.Module):
+    """What the learner asks of a centralised critic Q(s, (a⁻ⁿ, ·), b) (``agents/critics.py`` builds one by name):
+    ``forward`` gives one Q-value per own action of agent n; ``loss`` (L(φ2)) and ``advantage`` (A2, COMA's
+    by default) may be overridden by a critic that needs other ones."""
+
+    def forward(self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+        """Q-values (B, N_ACTIONS); ``slot`` is (B,) int64 in [0, STATE_SLOTS)."""
+        raise NotImplementedError
+
+    def loss(
+        self, q_all: torch.Tensor, action: torch.Tensor, target: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(0.5 · mean (target - Q(s, a))², Q(s, a)) for the actions taken, from ``forward``'s Q(s, ·)."""
+        q_taken = q_all.gather(1, action.unsqueeze(1)).squeeze(1)
+        return 0.5 * (target - q_taken).pow(2).mean(), q_taken
+
+    def advantage(self, q_all: torch.Tensor, probs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """A2 (B,) from Q(s, ·) (detached) and the masked policy π(·|o): COMA's Q(s, a) - Σ_a' π(a'|o) Q(s, a')."""
+        return coma_advantage(q_all, probs, action)
+
+
+class CentralCritic(CentralCriticBase):
     """Centralised COMA critic Q(s, (a⁻ⁿ, ·), b): one Q-value per own action of agent n.
 
     Input: the global state (STATE_DIM, carries every vehicle's b_prio and b_type), the other
     agents' actions one-hot (OTHERS_ACTIONS_DIM, own slot zeroed) and agent n's slot one-hot
-    (STATE_SLOTS). Two FC layers of 128 with ReLU, then N_ACTIONS outputs, so the counterfactual
-    baseline needs one forward pass (COMA's critic head).
+    (STATE_SLOTS), vehicles in the scenario's slot order. Two FC layers of 128 with ReLU, then
+    N_ACTIONS outputs, so the counterfactual baseline needs one forward pass (COMA's critic head).
     """
 
-    def __init__(self, state_value: bool = False, ego_first: bool = False) -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self.ego_first = ego_first
-        """Reorder each row's slots before the body (``ego_first_slots``; ``LearnerConfig.central_input``)."""
         self.body = _mlp([CENTRAL_INPUT_DIM, CENTRAL_HIDDEN, CENTRAL_HIDDEN])
         self.head = nn.Linear(CENTRAL_HIDDEN, N_ACTIONS)
-        self.value_head: nn.Linear | None = None
-        """With ``state_value`` (``LearnerConfig.central_head``): U(s), and ``head`` gives D(s, ·), the
-        actions' differences from it, starting near 0: Q(s, a) = U(s) + D(s, a)."""
-        if state_value:
-            nn.init.orthogonal_(self.head.weight, gain=ACTOR_HEAD_GAIN)
-            nn.init.zeros_(self.head.bias)
-            self.value_head = nn.Linear(CENTRAL_HIDDEN, 1)
 
     def forward(self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
         """Q-values (B, N_ACTIONS); ``slot`` is (B,) int64 in [0, STATE_SLOTS)."""
-        return self.q_values(*self.parts(state, others_actions, slot))
-
-    @staticmethod
-    def q_values(value: torch.Tensor | None, differences: torch.Tensor) -> torch.Tensor:
-        """Q(s, ·) (B, N_ACTIONS) from ``parts``: the action head's outputs, plus U(s) where there is one."""
-        return differences if value is None else value.unsqueeze(1) + differences
-
-    def parts(
-        self, state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor
-    ) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """(U(s) (B,) or None without a value head, the action head's outputs (B, N_ACTIONS))."""
-        if self.ego_first:
-            state, others_actions, slot = ego_first_slots(state, others_actions, slot)
         slot_onehot = nn.functional.one_hot(slot.long(), STATE_SLOTS).to(state.dtype)
-        hidden = self.body(torch.cat([state, others_actions, slot_onehot], dim=1))
-        value = None if self.value_head is None else self.value_head(hidden).squeeze(-1)
-        return value, self.head(hidden)
-
-
-_PRESENT = STATE_FEATURE_NAMES.index("present")
-_DIST = STATE_FEATURE_NAMES.index("dist_to_merge")
-
-
-def ego_first_slots(
-    state: torch.Tensor, others_actions: torch.Tensor, slot: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Each row's vehicle slots reordered around its agent: its own first, then the other vehicles by how far
-    their distance to the merge point lies from its own (the car it meets at the merge comes next), then the
-    empty slots; ties keep the scenario's order. The others' actions move with their slots, and the own slot
-    becomes 0. Returns (state, others_actions, slot) with the shapes given.
-
-    Ours (``LearnerConfig.central_input = "ego_first"``): the paper gives Q "full information of all agents"
-    without an order. In the scenario's order a conflict at the merge can sit in any pair of slots, and Q must
-    find it among all of them.
-    """
-    b = state.shape[0]
-    vehicles = state.reshape(b, STATE_SLOTS, STATE_FEATURES)
-    dist = vehicles[:, :, _DIST]
-    own = slot.long().unsqueeze(1)
-    key = (dist - dist.gather(1, own)).abs()
-    key = torch.where(vehicles[:, :, _PRESENT] > 0, key, torch.full_like(key, torch.inf))
-    key = key.scatter(1, own, -1.0)  # the own slot first, present or not
-    order = torch.argsort(key, dim=1, stable=True)
-    vehicles = vehicles.gather(1, order.unsqueeze(2).expand(-1, -1, STATE_FEATURES))
-    actions = others_actions.reshape(b, STATE_SLOTS, N_ACTIONS)
-    actions = actions.gather(1, order.unsqueeze(2).expand(-1, -1, N_ACTIONS))
-    return vehicles.reshape(b, STATE_DIM), actions.reshape(b, -1), torch.zeros_like(slot)
+        out: torch.Tensor = self.head(self.body(torch.cat([state, others_actions, slot_onehot], dim=1)))
+        return out

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -38,7 +38,6 @@ from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
 
 __all__ = [
-    "ActionOverride",
     "EpisodeData",
     "EpisodeStats",
     "RolloutTask",
@@ -48,8 +47,7 @@ __all__ = [
 ]
 
 DONE_REASONS = frozenset({"finished", "collided", "removed"})
-"""End reasons after which nothing is bootstrapped (a timeout is not one of them, unless the reward variant
-``RewardConfig.timeout`` = 'forfeit_finish' makes it an end)."""
+"""End reasons after which nothing is bootstrapped (a timeout is not one of them)."""
 
 
 @dataclass
@@ -101,7 +99,6 @@ class EpisodeData:
     next_valid: npt.NDArray[np.float32]  # (N,)
     next_row: npt.NDArray[np.int64]  # (N,) row of the same agent's next step, -1 when none
     stats: EpisodeStats
-    explored: npt.NDArray[np.bool_] | None = None  # (N,) the action was drawn uniformly (RolloutTask.explore)
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
@@ -167,12 +164,6 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
         batch.next_slot = cat("next_slot")
         batch.next_action = cat("next_action")
         batch.next_valid = cat("next_valid")
-    if any(e.explored is not None and e.explored.any() for e in episodes):
-        batch.explored = torch.from_numpy(
-            np.concatenate(
-                [np.zeros(len(e), np.bool_) if e.explored is None else e.explored for e in episodes]
-            )
-        )
     return batch
 
 
@@ -198,7 +189,6 @@ class _EpisodeRecorder:
         self.agents_per_step: list[int] = []
         self.collisions = 0
         self.state: npt.NDArray[np.float32] | None = None
-        self.explored: list[npt.NDArray[np.bool_]] = []  # only in episodes that explore
 
     def step(
         self,
@@ -238,10 +228,7 @@ class _EpisodeRecorder:
         self.collisions += collisions
 
     def finish(self, engine: MergeEngine, k: int, outcome: EpisodeOutcome) -> EpisodeData:
-        done_reasons = (
-            DONE_REASONS | {"timeout"} if engine.config.reward.timeout_ends_episode else DONE_REASONS
-        )
-        rows = _AgentRows.of(self.ids, self.reasons, done_reasons)
+        rows = _AgentRows.of(self.ids, self.reasons, DONE_REASONS)
         bank = list(self.obs_rows)
         # Agents still pending were cut off (timeout): their final observation bootstraps V.
         cut = [(a, r) for a, r in rows.pending.items() if engine.row(k, a) is not None]
@@ -302,6 +289,7 @@ def _episode_data(
     timed_out: bool,
     outcome: EpisodeOutcome,
 ) -> EpisodeData:
+    """The recorder's steps as one ``EpisodeData``: every row's columns, each linked to its agent's next row."""
     n = len(rec.ids)
     per_step = np.asarray(rec.agents_per_step, dtype=np.int64)
     nxt = rows.next_row
@@ -318,39 +306,6 @@ def _episode_data(
     slot_arr = np.concatenate(rec.slots) if n else np.zeros(0, np.int64)
     action_arr = np.concatenate(rec.actions) if n else np.zeros(0, np.int64)
     reward_arr = np.concatenate(rec.rewards) if n else np.zeros(0, np.float64)
-    parts_arr = np.concatenate(rec.parts) if n else np.zeros((0, len(REWARD_PART_NAMES)), np.float64)
-    next_state = np.zeros_like(state_arr)
-    next_others = np.zeros_like(others_arr)
-    next_slot = np.zeros(n, dtype=np.int64)
-    next_action = np.zeros(n, dtype=np.int64)
-    next_state[has_next] = state_arr[nxt[has_next]]
-    next_others[has_next] = others_arr[nxt[has_next]]
-    next_slot[has_next] = slot_arr[nxt[has_next]]
-    next_action[has_next] = action_arr[nxt[has_next]]
-    # Each agent's return summed over its rows in step order (bincount adds them one after another).
-    agent_returns = np.bincount(rows.agent_of_row, weights=reward_arr, minlength=len(rows.first_seen))
-    column = REWARD_PART_NAMES.index
-    first_of_step = np.cumsum(per_step)[per_step > 0] - per_step[per_step > 0]  # flow: once per step
-    reward_parts = {
-        "finish": _sequential_sum(parts_arr[:, column("finish")]),
-        "collide": _sequential_sum(parts_arr[:, column("collide")]),
-        "impede": _sequential_sum(parts_arr[:, column("impede")]),
-        "flow": _sequential_sum(parts_arr[first_of_step, column("flow")]),
-    }
-    stats = EpisodeStats(
-        agents=len(rows.first_seen),
-        steps=len(rec.agents_per_step),
-        agent_steps=n,
-        sim_time_s=float(time_s),
-        return_mean=float(np.mean(agent_returns.tolist())) if len(agent_returns) else 0.0,
-        reward_parts={name: reward_parts[name] for name in REWARD_PART_NAMES},
-        collisions=rec.collisions,
-        timed_out=timed_out,
-        # The one definition (env/engine.py): no collision and every controlled car finished.
-        success=outcome.success,
-        perfect=outcome.perfect,
-        end_reasons=rows.end_reasons,
-    )
     return EpisodeData(
         obs_bank=np.concatenate(bank).astype(np.float32, copy=False)
         if bank
@@ -365,14 +320,62 @@ def _episode_data(
         others_actions=others_arr,
         slot=slot_arr,
         joint_reward=np.repeat(np.asarray(rec.joints, dtype=np.float32), per_step),
-        next_state=next_state,
-        next_others_actions=next_others,
-        next_slot=next_slot,
-        next_action=next_action,
+        next_state=_of_next_row(state_arr, nxt),
+        next_others_actions=_of_next_row(others_arr, nxt),
+        next_slot=_of_next_row(slot_arr, nxt),
+        next_action=_of_next_row(action_arr, nxt),
         next_valid=has_next.astype(np.float32),
         next_row=nxt,
-        stats=stats,
-        explored=np.concatenate(rec.explored) if rec.explored and n else None,
+        stats=_episode_stats(rec, rows, reward_arr, time_s, timed_out, outcome),
+    )
+
+
+_Column = TypeVar("_Column", bound=np.generic)
+
+
+def _of_next_row(column: npt.NDArray[_Column], next_row: npt.NDArray[np.int64]) -> npt.NDArray[_Column]:
+    """Each row's value of ``column`` at the same agent's next row; zeros where it has none."""
+    out = np.zeros_like(column)
+    has_next = next_row >= 0
+    out[has_next] = column[next_row[has_next]]
+    return out
+
+
+def _episode_stats(
+    rec: _EpisodeRecorder,
+    rows: _AgentRows,
+    reward_arr: npt.NDArray[np.float64],
+    time_s: float,
+    timed_out: bool,
+    outcome: EpisodeOutcome,
+) -> EpisodeStats:
+    """What the episode amounted to: its counts, returns and summed reward parts."""
+    n = len(rec.ids)
+    per_step = np.asarray(rec.agents_per_step, dtype=np.int64)
+    parts_arr = np.concatenate(rec.parts) if n else np.zeros((0, len(REWARD_PART_NAMES)), np.float64)
+    # Each agent's return summed over its rows in step order (bincount adds them one after another).
+    agent_returns = np.bincount(rows.agent_of_row, weights=reward_arr, minlength=len(rows.first_seen))
+    column = REWARD_PART_NAMES.index
+    first_of_step = np.cumsum(per_step)[per_step > 0] - per_step[per_step > 0]  # flow: once per step
+    reward_parts = {
+        "finish": _sequential_sum(parts_arr[:, column("finish")]),
+        "collide": _sequential_sum(parts_arr[:, column("collide")]),
+        "impede": _sequential_sum(parts_arr[:, column("impede")]),
+        "flow": _sequential_sum(parts_arr[first_of_step, column("flow")]),
+    }
+    return EpisodeStats(
+        agents=len(rows.first_seen),
+        steps=len(rec.agents_per_step),
+        agent_steps=n,
+        sim_time_s=float(time_s),
+        return_mean=float(np.mean(agent_returns.tolist())) if len(agent_returns) else 0.0,
+        reward_parts={name: reward_parts[name] for name in REWARD_PART_NAMES},
+        collisions=rec.collisions,
+        timed_out=timed_out,
+        # The one definition (env/engine.py): no collision and every controlled car finished.
+        success=outcome.success,
+        perfect=outcome.perfect,
+        end_reasons=rows.end_reasons,
     )
 
 
@@ -389,33 +392,12 @@ class GroupedActor(Protocol):
 
 
 @dataclass(frozen=True)
-class ActionOverride:
-    """Decisions of one agent replaced: its ``decision``-th action (from 0), and the ``hold`` - 1 after it, are
-    ``action`` instead of the ones drawn, and the episode's generator restarts from ``continuation_seed`` right
-    after the first. Episodes of one scenario and action seed are the same up to that decision, so several
-    overrides of it measure what each action leads to from one state (``scripts/counterfactual_probe.py``)."""
-
-    agent_id: str
-    decision: int
-    action: int
-    continuation_seed: int
-    hold: int = 1
-    """How many of the agent's decisions from ``decision`` on take ``action`` (a masked one is replaced by the
-    closest allowed action, as any request is)."""
-
-
-@dataclass(frozen=True)
 class RolloutTask:
-    """One episode to collect: the scenario, the seed of its action sampling, greedy or not, and an optional
-    replaced decision."""
+    """One episode to collect: the scenario, the seed of its action sampling, greedy or not."""
 
     scenario: Scenario
     action_seed: int
     deterministic: bool = False
-    override: ActionOverride | None = None
-    explore: float = 0.0
-    """Share of the episode's decisions drawn uniformly from the allowed actions instead of from the policy
-    (``TrainConfig.critic_exploration``), each agent-step with this probability, from the episode's generator."""
 
 
 class _LearningPolicy:
@@ -425,11 +407,6 @@ class _LearningPolicy:
         self.actor = actor
         self.tasks = tasks
         self.generators = [torch.Generator().manual_seed(t.action_seed) for t in tasks]
-        self.overridden = np.array([j for j, t in enumerate(tasks) if t.override is not None], dtype=np.int64)
-        self.exploring = np.array([j for j, t in enumerate(tasks) if t.explore > 0.0], dtype=np.int64)
-        self.explored_rows = np.zeros(0, dtype=np.int64)
-        """The batch rows whose action the last ``act`` drew uniformly."""
-        self.decisions: dict[int, int] = {}  # job -> its overridden agent's decisions so far
 
     def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         assert batch.job is not None, "the episode loop names each agent's job"
@@ -446,64 +423,15 @@ class _LearningPolicy:
             ]
             sel = rows[part]
             out[part] = self.actor.act_grouped(batch.obs[sel], batch.masks[sel], groups, deterministic=det)
-        if len(self.exploring):
-            self._explore(batch, rows, jobs, out)
-        if len(self.overridden):
-            self._override(batch, rows, jobs, out)
         return out
-
-    def _explore(
-        self,
-        batch: AgentBatch,
-        rows: npt.NDArray[np.int64],
-        jobs: npt.NDArray[np.int64],
-        out: npt.NDArray[np.int64],
-    ) -> None:
-        """Per exploring episode, after its policy draws: each of its agents' actions, with the task's
-        probability, replaced by one drawn uniformly from the allowed ones."""
-        explored: list[npt.NDArray[np.int64]] = []
-        for j in np.intersect1d(jobs, self.exploring).tolist():
-            part = np.flatnonzero(jobs == j)
-            generator = self.generators[j]
-            pick = torch.rand(len(part), generator=generator) < self.tasks[j].explore
-            allowed = torch.from_numpy(batch.masks[rows[part]].astype(np.float32))
-            uniform = torch.multinomial(allowed, 1, generator=generator).squeeze(1)
-            chosen = pick.numpy()
-            out[part[chosen]] = uniform.numpy()[chosen]
-            explored.append(rows[part[chosen]])
-        self.explored_rows = np.concatenate(explored) if explored else np.zeros(0, dtype=np.int64)
-
-    def _override(
-        self,
-        batch: AgentBatch,
-        rows: npt.NDArray[np.int64],
-        jobs: npt.NDArray[np.int64],
-        out: npt.NDArray[np.int64],
-    ) -> None:
-        """Replace the overridden decisions among ``rows`` in ``out`` (after this step's draws, so the past is
-        the same whatever replaces it)."""
-        for i in np.flatnonzero(np.isin(jobs, self.overridden)).tolist():
-            j = int(jobs[i])
-            override = self.tasks[j].override
-            assert override is not None
-            if batch.ids[rows[i]] != override.agent_id:
-                continue
-            n = self.decisions.get(j, 0)
-            self.decisions[j] = n + 1
-            if override.decision <= n < override.decision + override.hold:
-                out[i] = override.action
-            if n == override.decision:
-                self.generators[j].manual_seed(override.continuation_seed)
 
 
 class _Collector:
     """The engine observer of a rollout: one ``_EpisodeRecorder`` per job."""
 
-    def __init__(self, n_jobs: int, policy: Policy | None = None) -> None:
+    def __init__(self, n_jobs: int) -> None:
         self.recorders = [_EpisodeRecorder() for _ in range(n_jobs)]
         self.episodes: dict[int, EpisodeData] = {}
-        self.policy = policy if isinstance(policy, _LearningPolicy) and len(policy.exploring) else None
-        """The policy whose explored rows are recorded; None when no episode explores."""
 
     def decided(
         self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: npt.NDArray[np.int64]
@@ -522,14 +450,8 @@ class _Collector:
         if not len(batch):
             return
         obs = batch.obs
-        explored = None
-        if self.policy is not None:
-            explored = np.zeros(len(batch), dtype=np.bool_)
-            explored[self.policy.explored_rows] = True
         for k in np.unique(batch.copy).tolist():
             rows = np.flatnonzero(batch.copy == k)
-            if explored is not None and self.policy is not None and self.policy.tasks[jobs[k]].explore > 0.0:
-                self.recorders[jobs[k]].explored.append(explored[rows])
             ids = [batch.ids[r] for r in rows]
             state_slot = engine.slots[k].state_slot
             agent_slots = np.array([state_slot.get(a, -1) for a in ids], dtype=np.int64)
@@ -563,6 +485,6 @@ def collect_episodes(
 def record_episodes(engine: MergeEngine, policy: Policy, scenarios: Sequence[Scenario]) -> list[EpisodeData]:
     """Every scenario run to its end with every learning agent on ``policy`` (a learned actor, or a
     rule-based teacher for imitation), recorded as agent-steps; in scenario order."""
-    collector = _Collector(len(scenarios), policy)
+    collector = _Collector(len(scenarios))
     run_episodes(engine, scenarios, lambda job, agent: 0, [policy], collector)
     return [collector.episodes[j] for j in range(len(scenarios))]

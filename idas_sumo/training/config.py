@@ -68,6 +68,9 @@ def _intelligent_traffic() -> TrafficConfig:
 class TrainConfig:
     """Everything a training run needs besides the network file and the output directory."""
 
+    RETIRED_KEYS: ClassVar[dict[str, Any]] = {"critic_exploration": 0.0, "standstill": "keeps_command"}
+    """Variants measured and retired (experiments/README.md): files that hold their default still load."""
+
     stage: Stage = "curriculum"
     """What to train: 'robot' (stage 1 only, gives IDAS-V), 'intelligent' (stage 2 only; from
     ``init_from`` when given, else from scratch), 'direct' (IDAS-direct: stage 2 from scratch for
@@ -97,9 +100,7 @@ class TrainConfig:
     """Rollout processes; 1 collects in the training process. Results do not depend on it."""
     copies: int = 16
     """Episodes a rollout worker runs side by side in one SUMO run (1 to MAX_COPIES). Results do not
-    depend on it. Measured (96 episodes of the default traffic, the shipped IDAS driving, rollout
-    only, one process on the 2 shared cores): 1 copy 6.0 / 6.2 episodes/s, 8 copies 13.5 / 14.6,
-    16 copies 15.3 / 15.2 / 14.5, 32 copies 15.5."""
+    depend on it."""
     seed: int = 0
     """Seeds network initialisation, scenarios and action sampling."""
     max_episode_s: float = DEFAULT_MAX_EPISODE_S
@@ -118,14 +119,7 @@ class TrainConfig:
     (ours: the success rate first, the joint return among equals)."""
     safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
     """Which car the safety mask follows in training and validation (``EnvConfig.safety_mask``):
-    'own_lane' (the paper) or 'merge_aware' (ours, a shield; the shipped policies were trained with it)."""
-    critic_exploration: float = 0.0
-    """Share of the agent-steps of every sampling episode whose action is drawn uniformly from the allowed ones
-    instead of from the policy (ours, a labelled variant; 0: none, the paper). Those rows train the critics but
-    not the actor, and under ``[learner] central_action_rows = "explored"`` they alone teach Q what each
-    action leads to (docs/results.md, "Declared: a critic that learns actions from random ones")."""
-    RETIRED_KEYS: ClassVar[dict[str, Any]] = {"standstill": "keeps_command"}
-    """Experiment switches measured and retired (experiments/README.md): files holding the default still load."""
+    'own_lane' (the paper; every shipped policy was trained with it) or 'merge_aware' (ours, a shield)."""
     junction: str = ""
     """Which merge of a net with several to train on (its junction id, ``idas-sumo nets inspect``);
     "": the net's only merge (``EnvConfig.junction``)."""
@@ -162,10 +156,6 @@ class TrainConfig:
             raise ConfigValueError(f"copies must be in [1, {MAX_COPIES}], got {self.copies}")
         if not self.max_episode_s > 0.0:
             raise ConfigValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
-        if not 0.0 <= self.critic_exploration < 1.0:
-            raise ConfigValueError(f"critic_exploration must lie in [0, 1), got {self.critic_exploration}")
-        if self.learner.central_action_rows == "explored" and self.critic_exploration == 0.0:
-            raise ConfigValueError('[learner] central_action_rows = "explored" needs critic_exploration > 0')
         if self.validation_criterion not in VALIDATION_CRITERIA:
             raise ConfigValueError(
                 f"validation_criterion must be one of {', '.join(VALIDATION_CRITERIA)}, "

@@ -3,11 +3,7 @@
 ``run_training`` is what ``idas-sumo train`` calls; it reads as the run goes, and each part it
 calls follows it in this file in that order. One round = ``episodes_per_update`` episodes collected
 with the current actor (by 1 in-process worker or W processes), then one learner update on all
-their agent-steps, then one metrics row per episode. With ``OVERLAP_UPDATE_ENV`` set, the update returns once
-the actor has stepped and its critics step in a thread of this process while the workers collect the next round
-(``Learner(critics_in_background=True)``: the same weights, bit for bit), so a round's metrics rows, which carry
-the critics' losses, are written after the next round's collection (``_HeldRows``), and before any checkpoint.
-With ``[geometry]`` (training/geometry.py) a round first draws its generated net, and ``geometries.csv`` gets one
+their agent-steps, then one metrics row per episode. With ``[geometry]`` (training/geometry.py) a round first draws its generated net, and ``geometries.csv`` gets one
 row per round saying which. Randomness: one numpy generator draws the scenarios, one torch generator draws each
 episode's action-sampling seed; both are saved in every checkpoint, so ``resume`` continues exactly where the last
 checkpoint left off.
@@ -19,7 +15,6 @@ import collections
 import contextlib
 import dataclasses
 import logging
-import os
 import shutil
 import sys
 import threading
@@ -32,7 +27,7 @@ import numpy as np
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from idas_sumo.agents.learner import Learner, PendingUpdate
+from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
 from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
 from idas_sumo.env.scenario import Road, generate_scenario
@@ -70,11 +65,6 @@ GEOMETRIES_NAME = "geometries.csv"
 GEOMETRY_SOURCE = "[geometry]"
 """What the road checks name as the source of a drawn net's episode rules."""
 SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
-OVERLAP_UPDATE_ENV = "IDAS_SUMO_OVERLAP_UPDATE"
-"""Set to 1, the learner's critics step in a thread while the workers collect the next round; the results are
-the same bit for bit. Off by default: on a quiet 2-core machine the thread competes with the two workers and
-training ran 0.93-0.94x as fast (``benchmarks/train_throughput.py --compare-serial``, 3 pairs of 1,000-2,000
-episodes); only beside other jobs did it gain (1.07-1.09x)."""
 
 
 def run_training(
@@ -111,23 +101,20 @@ def run_training(
     plans = plan_stages(config)
     site = choose_merge(net_path, config.junction or None)
     geometry_needs = _check_geometry(config) if config.geometry is not None else None
-    if resumed is not None:
-        state = _RunState.resume(resumed, plans, out_dir / CHECKPOINT_NAME)
-        _drop_best_after(out_dir, state.global_episode)
-    else:
-        state = _RunState.start(config.seed)
-        if force:
-            _remove_run_outputs(out_dir)
+    state = _starting_state(config, plans, out_dir, resumed, force)
 
     run = _Run(config, out_dir, _site_limits(site))
-    env_config = config.env_config()
     # On resume, the metrics rows past the checkpoint go (they are written again).
     keep_below = state.global_episode if resumed is not None else None
-    final = run.latest
-    learner: Learner | None = None
     with (
         make_workers(
-            net_path, env_config, config.seed, config.workers, config.copies, gui=gui, ray_address=ray_address
+            net_path,
+            config.env_config(),
+            config.seed,
+            config.workers,
+            config.copies,
+            gui=gui,
+            ray_address=ray_address,
         ) as workers,
         MetricsSink(out_dir, keep_below) as metrics_sink,
         (
@@ -145,28 +132,66 @@ def run_training(
                     config.geometry, geometry_needs, geometry_sink, 1 if gui else config.copies
                 ),
             )
-        metrics = _HeldRows(metrics_sink)
-        for stage_index in range(state.stage_index, len(plans)):
-            plan = plans[stage_index]
-            # The checkpoint's own stage continues from it; a later stage starts afresh.
-            resumed_here = resumed if resumed is not None and stage_index == resumed.stage_index else None
-            learner = _stage_learner(
-                plan,
-                seed=config.seed + stage_index,
-                resumed=resumed_here,
-                previous=learner,
-                init_weights=init_weights if stage_index == 0 else None,
-            )
-            state.enter_stage(stage_index)
-            validation = (
-                None
-                if validation_sink is None
-                else _StageValidation.start(run, plan, workers, validation_sink, resumed_here)
-            )
-            _train_stage(run, plan, learner, state, workers, metrics, validation, bar)
-            final = _finish_stage(run, plan, learner, state, validation)
+        final = _train_stages(
+            run, plans, state, resumed, init_weights, workers, metrics_sink, validation_sink, bar
+        )
         if run.geometry is not None:
             run.geometry.wait()
+    return final
+
+
+def _starting_state(
+    config: TrainConfig,
+    plans: list[StagePlan],
+    out_dir: Path,
+    resumed: TrainingCheckpoint | None,
+    force: bool,
+) -> _RunState:
+    """Where the run starts: where ``resumed`` left off (its later best weights dropped), or at episode 0 (with
+    ``force``, the files of an earlier run in ``out_dir`` removed)."""
+    if resumed is not None:
+        state = _RunState.resume(resumed, plans, out_dir / CHECKPOINT_NAME)
+        _drop_best_after(out_dir, state.global_episode)
+        return state
+    if force:
+        _remove_run_outputs(out_dir)
+    return _RunState.start(config.seed)
+
+
+def _train_stages(
+    run: _Run,
+    plans: list[StagePlan],
+    state: _RunState,
+    resumed: TrainingCheckpoint | None,
+    init_weights: dict[str, Any] | None,
+    workers: RolloutWorkers,
+    metrics: MetricsSink,
+    validation_sink: MetricsSink | None,
+    bar: Progress,
+) -> Path:
+    """Each stage from where ``state`` stands, each with its learner and validation. Returns the last
+    ``<stage>.pt``."""
+    final = run.latest
+    learner: Learner | None = None
+    for stage_index in range(state.stage_index, len(plans)):
+        plan = plans[stage_index]
+        # The checkpoint's own stage continues from it; a later stage starts afresh.
+        resumed_here = resumed if resumed is not None and stage_index == resumed.stage_index else None
+        learner = _stage_learner(
+            plan,
+            seed=run.config.seed + stage_index,
+            resumed=resumed_here,
+            previous=learner,
+            init_weights=init_weights if stage_index == 0 else None,
+        )
+        state.enter_stage(stage_index)
+        validation = (
+            None
+            if validation_sink is None
+            else _StageValidation.start(run, plan, workers, validation_sink, resumed_here)
+        )
+        _train_stage(run, plan, learner, state, workers, metrics, validation, bar)
+        final = _finish_stage(run, plan, learner, state, validation)
     return final
 
 
@@ -315,31 +340,6 @@ def _geometry_sink(out_dir: Path, keep_below: int | None) -> MetricsSink:
     )
 
 
-class _HeldRows:
-    """``metrics.csv``: a round's rows are held until its update's losses are known (with
-    ``OVERLAP_UPDATE_ENV`` its critics step while the next round collects; otherwise they are known at once
-    and the rows are written at once); ``flush`` waits for them and writes the rows."""
-
-    def __init__(self, sink: MetricsSink) -> None:
-        self.sink = sink
-        self._held: tuple[list[dict[str, Any]], PendingUpdate, float] | None = None
-
-    def hold(self, rows: list[dict[str, Any]], update: PendingUpdate, wall_s: float) -> None:
-        """``rows`` get ``update``'s losses and the round's end ``wall_s``."""
-        self.flush()
-        self._held = (rows, update, wall_s)
-        if update.ready:
-            self.flush()
-
-    def flush(self) -> None:
-        if self._held is None:
-            return
-        rows, update, wall_s = self._held
-        losses = update.stats()  # a Ctrl-C while it waits leaves the rows held: the handler flushes them
-        self._held = None
-        self.sink.write([{**row, **losses, "wall_time_s": wall_s} for row in rows])
-
-
 # --- the run's state --------------------------------------------------------------------------------
 
 
@@ -370,9 +370,8 @@ class _GeometryDraws:
 
     def prefetch(self, rng: np.random.Generator) -> None:
         """Build, while the round runs, the nets the next round will most likely draw: its geometry
-        is the next draw of ``rng``, read from a copy (``rng`` itself does not move). A new net costs
-        a worker about 2 s (its multi-copy net; 0.3 s the net itself); built ahead, the workers read
-        both from the caches. Only the caches see it: a wrong guess (a stage's last round) or a failed
+        is the next draw of ``rng``, read from a copy (``rng`` itself does not move). Built ahead, the
+        workers read the net and its multi-copy net from the caches. Only the caches see it: a wrong guess (a stage's last round) or a failed
         build changes nothing, the round builds what it draws itself."""
         peek = np.random.Generator(type(rng.bit_generator)())
         peek.bit_generator.state = rng.bit_generator.state
@@ -504,8 +503,7 @@ def _stage_learner(
     """The stage's learner: the checkpoint's when the run resumes in this stage, else the previous
     stage's networks (the curriculum's stage 2), else ``init_weights``, else fresh ones; with ``anchor_coef``
     its anchor is what it starts from."""
-    overlap = os.environ.get(OVERLAP_UPDATE_ENV, "") == "1"
-    learner = Learner(plan.learner, seed=seed, critics_in_background=overlap)
+    learner = Learner(plan.learner, seed=seed)
     if resumed is not None:
         learner.load_state_dict(resumed.learner)
     elif plan.init_from_previous and previous is not None:
@@ -639,7 +637,7 @@ def _train_stage(
     learner: Learner,
     state: _RunState,
     workers: RolloutWorkers,
-    metrics: _HeldRows,
+    metrics: MetricsSink,
     validation: _StageValidation | None,
     bar: Progress,
 ) -> None:
@@ -657,17 +655,11 @@ def _train_stage(
             stage_bar.validated(validation.best_return)
         while state.episode < plan.episodes:
             _round(run, plan, learner, state, workers, metrics, validation, stage_bar)
-        metrics.flush()
     except KeyboardInterrupt:
-        metrics.flush()
         if not (fresh and state.global_episode == 0):
             save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
             log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
         # else: a fresh run stopped before its first round; its starting checkpoint says all there is.
-        raise
-    except Exception:
-        with contextlib.suppress(Exception):  # the rows of the rounds done, as far as they can be
-            metrics.flush()
         raise
 
 
@@ -677,14 +669,13 @@ def _round(
     learner: Learner,
     state: _RunState,
     workers: RolloutWorkers,
-    metrics: _HeldRows,
+    metrics: MetricsSink,
     validation: _StageValidation | None,
     stage_bar: _StageBar,
 ) -> None:
     """One round: collect episodes with the current actor, one update on them, their metrics rows;
     then a checkpoint and a validation when the round passed a multiple of ``checkpoint_every`` /
-    ``validate_every`` episodes. The update's critic step runs on into the next round's collection,
-    and the round's rows wait for its losses; a checkpoint waits for both."""
+    ``validate_every`` episodes."""
     config = run.config
     if run.geometry is None:
         net, speed_limits, drawn = None, run.speed_limits, None
@@ -695,14 +686,19 @@ def _round(
     tasks = _episode_tasks(run, plan, state, speed_limits)
     if run.geometry is not None:
         run.geometry.prefetch(state.np_rng)
-    episodes = workers.run(learner, tasks, net)  # meanwhile the last round's critics step
-    metrics.flush()  # the last round's rows, now that its critics' losses are known
-    # Returns once the actor has stepped: the next round's collection needs only the actor.
-    update = learner.begin_update(batch_from_episodes(episodes, central=plan.central))
-    rows = [
-        _episode_row(plan, state.episode + i, state.global_episode + i, e) for i, e in enumerate(episodes)
-    ]
-    metrics.hold(rows, update, run.wall_s())
+    episodes = workers.run(learner, tasks, net)
+    losses = learner.update(batch_from_episodes(episodes, central=plan.central))
+    wall_s = run.wall_s()
+    metrics.write(
+        [
+            {
+                **_episode_row(plan, state.episode + i, state.global_episode + i, e),
+                **losses,
+                "wall_time_s": wall_s,
+            }
+            for i, e in enumerate(episodes)
+        ]
+    )
     if run.geometry is not None and drawn is not None and net is not None:
         row = {"stage": plan.name, "episode": state.episode, "global_episode": state.global_episode}
         row |= {"episodes": len(tasks), **dataclasses.asdict(drawn), "net": Path(net.path).name}
@@ -716,7 +712,6 @@ def _round(
         before, state.global_episode, config.validate_every
     )
     if checkpoint_due or validation_due:
-        metrics.flush()  # a resumed run keeps the rows below its checkpoint: they must be written
         checkpoint = state.checkpoint(learner, config, plan)
         if checkpoint_due:
             save_checkpoint(run.latest, checkpoint)
@@ -745,7 +740,6 @@ def _episode_tasks(
                 state.np_rng, plan.traffic, speed_limits, name=f"{plan.name}-{state.episode + i}"
             ),
             action_seed=int(torch.randint(0, 2**62, (1,), generator=state.torch_rng).item()),
-            explore=run.config.critic_exploration,
         )
         for i in range(n)
     ]

@@ -137,11 +137,8 @@ class InProcessWorkers(RolloutWorkers):
     def run(
         self, learner: Learner, tasks: list[EpisodeTask], net: RoundNet | None = None
     ) -> list[EpisodeData]:
-        # The critics' step of the last update must not run beside this: it would see the thread count
-        # set here, and its float results depend on it.
-        learner.finish_critics()
-        # Small-batch inference is ~4x slower with intra-op threads fighting SUMO (measured, 2 cores);
-        # the learner update afterwards gets the threads back.
+        # Small-batch inference runs slower with intra-op threads fighting SUMO; the learner update
+        # afterwards gets the threads back.
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
         try:
