@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 from conftest import interrupt_when, run_cli
 
-from idas_sumo.cli import MISSING, build_parser, main
+from idas_sumo.cli import build_parser, main
+from idas_sumo.cli.evaluate import MISSING
 from idas_sumo.resources import DEFAULT_NET
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -291,6 +292,33 @@ def test_help_exits_zero() -> None:
         assert command in result.stdout
     assert "``" not in result.stdout  # the description is text, not the module docstring's markup
     assert "Exit codes" in result.stdout
+
+
+def test_evaluate_help_lists_exactly_the_registered_methods(capsys: pytest.CaptureFixture[str]) -> None:
+    """--baseline's help is derived from evaluation/policies.py: the paper's methods, then ours, then nothing
+    else (a method removed there leaves the help too)."""
+    from idas_sumo.cli.evaluate import baseline_help
+    from idas_sumo.evaluation.policies import METHODS, PAPER_METHODS
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["evaluate", "--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    baseline = text.split("--baseline BASELINE method:", 1)[1].split(" --net NET", 1)[0]
+    listed = []
+    for part in baseline.split(";"):
+        names = part.strip().removeprefix("also").split("(")[0]
+        listed += [name.strip() for name in names.split("|")]
+    ours = [m for m in METHODS if m not in PAPER_METHODS]
+    assert listed == [*PAPER_METHODS, "all", *ours]
+    assert set(PAPER_METHODS) <= set(METHODS)
+    # Hand-written registries: the text follows them, and a list without variants has no "also".
+    assert baseline_help(("idas", "idm", "x_y"), ("idas", "idm")) == (
+        "method: idas | idm | all (those 2: the paper's); also x_y (ours, docs/results.md)"
+    )
+    assert (
+        baseline_help(("idas", "idm"), ("idas", "idm")) == "method: idas | idm | all (those 2: the paper's)"
+    )
 
 
 def test_every_flag_with_a_default_shows_it(capsys: pytest.CaptureFixture[str]) -> None:

@@ -480,15 +480,16 @@ def test_ctrl_c_while_the_run_cleans_up_is_not_exit_0(tmp_path: Path) -> None:
     script = (
         "import atexit, os, signal, sys, time\n"
         "from idas_sumo import cli\n"
+        "from idas_sumo.cli import netgen as command\n"
         "def cleanup():  # an exit handler like the SUMO backend's; Ctrl-C arrives while it runs\n"
         "    os.kill(os.getpid(), signal.SIGINT)\n"
         "    time.sleep(0.3)\n"
         "    print('cleanup done', file=sys.stderr)\n"
-        "real = cli._netgen\n"
+        "real = command.run\n"
         "def netgen(args):\n"
         "    atexit.register(cleanup)  # registered during the command, as the backend's is on import\n"
         "    return real(args)\n"
-        "cli._netgen = netgen\n"
+        "command.run = netgen\n"
         f"sys.argv = ['idas-sumo', 'netgen', '--out', {str(tmp_path / 'n.net.xml')!r}]\n"
         "sys.exit(cli.main())\n"
     )

@@ -460,19 +460,9 @@ def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib import animation
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Circle, Patch
 
     check_animation_path(path)
     traj = replay.result.trajectory
-    case = replay.job.case
-    specs = {v.id: v for v in case.scenario.vehicles}
-    site = replay.site
-    vehicles = list(dict.fromkeys(traj["vehicle"]))
-    colour = {
-        v: _unit_rgb(vehicle_colour(specs[v].road, specs[v].b_type, specs[v].controlled)) for v in vehicles
-    }
-    origin: dict[str, Road] = {v: specs[v].road for v in vehicles}
     times = np.unique(traj["time_s"].to_numpy())
     stride = max(1, round(frame_step_s / STEP_LENGTH_S))
     frames = list(times[::stride])
@@ -481,57 +471,103 @@ def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP
 
     fig, (top, pt) = plt.subplots(1, 2, figsize=(11, 4.4), gridspec_kw={"width_ratios": [1.25, 1]})
     fig.subplots_adjust(left=0.05, right=0.98, bottom=0.24, top=0.86, wspace=0.22)
+    case = replay.job.case
     row = replay.result.episode
-    verdict = episode_verdict(replay.result.episode)
     label = METHOD_LABELS.get(replay.job.method, replay.job.method)
     fig.suptitle(
         f"{case.scenario.name}: {label} drives {', '.join(case.method_vehicles)} (ego {case.ego}); "
-        f"{verdict}, hard brakes: {row['hard_brakes']} ({row['hard_brakes_merge_zone']} in the merging zone)",
+        f"{episode_verdict(row)}, hard brakes: {row['hard_brakes']} ({row['hard_brakes_merge_zone']} in the "
+        "merging zone)",
         fontsize=10,
     )
+    colours = car_colours(replay)
+    view = _TopView(top, replay.site)
+    diagram = _PositionTime(pt, replay, times, colours)
+    _legend(fig)
+    draw = _Frames(replay, view, diagram, colours).draw
+    anim = animation.FuncAnimation(fig, draw, frames=frames, interval=1000 / FRAMES_PER_S, blit=False)
+    try:
+        _save(anim, path, dpi)
+    finally:
+        plt.close(fig)
+    return path
 
-    # The view from above: roads, the merging zone around the merge point, the cars.
-    angle = np.radians(NetParams().angle_deg)
-    main_len, merge_len = site.main.length_m, site.merge.length_m
-    out_len = sum(lane.length_m for lane in site.out)
-    road_style = {"color": "0.8", "lw": 6, "solid_capstyle": "butt", "zorder": 0}
-    top.plot([-main_len, out_len], [0, 0], **road_style)
-    top.plot([-merge_len * np.cos(angle), 0], [-merge_len * np.sin(angle), 0], **road_style)
-    top.add_patch(Circle((0, 0), MERGE_ZONE_RADIUS_M, color=ZONE_COLOUR, alpha=0.35, lw=0, zorder=0))
-    top.text(-main_len, 8, "main road", fontsize=8, color="0.35")
-    top.text(
-        -merge_len * np.cos(angle),
-        -merge_len * np.sin(angle) - 18,
-        "merge road",
-        fontsize=8,
-        color="0.35",
-    )
-    top.set_xlim(-max(main_len, merge_len * np.cos(angle)) - 10, out_len + 10)
-    top.set_ylim(-merge_len * np.sin(angle) - 30, 40)
-    top.set_aspect("equal")
-    top.set_xlabel("metres from the merge point (sketch from above)")
-    top.set_yticks([])
-    cars = top.scatter([], [], s=46, marker="s", edgecolors="none", zorder=3)
-    ego_ring = top.scatter([], [], s=150, marker="o", facecolors="none", edgecolors="black", lw=1.2, zorder=4)
-    brake_ring = top.scatter([], [], s=150, marker="o", facecolors="none", edgecolors="red", lw=1.6, zorder=4)
-    crash_mark = top.scatter([], [], s=120, marker="X", color="red", zorder=5)
-    clock = top.text(0.98, 0.96, "", transform=top.transAxes, ha="right", va="top", fontsize=9)
 
-    # The position-time diagram, drawn up to the current time.
-    pt.axhspan(-MERGE_ZONE_RADIUS_M, MERGE_ZONE_RADIUS_M, color=ZONE_COLOUR, alpha=0.5, lw=0)
-    lines = {}
-    for v in vehicles:
-        (lines[v],) = pt.plot([], [], color=colour[v], lw=2.2 if v == case.ego else 1.3)
-    t0, t1 = float(times[0]), float(times[-1])
-    pos = -traj["dist_to_merge_m"].to_numpy()
-    pt.set_xlim(t0, t1 + 0.5)
-    pt.set_ylim(float(pos.min()) - 5, float(pos.max()) + 5)
-    pt.set_xlabel("time, s")
-    pt.set_ylabel("position rel. to merge point, m")
-    pt.set_title("position-time (merging zone shaded)", fontsize=9)
-    brakes_pt = pt.scatter([], [], marker="v", s=30, color="orange", edgecolors="black", lw=0.5, zorder=6)
-    crashes_pt = pt.scatter([], [], marker="X", s=90, color="red", zorder=5)
-    cursor = pt.axvline(t0, color="0.4", lw=0.8, ls=":")
+class _TopView:
+    """The view from above: the roads, the merging zone around the merge point, and the artists that
+    show the cars (moved each frame)."""
+
+    def __init__(self, top: Any, site: MergeSite) -> None:
+        from matplotlib.patches import Circle
+
+        angle = np.radians(NetParams().angle_deg)
+        main_len, merge_len = site.main.length_m, site.merge.length_m
+        out_len = sum(lane.length_m for lane in site.out)
+        road_style = {"color": "0.8", "lw": 6, "solid_capstyle": "butt", "zorder": 0}
+        top.plot([-main_len, out_len], [0, 0], **road_style)
+        top.plot([-merge_len * np.cos(angle), 0], [-merge_len * np.sin(angle), 0], **road_style)
+        top.add_patch(Circle((0, 0), MERGE_ZONE_RADIUS_M, color=ZONE_COLOUR, alpha=0.35, lw=0, zorder=0))
+        top.text(-main_len, 8, "main road", fontsize=8, color="0.35")
+        top.text(
+            -merge_len * np.cos(angle),
+            -merge_len * np.sin(angle) - 18,
+            "merge road",
+            fontsize=8,
+            color="0.35",
+        )
+        top.set_xlim(-max(main_len, merge_len * np.cos(angle)) - 10, out_len + 10)
+        top.set_ylim(-merge_len * np.sin(angle) - 30, 40)
+        top.set_aspect("equal")
+        top.set_xlabel("metres from the merge point (sketch from above)")
+        top.set_yticks([])
+        ring = {"s": 150, "marker": "o", "facecolors": "none", "zorder": 4}
+        self.cars = top.scatter([], [], s=46, marker="s", edgecolors="none", zorder=3)
+        self.ego_ring = top.scatter([], [], edgecolors="black", lw=1.2, **ring)
+        self.brake_ring = top.scatter([], [], edgecolors="red", lw=1.6, **ring)
+        self.crash_mark = top.scatter([], [], s=120, marker="X", color="red", zorder=5)
+        self.clock = top.text(0.98, 0.96, "", transform=top.transAxes, ha="right", va="top", fontsize=9)
+
+
+class _PositionTime:
+    """The position-time diagram: one line per car, drawn up to the current time, with its marks."""
+
+    def __init__(
+        self, pt: Any, replay: Replay, times: np.ndarray, colours: dict[str, tuple[float, float, float]]
+    ) -> None:
+        traj = replay.result.trajectory
+        case = replay.job.case
+        pt.axhspan(-MERGE_ZONE_RADIUS_M, MERGE_ZONE_RADIUS_M, color=ZONE_COLOUR, alpha=0.5, lw=0)
+        self.lines = {}
+        for v in colours:
+            (self.lines[v],) = pt.plot([], [], color=colours[v], lw=2.2 if v == case.ego else 1.3)
+        t0, t1 = float(times[0]), float(times[-1])
+        pos = -traj["dist_to_merge_m"].to_numpy()
+        pt.set_xlim(t0, t1 + 0.5)
+        pt.set_ylim(float(pos.min()) - 5, float(pos.max()) + 5)
+        pt.set_xlabel("time, s")
+        pt.set_ylabel("position rel. to merge point, m")
+        pt.set_title("position-time (merging zone shaded)", fontsize=9)
+        self.brakes = pt.scatter(
+            [], [], marker="v", s=30, color="orange", edgecolors="black", lw=0.5, zorder=6
+        )
+        self.crashes = pt.scatter([], [], marker="X", s=90, color="red", zorder=5)
+        self.cursor = pt.axvline(t0, color="0.4", lw=0.8, ls=":")
+
+
+def car_colours(replay: Replay) -> dict[str, tuple[float, float, float]]:
+    """The colour of each car of the replayed trajectory, in its order: as in sumo-gui, by road and driver
+    type, grey if SUMO drives it."""
+    specs = {v.id: v for v in replay.job.case.scenario.vehicles}
+    return {
+        v: _unit_rgb(vehicle_colour(specs[v].road, specs[v].b_type, specs[v].controlled))
+        for v in dict.fromkeys(replay.result.trajectory["vehicle"])
+    }
+
+
+def _legend(fig: Any) -> None:
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     handles = [
         Patch(color=_unit_rgb(vehicle_colour("main", -2.0, True)), label="main road, b_type -2"),
         Patch(color=_unit_rgb(vehicle_colour("main", 2.0, True)), label="main road, b_type +2"),
@@ -545,54 +581,87 @@ def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP
     ]
     fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=7.5, frameon=False)
 
-    by_time = {t: g for t, g in traj.groupby("time_s")}
-    brakes = np.array([(t, p) for t, _, p in replay.marks.brakes], dtype=float).reshape(-1, 2)
-    brake_ids = [v for _, v, _ in replay.marks.brakes]
-    crashes = np.array([(t, p) for t, _, _, p in replay.marks.collisions], dtype=float).reshape(-1, 2)
-    crash_ids = {v: t for t, a, b, _ in replay.marks.collisions for v in (a, b)}
-    last_xy: dict[str, tuple[float, float]] = {}
 
-    def draw(t: float) -> None:
-        now = by_time[t]
+class _Frames:
+    """Moves both views' artists to a time of the episode (the animation's frame function)."""
+
+    def __init__(
+        self,
+        replay: Replay,
+        view: _TopView,
+        diagram: _PositionTime,
+        colours: dict[str, tuple[float, float, float]],
+    ) -> None:
+        traj = replay.result.trajectory
+        specs = {v.id: v for v in replay.job.case.scenario.vehicles}
+        self.traj = traj
+        self.ego = replay.job.case.ego
+        self.view, self.diagram = view, diagram
+        self.colour = colours
+        self.origin: dict[str, Road] = {v: specs[v].road for v in colours}
+        self.by_time = {t: g for t, g in traj.groupby("time_s")}
+        marks = replay.marks
+        self.brakes = np.array([(t, p) for t, _, p in marks.brakes], dtype=float).reshape(-1, 2)
+        self.brake_ids = [v for _, v, _ in marks.brakes]
+        self.crashes = np.array([(t, p) for t, _, _, p in marks.collisions], dtype=float).reshape(-1, 2)
+        self.crash_ids = {v: t for t, a, b, _ in marks.collisions for v in (a, b)}
+        self.last_xy: dict[str, tuple[float, float]] = {}
+
+    def draw(self, t: float) -> None:
+        self._draw_top(t)
+        upto = self.traj[self.traj["time_s"] <= t]
+        for v, g in upto.groupby("vehicle"):
+            self.diagram.lines[str(v)].set_data(g["time_s"].to_numpy(), -g["dist_to_merge_m"].to_numpy())
+        brakes, crashes = self.brakes, self.crashes
+        self.diagram.brakes.set_offsets(brakes[brakes[:, 0] <= t] if len(brakes) else np.empty((0, 2)))
+        self.diagram.crashes.set_offsets(
+            crashes[crashes[:, 0] <= t + 1e-9] if len(crashes) else np.empty((0, 2))
+        )
+        self.diagram.cursor.set_xdata([t, t])
+
+    def _draw_top(self, t: float) -> None:
+        view = self.view
+        now = self.by_time[t]
         ids = now["vehicle"].tolist()
-        road = np.array([origin[v] if r != "out" else "out" for v, r in zip(ids, now["road"], strict=True)])
+        road = np.array(
+            [self.origin[v] if r != "out" else "out" for v, r in zip(ids, now["road"], strict=True)]
+        )
         x, y = _view_xy(road, now["dist_to_merge_m"].to_numpy())
         for v, xi, yi in zip(ids, x.tolist(), y.tolist(), strict=True):
-            last_xy[v] = (xi, yi)
+            self.last_xy[v] = (xi, yi)
         xy = np.column_stack([x, y]) if len(ids) else np.empty((0, 2))
-        cars.set_offsets(xy)
-        cars.set_facecolors([colour[v] for v in ids])
-        ego = [i for i, v in enumerate(ids) if v == case.ego]
-        ego_ring.set_offsets(xy[ego] if ego else np.empty((0, 2)))
-        recent = {v for (bt, _), v in zip(brakes, brake_ids, strict=True) if t - BRAKE_MARK_S < bt <= t}
+        view.cars.set_offsets(xy)
+        view.cars.set_facecolors([self.colour[v] for v in ids])
+        ego = [i for i, v in enumerate(ids) if v == self.ego]
+        view.ego_ring.set_offsets(xy[ego] if ego else np.empty((0, 2)))
+        recent = {
+            v for (bt, _), v in zip(self.brakes, self.brake_ids, strict=True) if t - BRAKE_MARK_S < bt <= t
+        }
         ring = [i for i, v in enumerate(ids) if v in recent]
-        brake_ring.set_offsets(xy[ring] if ring else np.empty((0, 2)))
-        crashed = [last_xy[v] for v, ct in crash_ids.items() if ct <= t + 1e-9 and v in last_xy]
-        crash_mark.set_offsets(np.array(crashed) if crashed else np.empty((0, 2)))
-        clock.set_text(f"t = {t:.1f} s")
-        upto = traj[traj["time_s"] <= t]
-        for v, g in upto.groupby("vehicle"):
-            lines[str(v)].set_data(g["time_s"].to_numpy(), -g["dist_to_merge_m"].to_numpy())
-        brakes_pt.set_offsets(brakes[brakes[:, 0] <= t] if len(brakes) else np.empty((0, 2)))
-        crashes_pt.set_offsets(crashes[crashes[:, 0] <= t + 1e-9] if len(crashes) else np.empty((0, 2)))
-        cursor.set_xdata([t, t])
+        view.brake_ring.set_offsets(xy[ring] if ring else np.empty((0, 2)))
+        crashed = [
+            self.last_xy[v] for v, ct in self.crash_ids.items() if ct <= t + 1e-9 and v in self.last_xy
+        ]
+        view.crash_mark.set_offsets(np.array(crashed) if crashed else np.empty((0, 2)))
+        view.clock.set_text(f"t = {t:.1f} s")
 
-    anim = animation.FuncAnimation(fig, draw, frames=frames, interval=1000 / FRAMES_PER_S, blit=False)
+
+def _save(anim: Any, path: Path, dpi: int) -> None:
+    """Write ``anim`` into a ``*.tmp`` folder beside ``path`` and rename it: an interrupted run leaves no
+    half animation. A folder, not io_utils' temp file, since the writers pick the format by the suffix."""
+    from matplotlib import animation
+
     writer: animation.AbstractMovieWriter
     if path.suffix.lower() == ".gif":
         writer = animation.PillowWriter(fps=FRAMES_PER_S)
     else:
         writer = animation.FFMpegWriter(fps=FRAMES_PER_S)
-    # Written into a ``*.tmp`` folder beside the target and renamed: an interrupted run leaves no half
-    # animation. A folder, not io_utils' temp file, since the writers pick the format by the file's suffix.
     folder = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMP_SUFFIX))
     try:
         anim.save(str(folder / path.name), writer=writer, dpi=dpi)
         (folder / path.name).replace(path)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
-        plt.close(fig)
-    return path
 
 
 # -- the command ---------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, POLICY
 from idas_sumo.evaluation.protocol import (
     DEFAULT_SUITE_SIZE,
     EpisodeResult,
+    EvalCase,
     EvalConfig,
     EvalJob,
     Suite,
@@ -128,24 +129,13 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
     }
     others_policy = resolve_policy(others_name, None, req.seed)
-    require_display(req.gui)
-    if req.gui and req.workers > 1:
-        raise InputError("--gui shows one simulation: use it without --workers")
-    if req.gui and req.ray_address is not None:
-        raise InputError("--gui shows the episodes here: use it without --ray-address")
+    _check_gui(req)
     with output_directory(req.out, req.force, fresh=req.fresh_out) as out:
         tripinfo_dir = None
         if req.sumo_output:
             tripinfo_dir = out / "sumo"
             tripinfo_dir.mkdir(exist_ok=True)
-        speed_limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
-        if req.scenario_files:
-            cases = file_cases(list(req.scenario_files), req.seed, speed_limits)
-        else:
-            lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
-            cases = suite_cases(
-                req.suite, req.scenarios or 0, req.seed, speed_limits, eval_config.traffic, lengths
-            )
+        cases = _cases(req, site, eval_config)
         log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
         jobs = eval_jobs(cases, list(policies))
         episodes, flows, trajectories = [], [], []
@@ -170,16 +160,8 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         written = ["episodes.csv", "summary.csv", "flow.csv"]
         verdicts: list[str] = []
         if req.suite == "driver-types" and not req.scenario_files:
-            sweep = pd.DataFrame(driver_type_rows(episode_frame), columns=list(DRIVER_TYPE_COLUMNS))
-            trends = trend_rows(episode_frame)
-            write_csv_atomic(sweep, out / DRIVER_TYPES_NAME)
-            write_csv_atomic(pd.DataFrame(trends, columns=list(TREND_COLUMNS)), out / TREND_NAME)
+            verdicts = _write_driver_types(out, episode_frame, req.methods, others_name)
             written += [DRIVER_TYPES_NAME, TREND_NAME]
-            labels = {m: METHOD_LABELS.get(m, m) for m in req.methods}
-            verdicts = [
-                verdict(row, labels[str(row["method"])], METHOD_LABELS.get(others_name, others_name))
-                for row in trends
-            ]
         with atomic_open(out / SETTINGS_NAME) as f:
             json.dump(_settings(req, others_name, eval_config), f, indent=2, default=str)
             f.write("\n")
@@ -202,6 +184,39 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
             )
         )
     return EvalOutput(out, summary, tuple(verdicts), tuple(written))
+
+
+def _check_gui(req: EvalRequest) -> None:
+    """``--gui`` shows one simulation, here, on a display."""
+    require_display(req.gui)
+    if req.gui and req.workers > 1:
+        raise InputError("--gui shows one simulation: use it without --workers")
+    if req.gui and req.ray_address is not None:
+        raise InputError("--gui shows the episodes here: use it without --ray-address")
+
+
+def _cases(req: EvalRequest, site: MergeSite, eval_config: EvalConfig) -> list[EvalCase]:
+    """The scenario files' cases, else the suite's, on ``site``'s roads."""
+    speed_limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
+    if req.scenario_files:
+        return file_cases(list(req.scenario_files), req.seed, speed_limits)
+    lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
+    return suite_cases(req.suite, req.scenarios or 0, req.seed, speed_limits, eval_config.traffic, lengths)
+
+
+def _write_driver_types(
+    out: Path, episode_frame: pd.DataFrame, methods: tuple[str, ...], others_name: str
+) -> list[str]:
+    """The driver-types suite's sweep and trend tables; one verdict line per method."""
+    sweep = pd.DataFrame(driver_type_rows(episode_frame), columns=list(DRIVER_TYPE_COLUMNS))
+    trends = trend_rows(episode_frame)
+    write_csv_atomic(sweep, out / DRIVER_TYPES_NAME)
+    write_csv_atomic(pd.DataFrame(trends, columns=list(TREND_COLUMNS)), out / TREND_NAME)
+    labels = {m: METHOD_LABELS.get(m, m) for m in methods}
+    return [
+        verdict(row, labels[str(row["method"])], METHOD_LABELS.get(others_name, others_name))
+        for row in trends
+    ]
 
 
 def _settings(req: EvalRequest, others: str, eval_config: EvalConfig) -> dict[str, object]:

@@ -98,33 +98,9 @@ def learning_curves(
         for stage in dict.fromkeys(metrics["stage"].astype(str)):
             rows = metrics[metrics["stage"].astype(str) == stage]
             starts[stage] = int(rows["global_episode"].iloc[0])
-            window = windows[stage] = max(1, len(rows) // CURVE_POINTS)
-            first = len(starts) == 1  # one legend entry per quantity, not per stage
-            x = rows["global_episode"]
-            ret_ax.plot(x, _rolling(rows["return_mean"], window), color=LINE_COLOUR)
-            # Success drawn wider beneath perfect success: where they are equal, both stay visible.
-            for column, colour, width, name in (
-                ("success", SUCCESS_COLOUR, 3.0, "success"),
-                ("perfect", PERFECT_COLOUR, 1.3, "perfect success"),
-            ):
-                rate_ax.plot(
-                    x,
-                    100 * _rolling(rows[column], window),
-                    color=colour,
-                    lw=width,
-                    label=name if first else None,
-                )
-            crashed = (rows["collisions"] > 0).astype(float)
-            rate_ax.plot(
-                x,
-                100 * _rolling(crashed, window),
-                color=COLLISION_COLOUR,
-                label="collision" if first else None,
-            )
-            zone_brakes = rows["flow"] / FLOW_PENALTY_PER_HARD_BRAKE  # r_flow is -1 per merge-zone brake
-            brake_ax.plot(x, _rolling(zone_brakes, window), color=LINE_COLOUR)
-            if "entropy" in rows.columns:
-                ent_ax.plot(x, rows["entropy"], color=LINE_COLOUR, lw=0.8)
+            windows[stage] = max(1, len(rows) // CURVE_POINTS)
+            # One legend entry per quantity, not per stage.
+            _training_stage(axes, rows, windows[stage], first=len(starts) == 1)
     smoothing = ", ".join(f"{stage} {w}" for stage, w in windows.items())
     _panel(ret_ax, "Training: mean return per agent", "return (rolling mean)")
     _panel(
@@ -140,43 +116,87 @@ def learning_curves(
         for stage in dict.fromkeys(validation["stage"].astype(str)):
             rows = validation[validation["stage"].astype(str) == stage]
             starts.setdefault(stage, int(rows["global_episode"].iloc[0]))
-            first = stage == validation["stage"].astype(str).iloc[0]
-            x = rows["global_episode"]
-            vret_ax.plot(x, rows["joint_return"], marker="o", ms=3, color=LINE_COLOUR)
-            for column, colour, width, marker, name in (
-                ("success_rate", SUCCESS_COLOUR, 3.0, "o", "success"),
-                ("perfect_rate", PERFECT_COLOUR, 1.3, "s", "perfect success"),
-            ):
-                vrate_ax.plot(
-                    x,
-                    100 * rows[column],
-                    marker=marker,
-                    ms=2 * width + 1,
-                    lw=width,
-                    color=colour,
-                    label=name if first else None,
-                )
-            best = rows[rows["best"] == 1]
-            if len(best):  # the stage's last new best is its <stage>_best.pt
-                b = best.iloc[-1]
-                vret_ax.plot(
-                    b["global_episode"],
-                    b["joint_return"],
-                    marker="*",
-                    ms=15,
-                    color="gold",
-                    mec="black",
-                    ls="",
-                    label="best weights (<stage>_best.pt)"
-                    if not vret_ax.get_legend_handles_labels()[0]
-                    else None,
-                )
+            _validation_stage(vret_ax, vrate_ax, rows, first=stage == validation["stage"].astype(str).iloc[0])
         vret_ax.set_title("Validation: joint return on held-out scenarios", fontsize=10)
     else:
         vret_ax.set_title("Validation: none in this run", fontsize=10)
     vret_ax.set_ylabel(JOINT_RETURN_LABEL)
     _panel(vrate_ax, "Validation: success and perfect success", HELD_OUT_PERCENT, percent=True)
 
+    _mark_stages(axes, starts)
+    for ax in axes[1]:
+        ax.set_xlabel("training episode (all stages)")
+    suffix = f" (rolling means over {smoothing} episodes)" if smoothing else ""
+    fig.suptitle(f"Learning curves: {title}{suffix}; dashed: a new stage begins")
+    return save_png(fig, path)
+
+
+def _training_stage(axes: Any, rows: pd.DataFrame, window: int, first: bool) -> None:
+    """One stage's metrics.csv rows on the training panels (rolling means over ``window`` episodes);
+    ``first`` labels the lines for the legend."""
+    (ret_ax, rate_ax, brake_ax), (_, _, ent_ax) = axes
+    x = rows["global_episode"]
+    ret_ax.plot(x, _rolling(rows["return_mean"], window), color=LINE_COLOUR)
+    # Success drawn wider beneath perfect success: where they are equal, both stay visible.
+    for column, colour, width, name in (
+        ("success", SUCCESS_COLOUR, 3.0, "success"),
+        ("perfect", PERFECT_COLOUR, 1.3, "perfect success"),
+    ):
+        rate_ax.plot(
+            x,
+            100 * _rolling(rows[column], window),
+            color=colour,
+            lw=width,
+            label=name if first else None,
+        )
+    crashed = (rows["collisions"] > 0).astype(float)
+    rate_ax.plot(
+        x,
+        100 * _rolling(crashed, window),
+        color=COLLISION_COLOUR,
+        label="collision" if first else None,
+    )
+    zone_brakes = rows["flow"] / FLOW_PENALTY_PER_HARD_BRAKE  # r_flow is -1 per merge-zone brake
+    brake_ax.plot(x, _rolling(zone_brakes, window), color=LINE_COLOUR)
+    if "entropy" in rows.columns:
+        ent_ax.plot(x, rows["entropy"], color=LINE_COLOUR, lw=0.8)
+
+
+def _validation_stage(vret_ax: Any, vrate_ax: Any, rows: pd.DataFrame, first: bool) -> None:
+    """One stage's validation.csv rows: joint return (its best weights starred) and the success rates."""
+    x = rows["global_episode"]
+    vret_ax.plot(x, rows["joint_return"], marker="o", ms=3, color=LINE_COLOUR)
+    for column, colour, width, marker, name in (
+        ("success_rate", SUCCESS_COLOUR, 3.0, "o", "success"),
+        ("perfect_rate", PERFECT_COLOUR, 1.3, "s", "perfect success"),
+    ):
+        vrate_ax.plot(
+            x,
+            100 * rows[column],
+            marker=marker,
+            ms=2 * width + 1,
+            lw=width,
+            color=colour,
+            label=name if first else None,
+        )
+    best = rows[rows["best"] == 1]
+    if len(best):  # the stage's last new best is its <stage>_best.pt
+        b = best.iloc[-1]
+        vret_ax.plot(
+            b["global_episode"],
+            b["joint_return"],
+            marker="*",
+            ms=15,
+            color="gold",
+            mec="black",
+            ls="",
+            label="best weights (<stage>_best.pt)" if not vret_ax.get_legend_handles_labels()[0] else None,
+        )
+
+
+def _mark_stages(axes: Any, starts: dict[str, int]) -> None:
+    """Every panel: a grid, a dashed line where a stage begins after the first, each stage's name, a legend
+    where there are labelled lines."""
     ordered = sorted(starts.items(), key=lambda kv: kv[1])
     for ax in axes.flat:
         ax.grid(alpha=0.25)
@@ -195,11 +215,6 @@ def learning_curves(
             )
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8, loc="best")
-    for ax in axes[1]:
-        ax.set_xlabel("training episode (all stages)")
-    suffix = f" (rolling means over {smoothing} episodes)" if smoothing else ""
-    fig.suptitle(f"Learning curves: {title}{suffix}; dashed: a new stage begins")
-    return save_png(fig, path)
 
 
 COMPARE_METRICS: tuple[str, ...] = ("global_episode", "collisions", "timed_out")

@@ -1,0 +1,142 @@
+"""Exit codes and signals: 0 ok, 1 runtime failure, 2 bad input (one line on stderr), 130 Ctrl-C, 143
+SIGTERM (129 SIGHUP). Every subcommand runs inside ``exit_code``, which maps errors to these codes."""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import errno
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+
+from idas_sumo.errors import IdasError, InputError
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+"""A runtime failure (SUMO died, the disk is full, ...)."""
+EXIT_BAD_INPUT = 2
+"""Bad usage or bad input: one line on stderr that names the file or flag, no traceback."""
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+"""Signals that stop a run like Ctrl-C does (cleanup, checkpoint), with exit 128 + the signal."""
+INTERRUPTED = "idas-sumo: interrupted; completed outputs were kept"
+TERMINATED = "idas-sumo: terminated ({}); completed outputs were kept"
+PATH_ERRNOS = frozenset({errno.ENAMETOOLONG, errno.ELOOP})
+"""OS errors that say a path the user typed cannot name a file (too long, a symlink loop): bad input."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (or SIGHUP), raised where Ctrl-C would be so that the same cleanup runs (checkpoint,
+    temp files)."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM, and SIGHUP (the terminal closed) unless it is ignored (``nohup``), raise
+    ``Terminated`` (a KeyboardInterrupt) while the command runs, so a stopped run cleans up as after
+    Ctrl-C; the previous handlers come back afterwards (main may run in a test)."""
+    if not in_main_thread():
+        yield  # signal handlers can only be set from the main thread
+        return
+
+    def terminate(signum: int, frame: object) -> None:
+        raise Terminated(signum)
+
+    previous = {
+        signum: signal.signal(signum, terminate)
+        for signum in STOP_SIGNALS
+        if signal.getsignal(signum) is not signal.SIG_IGN
+    }
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+def stopped(signum: int) -> int:
+    """Say that a signal stopped the run; its exit code (130 for Ctrl-C, 143 for SIGTERM, ...)."""
+    line = INTERRUPTED if signum == signal.SIGINT else TERMINATED.format(signal.Signals(signum).name)
+    with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
+        print(line, file=sys.stderr)
+    return 128 + signum
+
+
+class LateSignals:
+    """Ctrl-C or SIGTERM after the command is done: recorded, not raised.
+
+    Raised there, it would interrupt an exit handler (closing SUMO, removing temp folders) with an
+    "Exception ignored in atexit callback" traceback, and the process would still exit 0. Instead the
+    cleanup runs to its end and the process exits 130 / 143 with the usual line: the last exit handler
+    (registered before any other, so it runs after them all) ends the process with that code.
+    """
+
+    def __init__(self) -> None:
+        self.caught: int | None = None
+        self.reported = False
+        atexit.register(self._exit_if_caught)
+
+    def install(self) -> None:
+        for signum in (signal.SIGINT, *STOP_SIGNALS):
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                signal.signal(signum, self._record)
+
+    def _record(self, signum: int, frame: object) -> None:
+        self.caught = self.caught or signum
+
+    def exit_code(self, code: int) -> int:
+        """``code``, unless a signal came while it was being reported: then the signal's code."""
+        if self.caught is None or self.reported:
+            return code
+        self.reported = True
+        return stopped(self.caught)
+
+    def _exit_if_caught(self) -> None:
+        if self.caught is None or self.reported:
+            return
+        code = self.exit_code(EXIT_OK)
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
+
+
+def exit_code(command: Callable[[], int], late: LateSignals | None) -> int:
+    """Run ``command``; a signal or an error becomes its exit code and one line on stderr. ``late``
+    takes over the signals once the command is done (``LateSignals``)."""
+    try:
+        try:
+            return command()
+        finally:
+            if late is not None:
+                late.install()
+    except Terminated as stop:
+        return stopped(stop.signum)
+    except KeyboardInterrupt:
+        return stopped(signal.SIGINT)
+    except InputError as err:
+        print(f"idas-sumo: error: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except IdasError as err:
+        print(f"idas-sumo: error: {err}", file=sys.stderr)
+        return err.exit_code
+    except OSError as err:  # disk full, I/O error: outputs are atomic, so earlier files are intact
+        where = f"{err.filename}: " if err.filename else ""
+        if err.errno in PATH_ERRNOS:  # the name itself is unusable, wherever the OS noticed
+            print(f"idas-sumo: error: {where}{err.strerror}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        print(
+            f"idas-sumo: error: {where}{err.strerror or err} (files written before are intact)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE

@@ -1,0 +1,111 @@
+"""``idas-sumo train``: train IDAS (robot world, intelligent world, or both); training/cli.py runs it."""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+from idas_sumo.cli.common import (
+    JUNCTION_HELP,
+    RAY_ADDRESS_HELP,
+    check_backend,
+    copies,
+    input_file,
+    out_path,
+    positive_int,
+    ray_address,
+    seed,
+    train_defaults,
+)
+from idas_sumo.env.actions import SAFETY_MASKS
+from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG_NAME
+
+if TYPE_CHECKING:
+    from idas_sumo.cli.common import Subparsers
+
+
+def add_parser(sub: Subparsers) -> None:
+    train = sub.add_parser("train", help="train IDAS (robot world, intelligent world, or both)")
+    train.add_argument(
+        "--net", type=input_file, default=DEFAULT_NET_NAME, help="merge network (default: %(default)s)"
+    )
+    train.add_argument("--junction", metavar="ID", help=JUNCTION_HELP)
+    train.add_argument(
+        "--config",
+        type=input_file,
+        help=f"training config TOML (default: {DEFAULT_TRAIN_CONFIG_NAME})",
+    )
+    _add_config_flags(train)
+    train.add_argument("--out", type=out_path, help="run directory (default: runs/<stage>)")
+    again = train.add_mutually_exclusive_group()
+    again.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its last checkpoint, with the run's own config "
+        "(flags you give override it: --workers, --copies, --episodes; others are ignored with a warning)",
+    )
+    again.add_argument(
+        "--force", action="store_true", help="start over in an --out that holds a run (replaces its files)"
+    )
+    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    train.add_argument(
+        "--gui", action="store_true", help="show the rollouts in sumo-gui (slow; needs a display)"
+    )
+    train.add_argument(
+        "--ray-address",
+        type=ray_address,
+        metavar="ADDRESS",
+        help=RAY_ADDRESS_HELP.format(what="--workers rollout workers"),
+    )
+
+
+def _add_config_flags(train: argparse.ArgumentParser) -> None:
+    """The flags that override the config file; their help names the shipped config's values."""
+    shipped = train_defaults()
+
+    def from_config(*keys: str) -> str:
+        values = " / ".join(str(shipped.get(k, "?")) for k in keys)
+        return f"default: from --config, else {DEFAULT_TRAIN_CONFIG_NAME}: {values}"
+
+    train.add_argument(
+        "--stage",
+        choices=("robot", "intelligent", "direct", "curriculum"),
+        help=f"what to train ({from_config('stage')})",
+    )
+    train.add_argument(
+        "--episodes",
+        type=positive_int,
+        help="episodes of every stage the run trains; with --resume, a larger N extends a finished run "
+        f"({from_config('robot_episodes', 'intelligent_episodes', 'direct_episodes')} for robot / "
+        "intelligent / direct)",
+    )
+    train.add_argument(
+        "--workers",
+        type=positive_int,
+        help="rollout processes, one SUMO each, at most the CPU count (with --ray-address: Ray actors, at "
+        f"most the cluster's CPUs) ({from_config('workers')})",
+    )
+    train.add_argument(
+        "--copies",
+        type=copies,
+        help="episodes a rollout process runs side by side in one SUMO; results do not depend on it "
+        f"({from_config('copies')})",
+    )
+    train.add_argument(
+        "--seed",
+        type=seed,
+        help=f"the one seed everything random flows from, in [0, 2^31) ({from_config('seed')})",
+    )
+    train.add_argument(
+        "--safety-mask",
+        choices=SAFETY_MASKS,
+        help="which car the safety mask follows: own_lane (the paper) or merge_aware (a shield) "
+        f"({from_config('safety_mask')})",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from idas_sumo.training.cli import train_from_args
+
+    check_backend(args)
+    return train_from_args(args)
