@@ -4,12 +4,10 @@ import os
 import sys
 import warnings
 
-# Before anything loads torch's OpenMP runtime: idle OpenMP threads sleep instead of spinning. With the
-# default (spin) policy, a 2-thread learner step on 2 cores that other processes also use (SUMO workers,
-# a test run, anything) took 1.0-1.7 s instead of 0.03 s (measured: 512 agent-steps, actor forward and
-# backward); with PASSIVE it took 0.03 s under the same load. A user's own setting wins. The runtime reads
-# the policy once, when torch loads it: a script that imports torch first keeps spinning threads (measured:
-# `run_training` in such a script, 2.3 against 10.9 episodes/s for `idas-sumo train`), so say so.
+# Before anything loads torch's OpenMP runtime: idle OpenMP threads sleep instead of spinning, since spinning
+# threads starve SUMO and the other workers on a small machine (docs/performance.md). A user's own setting wins.
+# The runtime reads the policy once, when torch loads it: a script that imports torch first keeps spinning
+# threads, so say so.
 if "OMP_WAIT_POLICY" not in os.environ and "torch" in sys.modules:
     warnings.warn(
         "torch was imported before idas_sumo, so its idle OpenMP threads spin: beside other processes "

@@ -11,7 +11,8 @@ import pytest
 
 from idas_sumo.baselines.policies import RuleBasedPolicy
 from idas_sumo.env.actions import safety_bound
-from idas_sumo.env.engine import EnvConfig, MergeEngine, run_episodes
+from idas_sumo.env.engine import EnvConfig, MergeEngine
+from idas_sumo.env.episodes import run_episodes
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, generate_scenario, load_scenario
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation.protocol import EvalCase, eval_jobs, load_eval_config, run_jobs

@@ -10,13 +10,8 @@ import numpy as np
 import pytest
 
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, candidate_accelerations
-from idas_sumo.env.engine import (
-    AgentBatch,
-    EnvConfig,
-    MergeEngine,
-    geometric_collisions,
-    run_episodes,
-)
+from idas_sumo.env.engine import AgentBatch, EnvConfig, MergeEngine, geometric_collisions
+from idas_sumo.env.episodes import run_episodes
 from idas_sumo.env.rewards import collide_reward
 from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot

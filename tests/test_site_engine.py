@@ -11,7 +11,8 @@ import pytest
 from conftest import run_cli
 
 from idas_sumo.baselines.policies import RuleBasedPolicy
-from idas_sumo.env.engine import AgentBatch, EnvConfig, EpisodeOutcome, MergeEngine, StepResult, run_episodes
+from idas_sumo.env.engine import AgentBatch, EnvConfig, EpisodeOutcome, MergeEngine, StepResult
+from idas_sumo.env.episodes import run_episodes
 from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT
 from idas_sumo.sim.backend import STEP_LENGTH_S

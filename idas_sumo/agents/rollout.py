@@ -24,14 +24,8 @@ import torch
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_onehot
 from idas_sumo.agents.learner import Batch
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.engine import (
-    AgentBatch,
-    EpisodeOutcome,
-    MergeEngine,
-    Policy,
-    StepResult,
-    run_episodes,
-)
+from idas_sumo.env.engine import AgentBatch, EpisodeOutcome, MergeEngine, Policy, StepResult
+from idas_sumo.env.episodes import run_episodes
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.scenario import Scenario

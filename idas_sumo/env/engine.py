@@ -38,7 +38,6 @@ from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_sn
 from idas_sumo.env.collisions import geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.episodes import EpisodeObserver, iter_episodes, run_episodes
 from idas_sumo.env.front_cars import front_cars
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
@@ -650,7 +649,6 @@ __all__ = [
     "SAFETY_MASKS",
     "AgentBatch",
     "EnvConfig",
-    "EpisodeObserver",
     "EpisodeOutcome",
     "MergeEngine",
     "Policy",
@@ -659,8 +657,6 @@ __all__ = [
     "geometric_collisions",
     "is_perfect",
     "is_success",
-    "iter_episodes",
     "placeholder_mask",
-    "run_episodes",
     "with_safety_mask",
 ]

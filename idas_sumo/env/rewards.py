@@ -49,7 +49,7 @@ class RewardConfig:
     """Experiment switches measured and retired (experiments/README.md): files holding the default still load."""
 
     collision_sign: CollisionSign = "paper"
-    """'paper' (-5·b_prio - 5, the default) or 'lower_priority_pays' (the paper's text; DESIGN.md's note)."""
+    """'paper' (-5·b_prio - 5, the default) or 'lower_priority_pays' (the paper's text, which says the lower-priority car should take more responsibility)."""
     extra_terms: tuple[str, ...] = ()
     """Reward terms registered by name (``scoring.register_reward_term``) scored after the paper's four: each
     adds a column to ``StepResult.reward_parts``. Empty for the paper."""

@@ -51,10 +51,8 @@ def learned_policy(path: Path, seed: int = 0) -> Policy:
     from idas_sumo.agents.checkpoint_file import load_actor  # lazy: torch only for learned methods
     from idas_sumo.agents.policy import ActorPolicy
 
-    # One thread in an evaluation process (the parent's or a --workers child's): a step's forward (a few
-    # dozen agents) gains little from a second one, and while the other core is busy (SUMO, the other
-    # worker) torch's waiting threads made a one-agent forward 20x slower (2.3 ms instead of 0.12 ms)
-    # and --workers 2 four times slower than one process (measured on this 2-core machine).
+    # One thread per evaluation process: a step's forward is a few dozen agents, and torch's waiting threads
+    # compete with SUMO and the other workers for the cores (docs/performance.md).
     torch.set_num_threads(1)
     return ActorPolicy(load_actor(path), seed=seed, deterministic=True)
 

@@ -21,14 +21,13 @@ from idas_sumo.env.engine import (
     DEFAULT_MAX_EPISODE_S,
     DEFAULT_SAFETY_MASK,
     AgentBatch,
-    EpisodeObserver,
     EpisodeOutcome,
     MergeEngine,
     Policy,
     SafetyMask,
     StepResult,
-    iter_episodes,
 )
+from idas_sumo.env.episodes import EpisodeObserver, iter_episodes
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.env.scenario import (
     Scenario,

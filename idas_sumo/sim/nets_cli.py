@@ -1,6 +1,6 @@
 """``idas-sumo nets``: the merges a SUMO network holds (``inspect``), and the sample nets (``sample``).
 
-``idas_sumo/cli.py`` registers the command (``add_nets_parser``) and calls ``run_nets``; everything else is here.
+``idas_sumo/cli/nets.py`` registers the command (``add_nets_parser``) and calls ``run_nets``; everything else is here.
 """
 
 from __future__ import annotations
