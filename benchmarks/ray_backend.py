@@ -28,6 +28,7 @@ from idas_sumo.agents.learner import Learner
 from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.scenario import generate_scenario
 from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
+from idas_sumo.sim.merge_detect import choose_merge
 from idas_sumo.sim.netgen import read_merge_net
 from idas_sumo.training.config import TrainConfig
 from idas_sumo.training.curriculum import plan_stages
@@ -58,9 +59,11 @@ def measure(
     """(start-up + first round seconds, episodes/s over the other rounds)."""
     config = TrainConfig()
     learner = Learner(plan_stages(config)[0].learner, seed=0)
-    env_config = EnvConfig(max_episode_s=config.max_episode_s)
+    env_config = EnvConfig(max_episode_s=config.env.max_episode_s)
     start = time.perf_counter()
-    with make_workers(net, env_config, 0, workers, config.copies, ray_address=ray_address) as pool:
+    with make_workers(
+        choose_merge(net), env_config, 0, workers, config.copies, ray_address=ray_address
+    ) as pool:
         pool.run(learner, rounds[0])
         warm = time.perf_counter()
         for tasks in rounds[1:]:

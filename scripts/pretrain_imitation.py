@@ -46,7 +46,7 @@ def main() -> None:
     args = parser.parse_args()
 
     config = load_train_config(args.config)
-    env_config = EnvConfig(max_episode_s=config.max_episode_s, safety_mask=config.safety_mask)
+    env_config = EnvConfig(max_episode_s=config.env.max_episode_s, safety_mask=config.env.safety_mask)
     engine = MergeEngine(args.net, copies=config.copies, seed=args.seed, config=env_config)
     rng = np.random.default_rng(args.seed)
     started = time.perf_counter()

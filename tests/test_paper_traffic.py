@@ -92,7 +92,7 @@ def test_traffic_config_is_checked() -> None:
 
 def test_dense_config_is_the_first_generator() -> None:
     dense = load_eval_config(SCENARIO_DIR / "eval_dense.toml")
-    assert dense.safety_mask == "merge_aware"
+    assert dense.env.safety_mask == "merge_aware"
     first = TrafficConfig(n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=8)
     assert _draw(20, dense.traffic) == _draw(20, first)
     for s in _draw(100, dense.traffic):
@@ -100,7 +100,7 @@ def test_dense_config_is_the_first_generator() -> None:
         for road in ("main", "merge"):
             assert 2 <= sum(v.road == road for v in s.vehicles) <= 8
     paper = load_eval_config(SCENARIO_DIR / "eval_paper.toml")
-    assert paper.traffic == TrafficConfig() and paper.safety_mask == "own_lane"
+    assert paper.traffic == TrafficConfig() and paper.env.safety_mask == "own_lane"
 
 
 @pytest.mark.parametrize("bad", ["", "a b", "a<b", "x&y", 'q"', "it's"])

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -31,6 +32,8 @@ if TYPE_CHECKING:
     import pandas as pd
 
     from idas_sumo.cli.common import Subparsers
+    from idas_sumo.env.config import EnvConfig
+    from idas_sumo.sim.merge_detect import MergeSite
 
 RESULTS_DIR = Path("results")
 """Where ``evaluate`` without ``--out`` writes: a new ``<method>-<suite>-<seed>`` folder per run."""
@@ -167,10 +170,12 @@ def run(args: argparse.Namespace) -> int:
             f"--policy only applies to the learned methods ({', '.join(LEARNED_METHODS)}); "
             f"--baseline {args.baseline} does not read it"
         )
+    env = _eval_env(args)
+    site = None
     if args.suite == "geometry":
         _check_geometry_args(args)
     else:
-        _check_eval_net(args)
+        site = _check_eval_net(args, env)
     out = args.out if args.out is not None else _default_out(args)
     if args.force and out.is_dir():
         from idas_sumo.io_utils import remove_stale_temps
@@ -180,7 +185,8 @@ def run(args: argparse.Namespace) -> int:
     others = args.others or default_others()
     request = EvalRequest(
         net=Path(args.net),
-        junction=args.junction,
+        env=env,
+        site=site,
         methods=tuple(methods),
         suite=args.suite,
         scenarios=args.scenarios,
@@ -195,7 +201,6 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress and sys.stderr.isatty(),
         gui=args.gui,
         config=args.config,
-        safety_mask=args.safety_mask,
         scenario_files=tuple(args.scenario),
         copies=args.copies,
         workers=args.workers,
@@ -241,8 +246,9 @@ def _evaluate_geometry(args: argparse.Namespace, request: Any, others: str) -> i
     from idas_sumo.evaluation.geometry import run_geometry_suite
     from idas_sumo.evaluation.policies import METHOD_LABELS
 
-    def check(net: Path) -> None:
-        _check_eval_net(argparse.Namespace(**{**vars(args), "net": net, "suite": "paper", "junction": None}))
+    def check(net: Path) -> MergeSite:
+        fields = {**vars(args), "net": net, "suite": "paper", "junction": None}
+        return _check_eval_net(argparse.Namespace(**fields), request.env)
 
     def show(name: str, output: Any) -> None:
         title = f"geometry {name}: paper suite, seed {args.seed}, others: {others}"
@@ -253,8 +259,18 @@ def _evaluate_geometry(args: argparse.Namespace, request: Any, others: str) -> i
     return 0
 
 
-def _check_eval_net(args: argparse.Namespace) -> None:
-    """Refuse a net whose roads are too short or too long for the scenarios evaluated (env/net_needs.py)."""
+def _eval_env(args: argparse.Namespace) -> EnvConfig:
+    """The evaluation's episode rules: the ``--config`` file's (else the defaults), ``--safety-mask`` and
+    ``--junction`` on top."""
+    from idas_sumo.evaluation.protocol import EvalConfig, load_eval_config
+
+    env = (load_eval_config(args.config) if args.config is not None else EvalConfig()).env
+    return replace(env, safety_mask=args.safety_mask or env.safety_mask, junction=args.junction)
+
+
+def _check_eval_net(args: argparse.Namespace, env: EnvConfig) -> MergeSite:
+    """The evaluated merge (the one parse of the net); refuse a net whose roads are too short or too
+    long for the scenarios evaluated (env/net_needs.py)."""
     from idas_sumo.env.net_needs import check_road_lengths, road_needs
     from idas_sumo.evaluation.protocol import EvalConfig, load_eval_config
     from idas_sumo.sim.merge_detect import choose_merge
@@ -266,7 +282,7 @@ def _check_eval_net(args: argparse.Namespace) -> None:
     random_starts = args.suite == "paper" and not args.scenario
     start_range = config.traffic.start_range_m if random_starts else None
     source = f"{args.config}" if args.config is not None else "max_episode_s"
-    check_road_lengths(site, road_needs(start_range, config.max_episode_s, source))
+    check_road_lengths(site, road_needs(start_range, env.max_episode_s, source))
     # Cars placed by a file must start on the road (a car 1e308 m down a 250 m road once ran, exit 0).
     from idas_sumo.env.scenario import Road, check_against_net, load_scenario
     from idas_sumo.resources import SCENARIO_DIR
@@ -281,6 +297,7 @@ def _check_eval_net(args: argparse.Namespace) -> None:
     lengths: dict[Road, float] = {"main": site.main.length_m, "merge": site.merge.length_m}
     for path in files:
         check_against_net(load_scenario(path, speed_limits), speed_limits, lengths, str(path))
+    return site
 
 
 def summary_table(summary: pd.DataFrame, title: str, labels: dict[str, str]) -> Any:

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, ClassVar
 
+from idas_sumo.config import from_dict
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS, SafetyMask
 from idas_sumo.env.rewards import RewardConfig
 
@@ -44,3 +45,26 @@ def with_safety_mask(config: EnvConfig | None, safety_mask: SafetyMask | None) -
     ``safety_mask=`` argument)."""
     config = config or EnvConfig()
     return config if safety_mask is None else replace(config, safety_mask=safety_mask)
+
+
+ENV_KEYS: tuple[str, ...] = ("max_episode_s", "reward", "safety_mask", "junction")
+"""``EnvConfig``'s fields as a recipe holds them: flat keys (and a ``[reward]`` table) beside the run's own."""
+
+
+def env_config_from_flat(
+    data: dict[str, Any], where: str, keys: tuple[str, ...] = ENV_KEYS
+) -> tuple[EnvConfig, dict[str, Any]]:
+    """The ``EnvConfig`` of a recipe's flat ``keys``, and the rest of ``data``; errors name the flat key
+    (``recipe.toml.safety_mask``). A ``junction`` of "" is the net's only merge (None)."""
+    env = {k: data[k] for k in keys if k in data}
+    if env.get("junction") == "":
+        del env["junction"]
+    rest = {k: v for k, v in data.items() if k not in keys}
+    return from_dict(EnvConfig, env, where), rest
+
+
+def flat_env(config: EnvConfig) -> dict[str, Any]:
+    """``config`` as flat recipe keys (what ``env_config_from_flat`` reads; junction None as "")."""
+    flat = asdict(config)
+    flat["junction"] = config.junction or ""
+    return flat

@@ -20,6 +20,7 @@ import pandas as pd
 
 from idas_sumo.evaluation.runner import EvalOutput, EvalRequest, run_evaluation
 from idas_sumo.io_utils import atomic_open
+from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.net_cache import cached_net
 from idas_sumo.sim.netgen import NetParams
 from idas_sumo.sim.sample_nets import build_sample_net
@@ -48,20 +49,27 @@ def geometry_nets(workdir: Path, cache_dir: str | Path | None = None) -> list[tu
 
 def run_geometry_suite(
     request: EvalRequest,
-    check_net: Callable[[Path], None],
+    check_net: Callable[[Path], MergeSite],
     on_geometry: Callable[[str, EvalOutput], None] | None = None,
     cache_dir: str | Path | None = None,
 ) -> tuple[list[tuple[str, EvalOutput]], Path]:
     """``request`` (its ``net`` and ``suite`` replaced) run on every geometry into ``request.out /
     name``; ``check_net`` refuses a net the scenarios cannot use (the CLI's road checks) before it
-    runs; ``on_geometry`` sees each result as it comes. The results and the combined CSV's path."""
+    runs, and gives its merge site; ``on_geometry`` sees each result as it comes. The results and the combined CSV's path."""
     results: list[tuple[str, EvalOutput]] = []
     with tempfile.TemporaryDirectory(prefix="idas_sumo_geometry_") as tmp:
         for name, net in geometry_nets(Path(tmp), cache_dir):
-            check_net(net)
+            site = check_net(net)
+            env = dataclasses.replace(request.env, junction=None) if request.env is not None else None
             output = run_evaluation(
                 dataclasses.replace(
-                    request, net=net, junction=None, suite="paper", out=request.out / name, fresh_out=False
+                    request,
+                    net=net,
+                    site=site,
+                    env=env,
+                    suite="paper",
+                    out=request.out / name,
+                    fresh_out=False,
                 )
             )
             results.append((name, output))

@@ -17,14 +17,12 @@ import pandas as pd
 
 from idas_sumo.baselines.policies import EGO_ONLY_BASELINES
 from idas_sumo.config import from_dict, load_toml
+from idas_sumo.env.config import EnvConfig, env_config_from_flat
 from idas_sumo.env.engine import (
-    DEFAULT_MAX_EPISODE_S,
-    DEFAULT_SAFETY_MASK,
     AgentBatch,
     EpisodeOutcome,
     MergeEngine,
     Policy,
-    SafetyMask,
     StepResult,
 )
 from idas_sumo.env.episodes import EpisodeObserver, iter_episodes
@@ -37,6 +35,7 @@ from idas_sumo.env.scenario import (
     load_scenario,
 )
 from idas_sumo.env.snapshot import ROAD_NAMES
+from idas_sumo.errors import InputError
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
 from idas_sumo.evaluation.sweep import DEFAULT_SWEEP_OFFSETS, sweep_scenarios
 from idas_sumo.resources import SCENARIO_DIR
@@ -61,24 +60,29 @@ class EvalCase:
     method_vehicles: tuple[str, ...]
 
 
+EVAL_ENV_KEYS: tuple[str, ...] = ("max_episode_s", "safety_mask")
+"""The episode rules an evaluation TOML may set (flat keys): every method is scored by the same reward,
+and the merge is the command's ``--junction``."""
+
+
 @dataclass(frozen=True)
 class EvalConfig:
-    """``evaluate --config FILE.toml``: how the paper suite's random scenarios are drawn, and the timeout."""
+    """``evaluate --config FILE.toml``: how the paper suite's random scenarios are drawn, and the episode
+    rules (``max_episode_s``: a timeout is not a success; ``safety_mask``: which car every method's
+    mask follows, ``--safety-mask`` overrides it)."""
 
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
-    max_episode_s: float = DEFAULT_MAX_EPISODE_S
-    """Simulated seconds before an episode is cut off (a timeout is not a success)."""
-    safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
-    """Which car every method's safety mask follows (``EnvConfig.safety_mask``); ``--safety-mask``
-    overrides it."""
-
-    def __post_init__(self) -> None:
-        if not self.max_episode_s > 0:
-            raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+    env: EnvConfig = field(default_factory=EnvConfig)
 
 
 def load_eval_config(path: Path) -> EvalConfig:
-    return from_dict(EvalConfig, load_toml(path), str(path))
+    data = load_toml(path)
+    env, rest = env_config_from_flat(data, str(path), EVAL_ENV_KEYS)
+    if "env" in rest:
+        raise InputError(
+            f"{path}: unknown key 'env' (the episode rules are flat keys: {', '.join(EVAL_ENV_KEYS)})"
+        )
+    return replace(from_dict(EvalConfig, rest, str(path)), env=env)
 
 
 def file_cases(paths: list[Path], seed: int, speed_limits: dict) -> list[EvalCase]:

@@ -44,7 +44,6 @@ from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, resolv
 from idas_sumo.evaluation.protocol import (
     EpisodeResult,
     EvalCase,
-    EvalConfig,
     EvalJob,
     eval_jobs,
     run_jobs,
@@ -109,12 +108,11 @@ def write_replay_data(
     policy: Path | None,
     others: str,
     seed: int,
-    eval_config: EvalConfig,
-    junction: str | None = None,
+    env: EnvConfig,
 ) -> str:
     """Write ``out/replay/`` (each file atomically); returns the folder's name for the "wrote" line.
 
-    ``junction``: the merge of the net the evaluation ran on (None: the net's only one)."""
+    ``env``: the evaluation's episode rules, its ``junction`` the merge of the net it ran on."""
     folder = out / REPLAY_DIR
     folder.mkdir(exist_ok=True)
     with atomic_open(folder / NET_NAME, "wb") as f, net_path.open("rb") as net:
@@ -122,10 +120,10 @@ def write_replay_data(
     run = {
         "format": REPLAY_FORMAT,
         "seed": seed,
-        "max_episode_s": eval_config.max_episode_s,
-        "safety_mask": eval_config.safety_mask,
+        "max_episode_s": env.max_episode_s,
+        "safety_mask": env.safety_mask,
         "net_sha256": file_digest(folder / NET_NAME),
-        "junction": junction,
+        "junction": env.junction,
         "methods": {m: asdict(policy_record(m, policy)) for m in methods},
         "others": asdict(policy_record(others)),
     }
@@ -154,11 +152,10 @@ class ReplayData:
 
     directory: Path
     seed: int
-    eval_config: EvalConfig
+    env: EnvConfig
+    """The episode rules evaluated; ``junction``: the merge of the net evaluated, None: the net's only one
+    (also in replay data written before the junction was kept, all on single-merge nets)."""
     net_path: Path
-    junction: str | None
-    """The merge of the net evaluated (``--junction``); None: the net's only one (also in replay data
-    written before the junction was kept, all on single-merge nets)."""
     methods: dict[str, PolicyRecord]
     others: PolicyRecord
     cases: tuple[EvalCase, ...]
@@ -190,9 +187,12 @@ def load_replay_data(directory: Path) -> ReplayData:
         return ReplayData(
             directory=directory,
             seed=int(run["seed"]),
-            eval_config=EvalConfig(max_episode_s=float(run["max_episode_s"]), safety_mask=run["safety_mask"]),
+            env=EnvConfig(
+                max_episode_s=float(run["max_episode_s"]),
+                safety_mask=run["safety_mask"],
+                junction=run.get("junction"),
+            ),
             net_path=net_path,
-            junction=run.get("junction"),
             methods={m: PolicyRecord(**r) for m, r in run["methods"].items()},
             others=PolicyRecord(**run["others"]),
             cases=cases,
@@ -365,15 +365,10 @@ def replay_episode(
     require_display(gui)
     policies = {method: checked_policy(data.methods[method], data.seed, policy)}
     others = checked_policy(data.others, data.seed, flag="(others)")
-    site = choose_merge(data.net_path, data.junction)
-    config = EnvConfig(
-        max_episode_s=data.eval_config.max_episode_s,
-        safety_mask=data.eval_config.safety_mask,
-        junction=data.junction,
-    )
+    site = choose_merge(data.net_path, data.env.junction)
     job = eval_jobs([case], [method])[0]
     marks = Marks(colour_gui=gui)
-    engine = MergeEngine(site, copies=1, seed=data.seed, config=config, gui=gui)
+    engine = MergeEngine(site, copies=1, seed=data.seed, config=data.env, gui=gui)
     try:
         options = GUI_OPTIONS if gui else ()
         ((_, result),) = list(run_jobs(engine, [job], policies, others, observer=marks, sumo_options=options))

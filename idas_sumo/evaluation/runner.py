@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy, SafetyMask
+from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.evaluation.metrics import (
@@ -77,7 +77,7 @@ class EvalRequest:
     progress: bool = True
     gui: bool = False
     config: Path | None = None
-    """TOML with [traffic] and max_episode_s for the paper suite (see scenarios/eval_paper.toml)."""
+    """TOML with [traffic], max_episode_s and safety_mask for the paper suite (see scenarios/eval_paper.toml)."""
     scenario_files: tuple[Path, ...] = ()
     """Evaluate these scenario TOML files instead of a suite (the ego is each file's first vehicle)."""
     workers: int = 1
@@ -86,11 +86,12 @@ class EvalRequest:
     copies: int = DEFAULT_EVAL_COPIES
     """Episodes run side by side in one SUMO run (1 with ``gui`` or ``sumo_output``: SUMO's own output
     and window are per episode). The CSVs do not depend on it."""
-    safety_mask: SafetyMask | None = None
-    """Which car the safety mask follows (``EnvConfig.safety_mask``); None: the ``config`` file's
-    ``safety_mask``, else the default (own_lane, the paper's)."""
-    junction: str | None = None
-    """Which merge of ``net`` (``choose_merge``); None: its only one."""
+    env: EnvConfig | None = None
+    """The episode rules every method runs by (max_episode_s, safety_mask, junction: which merge of
+    ``net``); None: the ``config`` file's, else the defaults. The workers and the replay record get it."""
+    site: MergeSite | None = None
+    """``net``'s merge as the caller resolved it (``choose_merge(net, env.junction)``), so that the net is
+    parsed once; None: resolved here."""
     ray_address: str | None = None
     """Run the ``workers`` on that Ray cluster (``evaluate --ray-address``, distributed/ray_pool.py)
     instead of this machine's processes; the CSVs do not depend on it."""
@@ -118,10 +119,9 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
 
     An interrupted or failed run removes the output directories it made that are still empty.
     """
-    site = choose_merge(req.net, req.junction)
     eval_config = load_eval_config(req.config) if req.config is not None else EvalConfig()
-    if req.safety_mask is not None:
-        eval_config = replace(eval_config, safety_mask=req.safety_mask)
+    env = req.env if req.env is not None else eval_config.env
+    site = req.site if req.site is not None else choose_merge(req.net, env.junction)
     others_name = req.others or default_others()
     if req.scenarios is None and req.suite in DEFAULT_SUITE_SIZE:
         req = replace(req, scenarios=DEFAULT_SUITE_SIZE[req.suite])
@@ -142,9 +142,9 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         description = f"evaluate ({req.suite}, others: {others_name})"
         with _progress(req.progress, len(jobs), description) as advance:
             if req.ray_address is not None or (req.workers > 1 and len(jobs) > 1):
-                results = _in_workers(req, jobs, others_name, eval_config, tripinfo_dir, advance)
+                results = _in_workers(req, site, env, jobs, others_name, tripinfo_dir, advance)
             else:
-                results = _here(req, site, jobs, policies, others_policy, eval_config, tripinfo_dir, advance)
+                results = _here(req, site, env, jobs, policies, others_policy, tripinfo_dir, advance)
             for job, result in results:
                 episodes.append(result.episode)
                 flows.append(result.flow)
@@ -163,7 +163,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
             verdicts = _write_driver_types(out, episode_frame, req.methods, others_name)
             written += [DRIVER_TYPES_NAME, TREND_NAME]
         with atomic_open(out / SETTINGS_NAME) as f:
-            json.dump(_settings(req, others_name, eval_config), f, indent=2, default=str)
+            json.dump(_settings(req, others_name, eval_config, env), f, indent=2, default=str)
             f.write("\n")
         if req.trajectories:
             columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
@@ -179,8 +179,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
                 req.policy,
                 others_name,
                 req.seed,
-                eval_config,
-                site.junction_id,
+                replace(env, junction=site.junction_id),
             )
         )
     return EvalOutput(out, summary, tuple(verdicts), tuple(written))
@@ -219,8 +218,8 @@ def _write_driver_types(
     ]
 
 
-def _settings(req: EvalRequest, others: str, eval_config: EvalConfig) -> dict[str, object]:
-    """What made the CSVs (``settings.json``): the suite, the seed, the traffic, the safety mask."""
+def _settings(req: EvalRequest, others: str, eval_config: EvalConfig, env: EnvConfig) -> dict[str, object]:
+    """What made the CSVs (``settings.json``): the suite, the seed, the traffic, the episode rules."""
     return {
         "methods": list(req.methods),
         "suite": "scenario files" if req.scenario_files else req.suite,
@@ -230,7 +229,9 @@ def _settings(req: EvalRequest, others: str, eval_config: EvalConfig) -> dict[st
         "others": others,
         "policy": str(req.policy) if req.policy is not None else None,
         "config": str(req.config) if req.config is not None else None,
-        **asdict(eval_config),
+        "traffic": asdict(eval_config.traffic),
+        "max_episode_s": env.max_episode_s,
+        "safety_mask": env.safety_mask,
     }
 
 
@@ -242,10 +243,10 @@ def _copies(req: EvalRequest) -> int:
 def _here(
     req: EvalRequest,
     site: MergeSite,
+    env: EnvConfig,
     jobs: list[EvalJob],
     policies: dict[str, Policy],
     others_policy: Policy,
-    eval_config: EvalConfig,
     tripinfo_dir: Path | None,
     advance: Callable[[], None],
 ) -> list[tuple[EvalJob, EpisodeResult]]:
@@ -254,11 +255,7 @@ def _here(
         site,
         copies=_copies(req),
         seed=req.seed,
-        config=EnvConfig(
-            max_episode_s=eval_config.max_episode_s,
-            safety_mask=eval_config.safety_mask,
-            junction=req.junction,
-        ),
+        config=env,
         gui=req.gui,
     )
     results = []
@@ -273,9 +270,10 @@ def _here(
 
 def _in_workers(
     req: EvalRequest,
+    site: MergeSite,
+    env: EnvConfig,
     jobs: list[EvalJob],
     others_name: str,
-    eval_config: EvalConfig,
     tripinfo_dir: Path | None,
     advance: Callable[[], None],
 ) -> list[tuple[EvalJob, EpisodeResult]]:
@@ -286,18 +284,16 @@ def _in_workers(
     shares = split_jobs(len(jobs), req.workers)
     tasks = [
         WorkerTask(
-            net=req.net,
+            site=site,
+            env=env,
             jobs=tuple(jobs[share.start : share.stop]),
             methods=req.methods,
             policy=req.policy,
             others=others_name,
             seed=req.seed,
-            max_episode_s=eval_config.max_episode_s,
-            safety_mask=eval_config.safety_mask,
             copies=_copies(req),
             tripinfo_dir=tripinfo_dir,
             trajectories=req.trajectories,
-            junction=req.junction,
         )
         for share in shares
     ]

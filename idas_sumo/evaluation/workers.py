@@ -15,9 +15,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from idas_sumo.env.engine import SafetyMask
+from idas_sumo.env.config import EnvConfig
 from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob
+from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.processes import ProcessPool, WorkerPool
 
 
@@ -25,18 +26,18 @@ from idas_sumo.sim.processes import ProcessPool, WorkerPool
 class WorkerTask:
     """Everything a worker needs to run its share (policies are loaded in the worker)."""
 
-    net: Path
+    site: MergeSite
+    """The evaluated merge, resolved by the caller (a worker does not parse the net)."""
+    env: EnvConfig
+    """The evaluation's episode rules."""
     jobs: tuple[EvalJob, ...]
     methods: tuple[str, ...]
     policy: Path | None
     others: str
     seed: int
-    max_episode_s: float
-    safety_mask: SafetyMask
     copies: int
     tripinfo_dir: Path | None
     trajectories: bool
-    junction: str | None = None
 
 
 def split_jobs(n_jobs: int, workers: int) -> list[range]:
@@ -48,7 +49,7 @@ def split_jobs(n_jobs: int, workers: int) -> list[range]:
 
 def run_task(task: WorkerTask) -> Iterator[tuple[int, EpisodeResult]]:
     """Run a task's jobs here, in order: (index in the task, result)."""
-    from idas_sumo.env.engine import EnvConfig, MergeEngine
+    from idas_sumo.env.engine import MergeEngine
     from idas_sumo.evaluation.policies import LEARNED_METHODS, resolve_policy
     from idas_sumo.evaluation.protocol import run_jobs
 
@@ -56,14 +57,7 @@ def run_task(task: WorkerTask) -> Iterator[tuple[int, EpisodeResult]]:
         m: resolve_policy(m, task.policy if m in LEARNED_METHODS else None, task.seed) for m in task.methods
     }
     others = resolve_policy(task.others, None, task.seed)
-    engine = MergeEngine(
-        task.net,
-        copies=task.copies,
-        seed=task.seed,
-        config=EnvConfig(
-            max_episode_s=task.max_episode_s, safety_mask=task.safety_mask, junction=task.junction
-        ),
-    )
+    engine = MergeEngine(task.site, copies=task.copies, seed=task.seed, config=task.env)
     try:
         for i, (_, result) in enumerate(run_jobs(engine, task.jobs, methods, others, task.tripinfo_dir)):
             yield i, result

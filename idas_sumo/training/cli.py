@@ -10,7 +10,7 @@ from idas_sumo.env.net_needs import check_road_lengths, road_needs
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import remove_stale_temps
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG
-from idas_sumo.sim.merge_detect import choose_merge
+from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
@@ -39,10 +39,10 @@ def config_from_args(args: argparse.Namespace, base: TrainConfig | None = None) 
     )
 
 
-def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> None:
+def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> MergeSite:
     """What the config's own checks cannot know: this machine's CPUs, SUMO's seed range, and whether
-    the net's roads fit the run's traffic (env/net_needs.py). ``source`` names where the values came
-    from (a flag's value was checked by argparse already)."""
+    the net's roads fit the run's traffic (env/net_needs.py); the run's merge site (the one parse of
+    the net). ``source`` names where the values came from (a flag's value was checked by argparse)."""
     if not 0 <= config.seed < SEED_LIMIT:
         raise InputError(
             f"{source}: seed must be in [0, {SEED_LIMIT}) (SUMO's seed range), got {config.seed}"
@@ -55,8 +55,9 @@ def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> No
             f"(pass --workers {limit} or fewer)"
         )
     start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
-    site = choose_merge(Path(args.net), config.junction or None)
-    check_road_lengths(site, road_needs(start_range, config.max_episode_s, source))
+    site = choose_merge(Path(args.net), config.env.junction)
+    check_road_lengths(site, road_needs(start_range, config.env.max_episode_s, source))
+    return site
 
 
 def train_from_args(args: argparse.Namespace) -> int:
@@ -75,12 +76,12 @@ def train_from_args(args: argparse.Namespace) -> int:
         # The run's own config is the base, so that only what the user typed can differ from it.
         config = config_from_args(args, base=stored_config(out))
         source = str(out / CHECKPOINT_NAME)
-    _check_run(args, config, source)
+    site = _check_run(args, config, source)
     if out.is_dir():
         # Writes killed before their rename (SIGKILL, power loss) leave their temp files behind.
         remove_stale_temps(out)
     final = run_training(
-        Path(args.net),
+        site,
         config,
         out,
         resume=resume,

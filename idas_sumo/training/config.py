@@ -13,8 +13,7 @@ from typing import Any, ClassVar, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.engine import DEFAULT_MAX_EPISODE_S, DEFAULT_SAFETY_MASK, EnvConfig, SafetyMask
-from idas_sumo.env.rewards import RewardConfig
+from idas_sumo.env.config import ENV_KEYS, EnvConfig, env_config_from_flat, flat_env
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
@@ -89,8 +88,11 @@ class TrainConfig:
     the roads, entering at random times (L225), no robot cars."""
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     """Learner hyper-parameters; ``use_central_critic`` is set per stage (off in 'robot', on otherwise)."""
-    reward: RewardConfig = field(default_factory=RewardConfig)
-    """Reward variant (collision sign)."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    """The episode rules of training and validation (evaluation has its own): ``max_episode_s``,
+    ``[reward]``, ``safety_mask`` (every shipped policy was trained with 'own_lane', the paper's) and
+    ``junction`` (which merge of a net with several; "" in a file: its only one), written in a recipe
+    as flat keys beside the run's own (``env_config_from_flat``)."""
     episodes_per_update: int = 16
     """Episodes collected with one policy before one learner update on all their agent-steps (ours; the
     paper gives no batch size. Every shipped recipe uses 16: with 4, stage 2 drifted within 150 episodes)."""
@@ -103,8 +105,6 @@ class TrainConfig:
     depend on it."""
     seed: int = 0
     """Seeds network initialisation, scenarios and action sampling."""
-    max_episode_s: float = DEFAULT_MAX_EPISODE_S
-    """Simulated seconds before an episode is cut off (a timeout is not a success; ours)."""
     init_from: str = ""
     """Optional checkpoint whose weights start the first stage (e.g. a robot run for stage 'intelligent')."""
     validate_every: int = 0
@@ -117,25 +117,10 @@ class TrainConfig:
     validation_criterion: ValidationCriterion = "joint_return"
     """What picks ``<stage>_best.pt``: 'joint_return' (the paper's objective) or 'success_then_return'
     (ours: the success rate first, the joint return among equals)."""
-    safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
-    """Which car the safety mask follows in training and validation (``EnvConfig.safety_mask``):
-    'own_lane' (the paper; every shipped policy was trained with it) or 'merge_aware' (ours, a shield)."""
-    junction: str = ""
-    """Which merge of a net with several to train on (its junction id, ``idas-sumo nets inspect``);
-    "": the net's only merge (``EnvConfig.junction``)."""
     geometry: GeometryConfig | None = None
     """``[geometry]``: train each round on a generated merge drawn from these ranges (training/geometry.py);
     None (no table): every round on the run's net. Validation runs on the run's net unless the table's
     ``validation_geometries`` draws merges for it."""
-
-    def env_config(self) -> EnvConfig:
-        """The episode rules of this run's training and validation (evaluation builds its own)."""
-        return EnvConfig(
-            max_episode_s=self.max_episode_s,
-            reward=self.reward,
-            safety_mask=self.safety_mask,
-            junction=self.junction or None,
-        )
 
     def __post_init__(self) -> None:
         for name in (
@@ -154,8 +139,6 @@ class TrainConfig:
                 raise ConfigValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if not 1 <= self.copies <= MAX_COPIES:
             raise ConfigValueError(f"copies must be in [1, {MAX_COPIES}], got {self.copies}")
-        if not self.max_episode_s > 0.0:
-            raise ConfigValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
         if self.validation_criterion not in VALIDATION_CRITERIA:
             raise ConfigValueError(
                 f"validation_criterion must be one of {', '.join(VALIDATION_CRITERIA)}, "
@@ -196,21 +179,34 @@ class TrainConfig:
             changes["seed"] = seed
         if copies is not None:
             changes["copies"] = copies
+        env: dict[str, Any] = {}
         if safety_mask is not None:
-            changes["safety_mask"] = safety_mask
+            env["safety_mask"] = safety_mask
         if junction is not None:
-            changes["junction"] = junction
+            env["junction"] = junction or None
+        if env:
+            changes["env"] = dataclasses.replace(self.env, **env)
         return dataclasses.replace(self, **changes)
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain nested dict (TOML/checkpoint friendly)."""
-        return dataclasses.asdict(self)
+        """Plain nested dict (TOML/checkpoint friendly), the episode rules as flat keys as a recipe
+        writes them (so checkpoints keep the format they always had)."""
+        data = dataclasses.asdict(self)
+        del data["env"]
+        return {**data, **flat_env(self.env)}
 
 
 def train_config_from_dict(data: Any, where: str) -> TrainConfig:
     """Validate a plain dict (a TOML table or a checkpoint's config) into a TrainConfig."""
     try:
-        return from_dict(TrainConfig, data, where)
+        if not isinstance(data, dict):
+            raise InputError(f"{where}: expected a table, got {type(data).__name__}")
+        env, rest = env_config_from_flat(data, where)
+        if "env" in rest:
+            raise InputError(
+                f"{where}: unknown key 'env' (the episode rules are flat keys: {', '.join(ENV_KEYS)})"
+            )
+        return dataclasses.replace(from_dict(TrainConfig, rest, where), env=env)
     except InputError as err:
         msg = str(err)
         if msg.startswith(where):

@@ -52,7 +52,7 @@ from idas_sumo.training.validation import (
     validation_key,
     validation_tasks,
 )
-from idas_sumo.training.workers import EpisodeTask, RolloutWorkers, RoundNet, make_workers
+from idas_sumo.training.workers import EpisodeTask, RolloutWorkers, make_workers
 
 __all__ = ["CHECKPOINT_NAME", "run_training", "stored_config"]
 
@@ -68,7 +68,7 @@ SUCCESS_WINDOW = 100  # episodes in the progress bar's running success rate
 
 
 def run_training(
-    net_path: Path | str,
+    net: MergeSite | Path | str,
     config: TrainConfig,
     out_dir: Path | str,
     resume: bool = False,
@@ -77,7 +77,8 @@ def run_training(
     force: bool = False,
     ray_address: str | None = None,
 ) -> Path:
-    """Train as ``config`` says; write checkpoints and ``metrics.csv`` under ``out_dir``.
+    """Train as ``config`` says on ``net`` (the merge site, resolved once by the caller, travels to every
+    worker; or a net file and ``config.env.junction``); write checkpoints and ``metrics.csv`` under ``out_dir``.
 
     Returns the final checkpoint (``out_dir/<last stage>.pt``). ``resume`` continues the run in
     ``out_dir`` from its ``checkpoint.pt`` with the saved config, taking only ``RESUME_FIELDS``
@@ -88,7 +89,8 @@ def run_training(
     learner stays here); the run is the same as with local workers. Ctrl-C saves a checkpoint of the
     completed rounds, then re-raises KeyboardInterrupt.
     """
-    net_path, out_dir = Path(net_path), Path(out_dir)
+    out_dir = Path(out_dir)
+    net_path = net.path if isinstance(net, MergeSite) else Path(net)
     _check_request(net_path, config, out_dir, resume=resume, gui=gui, force=force, ray_address=ray_address)
     resumed = _read_resume_point(out_dir) if resume else None
     if resumed is not None:
@@ -99,7 +101,7 @@ def run_training(
     ensure_writable_dir(out_dir)
 
     plans = plan_stages(config)
-    site = choose_merge(net_path, config.junction or None)
+    site = net if isinstance(net, MergeSite) else choose_merge(net_path, config.env.junction)
     geometry_needs = _check_geometry(config) if config.geometry is not None else None
     state = _starting_state(config, plans, out_dir, resumed, force)
 
@@ -108,8 +110,8 @@ def run_training(
     keep_below = state.global_episode if resumed is not None else None
     with (
         make_workers(
-            net_path,
-            config.env_config(),
+            site,
+            config.env,
             config.seed,
             config.workers,
             config.copies,
@@ -228,7 +230,7 @@ def _check_geometry(config: TrainConfig) -> RoadNeeds:
     the bounds every drawn net is checked against."""
     assert config.geometry is not None
     start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
-    needs = road_needs(start_range, config.max_episode_s, GEOMETRY_SOURCE)
+    needs = road_needs(start_range, config.env.max_episode_s, GEOMETRY_SOURCE)
     for params in geometry_corners(config.geometry):
         try:
             check_road_lengths(choose_merge(cached_net(params)), needs)
@@ -520,7 +522,7 @@ class _StageValidation:
     """One stage's held-out scenarios, its ``validation.csv`` sink and the best score so far."""
 
     workers: RolloutWorkers
-    groups: list[tuple[RoundNet | None, list[EpisodeTask]]]
+    groups: list[tuple[MergeSite | None, list[EpisodeTask]]]
     """The held-out scenarios, by the net they run on (None: the run's own)."""
     sink: MetricsSink
     best_path: Path
@@ -599,7 +601,7 @@ class _StageValidation:
         )
 
 
-def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[RoundNet | None, list[EpisodeTask]]]:
+def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[MergeSite | None, list[EpisodeTask]]]:
     """The stage's held-out scenarios: on the run's net, or with ``[geometry]`` and its
     ``validation_geometries`` spread over that many merges drawn by the validation seed (their scenarios
     each from a seed of their own, scaled to their limits)."""
@@ -611,7 +613,7 @@ def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[RoundNet | None
         )
         return [(None, tasks)]
     rng = np.random.default_rng(config.validation_seed)
-    groups: list[tuple[RoundNet | None, list[EpisodeTask]]] = []
+    groups: list[tuple[MergeSite | None, list[EpisodeTask]]] = []
     for i, scenarios in enumerate(split_evenly(config.validation_scenarios, count)):
         params, site = run.geometry.draw(rng)
         log.info("validation merge %d of %d: %s", i + 1, count, params)
@@ -619,7 +621,7 @@ def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[RoundNet | None
             seed = config.validation_seed + 1 + i
             groups.append(
                 (
-                    RoundNet(str(site.path)),
+                    site,
                     validation_tasks(plan.traffic, _site_limits(site), scenarios, seed),
                 )
             )
@@ -682,7 +684,7 @@ def _round(
     else:
         # Drawn before the round's scenarios, from the same generator: a resumed run draws it again.
         drawn, site = run.geometry.draw(state.np_rng)
-        net, speed_limits = RoundNet(str(site.path)), _site_limits(site)
+        net, speed_limits = site, _site_limits(site)
     tasks = _episode_tasks(run, plan, state, speed_limits)
     if run.geometry is not None:
         run.geometry.prefetch(state.np_rng)

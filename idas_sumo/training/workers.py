@@ -10,10 +10,10 @@ weights and a share of the episodes.
 Each episode carries its own action-sampling seed, so the data do not depend on the worker count, on
 which worker ran which episode, or on the backend.
 
-A round may name its own net (``RoundNet``: a training run with ``[geometry]`` draws one per round,
-training/geometry.py); it goes with the tasks, and a worker builds a new engine only when the net
-differs from the one it runs. A round that names none runs on the workers' own net (the run's
-``--net``: validation).
+Every worker gets the run's resolved ``MergeSite`` and its ``EnvConfig`` (no worker parses the net). A
+round may name its own site (a training run with ``[geometry]`` draws one per round, training/geometry.py);
+it goes with the tasks, and a worker builds a new engine only when the merge differs from the one it runs.
+A round that names none runs on the workers' own merge (the run's ``--net``: validation).
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ import logging
 import traceback
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from pathlib import Path
 from types import TracebackType
 from typing import Any
 
@@ -34,6 +33,7 @@ from idas_sumo.agents.learner import Learner, LearnerConfig
 from idas_sumo.agents.rollout import EpisodeData, RolloutTask, collect_episodes
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.errors import IdasError, SimulationError
+from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed
 
 __all__ = [
@@ -42,7 +42,6 @@ __all__ = [
     "PoolWorkers",
     "RolloutServer",
     "RolloutWorkers",
-    "RoundNet",
     "make_workers",
 ]
 
@@ -55,35 +54,31 @@ EpisodeTask = RolloutTask
 """One episode to collect: the scenario, the seed of its action sampling, greedy (validation) or not."""
 
 
-@dataclass(frozen=True)
-class RoundNet:
-    """The net a round's episodes run on: its file, and which merge of it (None: its only one)."""
-
-    path: str
-    junction: str | None = None
+def _same_merge(a: MergeSite, b: MergeSite) -> bool:
+    return (a.path, a.junction_id) == (b.path, b.junction_id)
 
 
 class _NetEngine:
-    """A worker's engine, built again for another net (same copies, seed and episode rules)."""
+    """A worker's engine, built again for another merge site (same copies, seed and episode rules)."""
 
     def __init__(
-        self, net: RoundNet, env_config: EnvConfig, seed: int, copies: int, gui: bool = False
+        self, site: MergeSite, env_config: EnvConfig, seed: int, copies: int, gui: bool = False
     ) -> None:
-        self.home, self.env_config, self.seed, self.copies, self.gui = net, env_config, seed, copies, gui
-        self.net = net
-        self.engine = self._build(net)
+        self.home, self.env_config, self.seed, self.copies, self.gui = site, env_config, seed, copies, gui
+        self.site = site
+        self.engine = self._build(site)
 
-    def _build(self, net: RoundNet) -> MergeEngine:
-        config = dataclasses.replace(self.env_config, junction=net.junction)
-        return MergeEngine(Path(net.path), copies=self.copies, seed=self.seed, config=config, gui=self.gui)
+    def _build(self, site: MergeSite) -> MergeEngine:
+        # The site is the merge: ``env_config.junction`` only picks one from a net file.
+        return MergeEngine(site, copies=self.copies, seed=self.seed, config=self.env_config, gui=self.gui)
 
-    def on(self, net: RoundNet | None) -> MergeEngine:
-        """The engine for ``net`` (None: the worker's own), rebuilt only when the net changes."""
-        net = net or self.home
-        if net != self.net:
+    def on(self, site: MergeSite | None) -> MergeEngine:
+        """The engine for ``site`` (None: the worker's own), rebuilt only when the merge changes."""
+        site = site or self.home
+        if not _same_merge(site, self.site):
             self.engine.close()
-            self.net = net
-            self.engine = self._build(net)
+            self.site = site
+            self.engine = self._build(site)
         return self.engine
 
     def close(self) -> None:
@@ -104,9 +99,9 @@ class RolloutWorkers(ABC):
 
     @abstractmethod
     def run(
-        self, learner: Learner, tasks: list[EpisodeTask], net: RoundNet | None = None
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
     ) -> list[EpisodeData]:
-        """The episodes of ``tasks`` on ``net`` (None: the workers' own net)."""
+        """The episodes of ``tasks`` on ``net`` (None: the workers' own merge)."""
 
     @abstractmethod
     def close(self) -> None: ...
@@ -124,10 +119,10 @@ class InProcessWorkers(RolloutWorkers):
     """Collect in this process, with the learner's own actor."""
 
     def __init__(
-        self, net_path: Path, env_config: EnvConfig, seed: int, copies: int, gui: bool = False
+        self, site: MergeSite, env_config: EnvConfig, seed: int, copies: int, gui: bool = False
     ) -> None:
         copies = 1 if gui else copies
-        self.engines = _NetEngine(RoundNet(str(net_path), env_config.junction), env_config, seed, copies, gui)
+        self.engines = _NetEngine(site, env_config, seed, copies, gui)
 
     @property
     def engine(self) -> MergeEngine:
@@ -135,7 +130,7 @@ class InProcessWorkers(RolloutWorkers):
         return self.engines.engine
 
     def run(
-        self, learner: Learner, tasks: list[EpisodeTask], net: RoundNet | None = None
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
     ) -> list[EpisodeData]:
         # Small-batch inference runs slower with intra-op threads fighting SUMO; the learner update
         # afterwards gets the threads back.
@@ -204,10 +199,10 @@ class RolloutServer:
     (``(net, tasks)``: the round's net, None for the worker's own), with the round's actor weights,
     by its packed episodes."""
 
-    def __init__(self, init: tuple[str, EnvConfig, int, int]) -> None:
-        net_path, env_config, seed, copies = init
+    def __init__(self, init: tuple[MergeSite, EnvConfig, int, int]) -> None:
+        site, env_config, seed, copies = init
         torch.set_num_threads(1)
-        self.engines = _NetEngine(RoundNet(str(net_path), env_config.junction), env_config, seed, copies)
+        self.engines = _NetEngine(site, env_config, seed, copies)
         self.learner = Learner(LearnerConfig(), seed=0)
 
     @property
@@ -216,7 +211,7 @@ class RolloutServer:
         return self.engines.engine
 
     def handle(
-        self, request: tuple[RoundNet | None, list[EpisodeTask]], weights: ActorWeights
+        self, request: tuple[MergeSite | None, list[EpisodeTask]], weights: ActorWeights
     ) -> tuple[Any, ...]:
         try:
             net, tasks = request
@@ -239,7 +234,7 @@ class PoolWorkers(RolloutWorkers):
         self._pool = pool
 
     def run(
-        self, learner: Learner, tasks: list[EpisodeTask], net: RoundNet | None = None
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
     ) -> list[EpisodeData]:
         shares = [list(s) for s in np.array_split(np.arange(len(tasks)), self._pool.size)]
         requests = {w: (net, [tasks[i] for i in idx]) for w, idx in enumerate(shares) if idx}
@@ -270,7 +265,7 @@ class PoolWorkers(RolloutWorkers):
 
 
 def make_workers(
-    net_path: Path,
+    site: MergeSite,
     env_config: EnvConfig,
     seed: int,
     workers: int,
@@ -281,9 +276,9 @@ def make_workers(
     """``workers`` processes (1: this one), each running ``copies`` episodes side by side; with
     ``ray_address`` (distributed/ray_pool.py), ``workers`` Ray actors instead, even for 1."""
     if workers <= 1 and ray_address is None:
-        return InProcessWorkers(net_path, env_config, seed, copies, gui=gui)
+        return InProcessWorkers(site, env_config, seed, copies, gui=gui)
     factory = "idas_sumo.training.workers:RolloutServer"
-    inits = [(str(net_path), env_config, derived_seed(seed, 1 + w), copies) for w in range(workers)]
+    inits = [(site, env_config, derived_seed(seed, 1 + w), copies) for w in range(workers)]
     pool: WorkerPool
     if ray_address is not None:
         from idas_sumo.distributed.ray_pool import RayPool  # only here: ray is an optional extra
