@@ -20,6 +20,11 @@ RETIRED_ATTR = "RETIRED_KEYS"
 this name (``RETIRED_KEYS: ClassVar[dict[str, Any]]``). Files written before (checkpoints, recipes) still load when
 they hold that value; any other value was a retired experiment's variant, refused with a pointer to its write-up."""
 RETIRED_NOTE = "a retired experiment variant (experiments/README.md); this build runs only"
+FLAT_ATTR = "FLAT_FIELDS"
+"""A config dataclass may keep a nested dataclass field's keys flat in its own table, in a class attribute of this
+name (``FLAT_FIELDS: ClassVar[tuple[str, ...]] = ("env",)``): ``max_episode_s = 40`` is then read as
+``env.max_episode_s`` (errors name the flat key) and ``to_plain`` writes it flat again, so files written before the
+field was nested keep their format."""
 
 
 def did_you_mean(word: str, choices: typing.Iterable[str]) -> str:
@@ -100,12 +105,26 @@ def _check_value(value: Any, annotation: Any, where: str) -> Any:
     raise TypeError(f"unsupported annotation {annotation!r} at {where}")
 
 
+def _nest_flat(cls: type, data: dict[str, Any], hints: dict[str, Any], where: str) -> dict[str, Any]:
+    """``data`` with the keys of each of ``cls``'s ``FLAT_FIELDS`` gathered into that field's table."""
+    flat: tuple[str, ...] = getattr(cls, FLAT_ATTR, ())
+    data = dict(data)
+    for name in flat:
+        keys = [f.name for f in dataclasses.fields(hints[name]) if f.init]
+        if name in data:
+            raise InputError(f"{where}: unknown key {name!r} (write its keys flat: {', '.join(keys)})")
+        data[name] = {k: data.pop(k) for k in keys if k in data}
+    return data
+
+
 def from_dict(cls: type[T], data: Any, where: str) -> T:
     """Build dataclass ``cls`` from a TOML table; ``where`` prefixes every error (file and table)."""
     if not isinstance(data, dict):
         raise InputError(f"{where}: expected a table, got {type(data).__name__}")
     assert dataclasses.is_dataclass(cls)
     hints = typing.get_type_hints(cls)
+    flat = getattr(cls, FLAT_ATTR, ())
+    data = _nest_flat(cls, data, hints, where) if flat else data
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     retired: dict[str, Any] = getattr(cls, RETIRED_ATTR, {})
     for key in data:
@@ -113,14 +132,23 @@ def from_dict(cls: type[T], data: Any, where: str) -> T:
             if data[key] != retired[key]:
                 raise InputError(f"{where}.{key}: {data[key]!r} is {RETIRED_NOTE} {retired[key]!r}")
         elif key not in fields:
-            raise InputError(f"{where}: unknown key {key!r}{did_you_mean(key, fields)}")
+            names = [*fields, *(f.name for n in flat for f in dataclasses.fields(hints[n]))]
+            raise InputError(f"{where}: unknown key {key!r}{did_you_mean(key, names)}")
     kwargs: dict[str, Any] = {}
     for name, field in fields.items():
         if name in data:
-            kwargs[name] = _check_value(data[name], hints[name], f"{where}.{name}")
+            kwargs[name] = _check_value(data[name], hints[name], where if name in flat else f"{where}.{name}")
         elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
             raise InputError(f"{where}: missing required key {name!r}")
     try:
         return cls(**kwargs)
     except ValueError as err:  # __post_init__ range checks
         raise InputError(f"{where}: {err}") from None
+
+
+def to_plain(config: Any) -> dict[str, Any]:
+    """A config dataclass as a plain nested dict (TOML/checkpoint friendly), its ``FLAT_FIELDS`` flat."""
+    data = dataclasses.asdict(config)
+    for name in getattr(config, FLAT_ATTR, ()):
+        data.update(data.pop(name))
+    return data

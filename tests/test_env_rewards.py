@@ -291,5 +291,5 @@ def test_the_shipped_idas_checkpoint_still_loads_its_training_config() -> None:
     from idas_sumo.training.checkpoint import load_checkpoint
 
     checkpoint = load_checkpoint(POLICY_DIR / "idas.pt")
-    assert checkpoint.config.reward == RewardConfig()
-    assert checkpoint.config.env_config().reward.part_names == ("finish", "collide", "impede", "flow")
+    assert checkpoint.config.env.reward == RewardConfig()
+    assert checkpoint.config.env.reward.part_names == ("finish", "collide", "impede", "flow")

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from idas_sumo.cli import main
+from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation.geometry import HELD_OUT_GEOMETRIES
@@ -42,7 +43,7 @@ def tiny_config(**changes: Any) -> TrainConfig:
         episodes_per_update=2,
         checkpoint_every=2,
         intelligent_traffic=TrafficConfig(n_vehicles=0, min_vehicles_per_road=1, max_vehicles_per_road=2),
-        max_episode_s=15.0,
+        env=EnvConfig(max_episode_s=15.0),
         geometry=RANGES,
     )
     return dataclasses.replace(base, **changes)
@@ -306,7 +307,7 @@ def test_a_drawn_net_is_checked_against_the_runs_roads(tmp_path: Path, net_cache
     from idas_sumo.resources import DEFAULT_NET
     from idas_sumo.training.loop import run_training
 
-    config = tiny_config(max_episode_s=6.0)
+    config = tiny_config(env=EnvConfig(max_episode_s=6.0))
     with pytest.raises(InputError, match=r"\[geometry\]"):
         run_training(DEFAULT_NET, config, tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "metrics.csv").exists()

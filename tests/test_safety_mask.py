@@ -274,14 +274,14 @@ def test_evaluate_records_the_safety_mask(tmp_path: Path, net_path: Path) -> Non
 def test_train_config_carries_the_safety_mask(tmp_path: Path) -> None:
     from idas_sumo.training.config import TrainConfig, load_train_config
 
-    assert TrainConfig().safety_mask == "own_lane"
+    assert TrainConfig().env.safety_mask == "own_lane"
     assert TrainConfig().with_overrides(safety_mask="merge_aware").as_dict()["safety_mask"] == "merge_aware"
     path = tmp_path / "t.toml"
     path.write_text('safety_mask = "merge_aware"\n')
-    assert load_train_config(path).safety_mask == "merge_aware"
+    assert load_train_config(path).env.safety_mask == "merge_aware"
     from idas_sumo.resources import SCENARIO_DIR
 
-    assert load_train_config(SCENARIO_DIR / "train_default.toml").safety_mask == "own_lane"
+    assert load_train_config(SCENARIO_DIR / "train_default.toml").env.safety_mask == "own_lane"
 
 
 def test_train_flag_overrides_the_config(tmp_path: Path) -> None:
@@ -292,5 +292,5 @@ def test_train_flag_overrides_the_config(tmp_path: Path) -> None:
     path = tmp_path / "t.toml"
     path.write_text('safety_mask = "own_lane"\n')
     args = argparse.Namespace(config=path, safety_mask="merge_aware")
-    assert config_from_args(args).safety_mask == "merge_aware"
-    assert config_from_args(argparse.Namespace(config=path, safety_mask=None)).safety_mask == "own_lane"
+    assert config_from_args(args).env.safety_mask == "merge_aware"
+    assert config_from_args(argparse.Namespace(config=path, safety_mask=None)).env.safety_mask == "own_lane"

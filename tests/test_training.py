@@ -15,6 +15,7 @@ from conftest import checkpoint_payload
 
 from idas_sumo.agents.checkpoint_file import PolicyCheckpoint, load_actor
 from idas_sumo.agents.learner import Learner, LearnerConfig
+from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.errors import InputError
@@ -36,7 +37,7 @@ def tiny_config(**changes: Any) -> TrainConfig:
         intelligent_traffic=TrafficConfig(n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=2),
         episodes_per_update=1,
         checkpoint_every=1,
-        max_episode_s=12.0,
+        env=EnvConfig(max_episode_s=12.0),
     )
     return dataclasses.replace(base, **changes)
 
@@ -668,7 +669,7 @@ def test_validation_settings_are_checked() -> None:
 def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
     net_path: Path, tmp_path: Path
 ) -> None:
-    from idas_sumo.env.engine import EnvConfig, MergeEngine
+    from idas_sumo.env.engine import MergeEngine
     from idas_sumo.training.loop import run_training
     from idas_sumo.training.validation import score_episodes, validation_tasks
     from idas_sumo.training.workers import InProcessWorkers
@@ -695,13 +696,11 @@ def test_validation_keeps_the_best_weights_and_leaves_training_unchanged(
     assert best.episode == int(rows[scores.index(max(scores))]["episode"])
 
     # The saved weights score the same when validated again from the file.
-    sim = MergeEngine(net_path, seed=0, config=EnvConfig(max_episode_s=plain.max_episode_s))
+    sim = MergeEngine(net_path, seed=0, config=plain.env)
     limits = sim.speed_limits_mps
     sim.close()
     tasks = validation_tasks(plain.intelligent_traffic, limits, 2, validated.validation_seed)
-    workers = InProcessWorkers(
-        net_path, EnvConfig(max_episode_s=plain.max_episode_s), seed=0, copies=plain.copies
-    )
+    workers = InProcessWorkers(sim.site, plain.env, seed=0, copies=plain.copies)
     try:
         again = score_episodes([e.stats for e in workers.run(load_actor(best_path), tasks)])
     finally:
@@ -778,12 +777,13 @@ def test_unguarded_script_trains_with_two_workers(net_path: Path, tmp_path: Path
     script = tmp_path / "train_me.py"
     script.write_text(
         "from pathlib import Path\n"
+        "from idas_sumo.env.config import EnvConfig\n"
         "from idas_sumo.env.scenario import TrafficConfig\n"
         "from idas_sumo.training.config import TrainConfig\n"
         "from idas_sumo.training.loop import run_training\n"
         "config = TrainConfig(stage='direct', direct_episodes=2, episodes_per_update=2, workers=2,\n"
         "    intelligent_traffic=TrafficConfig(n_vehicles=0, min_vehicles_per_road=2, max_vehicles_per_road=2),\n"
-        "    max_episode_s=12.0)\n"
+        "    env=EnvConfig(max_episode_s=12.0))\n"
         f"run_training(Path({str(net_path)!r}), config, Path({str(tmp_path / 'run')!r}), progress=False)\n"
         "print('trained once')\n"
     )

@@ -38,7 +38,7 @@ import torch
 
 from idas_sumo import __version__
 from idas_sumo.agents.learner import Learner, LearnerConfig
-from idas_sumo.config import from_dict
+from idas_sumo.config import from_dict, to_plain
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import file_digest
@@ -86,7 +86,7 @@ class PolicyCheckpoint:
             if value is None:
                 continue
             if dataclasses.is_dataclass(value) and not isinstance(value, type):
-                value = dataclasses.asdict(value)
+                value = to_plain(value)
             data[field.name] = value
         data[CHECKSUM_KEY] = content_digest(data)
         return data

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
-from idas_sumo.config import from_dict
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS, SafetyMask
 from idas_sumo.env.rewards import RewardConfig
 
@@ -28,10 +27,12 @@ class EnvConfig:
     learn) or 'merge_aware' (ours, an optional shield: the other road's car closer to the merge point
     counts too, main road first; see ``MergeEngine.front_cars``)."""
     junction: str | None = None
-    """Which merge of a net with several the episodes run on (its junction id, ``choose_merge``); None:
-    the net's only one. Here, so that every engine of a run (workers, Ray actors) runs on the same."""
+    """Which merge of a net with several the episodes run on (its junction id, ``choose_merge``); None
+    (or "", as a recipe writes it): the net's only one."""
 
     def __post_init__(self) -> None:
+        if self.junction == "":
+            object.__setattr__(self, "junction", None)  # frozen: the one normalisation, at the edge
         if not (self.max_episode_s > 0):
             raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
         if self.safety_mask not in SAFETY_MASKS:
@@ -45,26 +46,3 @@ def with_safety_mask(config: EnvConfig | None, safety_mask: SafetyMask | None) -
     ``safety_mask=`` argument)."""
     config = config or EnvConfig()
     return config if safety_mask is None else replace(config, safety_mask=safety_mask)
-
-
-ENV_KEYS: tuple[str, ...] = ("max_episode_s", "reward", "safety_mask", "junction")
-"""``EnvConfig``'s fields as a recipe holds them: flat keys (and a ``[reward]`` table) beside the run's own."""
-
-
-def env_config_from_flat(
-    data: dict[str, Any], where: str, keys: tuple[str, ...] = ENV_KEYS
-) -> tuple[EnvConfig, dict[str, Any]]:
-    """The ``EnvConfig`` of a recipe's flat ``keys``, and the rest of ``data``; errors name the flat key
-    (``recipe.toml.safety_mask``). A ``junction`` of "" is the net's only merge (None)."""
-    env = {k: data[k] for k in keys if k in data}
-    if env.get("junction") == "":
-        del env["junction"]
-    rest = {k: v for k, v in data.items() if k not in keys}
-    return from_dict(EnvConfig, env, where), rest
-
-
-def flat_env(config: EnvConfig) -> dict[str, Any]:
-    """``config`` as flat recipe keys (what ``env_config_from_flat`` reads; junction None as "")."""
-    flat = asdict(config)
-    flat["junction"] = config.junction or ""
-    return flat

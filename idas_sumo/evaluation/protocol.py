@@ -10,14 +10,14 @@ from __future__ import annotations
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import pandas as pd
 
 from idas_sumo.baselines.policies import EGO_ONLY_BASELINES
 from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.config import EnvConfig, env_config_from_flat
+from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.engine import (
     AgentBatch,
     EpisodeOutcome,
@@ -26,7 +26,7 @@ from idas_sumo.env.engine import (
     StepResult,
 )
 from idas_sumo.env.episodes import EpisodeObserver, iter_episodes
-from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
+from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M, RewardConfig
 from idas_sumo.env.scenario import (
     Scenario,
     TrafficConfig,
@@ -35,7 +35,6 @@ from idas_sumo.env.scenario import (
     load_scenario,
 )
 from idas_sumo.env.snapshot import ROAD_NAMES
-from idas_sumo.errors import InputError
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
 from idas_sumo.evaluation.sweep import DEFAULT_SWEEP_OFFSETS, sweep_scenarios
 from idas_sumo.resources import SCENARIO_DIR
@@ -60,29 +59,25 @@ class EvalCase:
     method_vehicles: tuple[str, ...]
 
 
-EVAL_ENV_KEYS: tuple[str, ...] = ("max_episode_s", "safety_mask")
-"""The episode rules an evaluation TOML may set (flat keys): every method is scored by the same reward,
-and the merge is the command's ``--junction``."""
-
-
 @dataclass(frozen=True)
 class EvalConfig:
     """``evaluate --config FILE.toml``: how the paper suite's random scenarios are drawn, and the episode
-    rules (``max_episode_s``: a timeout is not a success; ``safety_mask``: which car every method's
-    mask follows, ``--safety-mask`` overrides it)."""
+    rules as flat keys (``max_episode_s``: a timeout is not a success; ``safety_mask``: which car every
+    method's mask follows, ``--safety-mask`` overrides it)."""
 
+    FLAT_FIELDS: ClassVar[tuple[str, ...]] = ("env",)
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
 
+    def __post_init__(self) -> None:
+        if self.env.reward != RewardConfig():
+            raise ValueError("[reward]: every method is scored by the paper's reward (no [reward] table)")
+        if self.env.junction is not None:
+            raise ValueError("junction: the merge evaluated is the command's --junction")
+
 
 def load_eval_config(path: Path) -> EvalConfig:
-    data = load_toml(path)
-    env, rest = env_config_from_flat(data, str(path), EVAL_ENV_KEYS)
-    if "env" in rest:
-        raise InputError(
-            f"{path}: unknown key 'env' (the episode rules are flat keys: {', '.join(EVAL_ENV_KEYS)})"
-        )
-    return replace(from_dict(EvalConfig, rest, str(path)), env=env)
+    return from_dict(EvalConfig, load_toml(path), str(path))
 
 
 def file_cases(paths: list[Path], seed: int, speed_limits: dict) -> list[EvalCase]:

@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
-from idas_sumo.config import from_dict, load_toml
-from idas_sumo.env.config import ENV_KEYS, EnvConfig, env_config_from_flat, flat_env
+from idas_sumo.config import from_dict, load_toml, to_plain
+from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
@@ -69,6 +69,8 @@ class TrainConfig:
 
     RETIRED_KEYS: ClassVar[dict[str, Any]] = {"critic_exploration": 0.0, "standstill": "keeps_command"}
     """Variants measured and retired (experiments/README.md): files that hold their default still load."""
+    FLAT_FIELDS: ClassVar[tuple[str, ...]] = ("env",)
+    """``env``'s keys sit flat in a recipe and a checkpoint (``max_episode_s = 40``, ``[reward]``), as always."""
 
     stage: Stage = "curriculum"
     """What to train: 'robot' (stage 1 only, gives IDAS-V), 'intelligent' (stage 2 only; from
@@ -91,8 +93,7 @@ class TrainConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     """The episode rules of training and validation (evaluation has its own): ``max_episode_s``,
     ``[reward]``, ``safety_mask`` (every shipped policy was trained with 'own_lane', the paper's) and
-    ``junction`` (which merge of a net with several; "" in a file: its only one), written in a recipe
-    as flat keys beside the run's own (``env_config_from_flat``)."""
+    ``junction`` (which merge of a net with several; "": its only one), flat keys in a recipe."""
     episodes_per_update: int = 16
     """Episodes collected with one policy before one learner update on all their agent-steps (ours; the
     paper gives no batch size. Every shipped recipe uses 16: with 4, stage 2 drifted within 150 episodes)."""
@@ -189,24 +190,14 @@ class TrainConfig:
         return dataclasses.replace(self, **changes)
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain nested dict (TOML/checkpoint friendly), the episode rules as flat keys as a recipe
-        writes them (so checkpoints keep the format they always had)."""
-        data = dataclasses.asdict(self)
-        del data["env"]
-        return {**data, **flat_env(self.env)}
+        """Plain nested dict (TOML/checkpoint friendly), the episode rules flat as a recipe writes them."""
+        return to_plain(self)
 
 
 def train_config_from_dict(data: Any, where: str) -> TrainConfig:
     """Validate a plain dict (a TOML table or a checkpoint's config) into a TrainConfig."""
     try:
-        if not isinstance(data, dict):
-            raise InputError(f"{where}: expected a table, got {type(data).__name__}")
-        env, rest = env_config_from_flat(data, where)
-        if "env" in rest:
-            raise InputError(
-                f"{where}: unknown key 'env' (the episode rules are flat keys: {', '.join(ENV_KEYS)})"
-            )
-        return dataclasses.replace(from_dict(TrainConfig, rest, where), env=env)
+        return from_dict(TrainConfig, data, where)
     except InputError as err:
         msg = str(err)
         if msg.startswith(where):
