@@ -283,7 +283,7 @@ def test_replay_on_a_sample_net(tmp_path: Path, sample: str, junction: str | Non
     if junction is not None:
         args += ["--junction", junction]
     assert main(args) == 0
-    assert load_replay_data(out).junction == (junction or "drop")
+    assert load_replay_data(out).env.junction == (junction or "drop")
     replay = replay_episode(out, "paper-002")
     assert replay.site.junction_id == (junction or "drop")
     assert replay.original_row == 3 and replay.identical, (replay.original_line, replay.replayed_line)
