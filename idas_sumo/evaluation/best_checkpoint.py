@@ -10,19 +10,21 @@ from pathlib import Path
 from typing import Any
 
 from idas_sumo.evaluation.runner import EvalRequest, run_evaluation
+from idas_sumo.sim.merge_detect import MergeSite
 
 __all__ = ["evaluate_checkpoint"]
 
 
 def evaluate_checkpoint(
-    checkpoint: Path, net: Path, out: Path, *, seed: int, scenarios: int
+    checkpoint: Path, site: MergeSite, out: Path, *, seed: int, scenarios: int
 ) -> dict[str, Any]:
-    """``checkpoint`` as the IDAS policy on ``scenarios`` paper-suite scenarios drawn with ``seed`` (the
-    other cars as ``evaluate`` drives them by default); the CSVs go to ``out`` (replaced), and the
-    summary's percentages come back as ``eval_*`` columns."""
+    """``checkpoint`` as the IDAS policy on the run's merge ``site``, ``scenarios`` paper-suite scenarios
+    drawn with ``seed`` (the other cars as ``evaluate`` drives them by default); the CSVs go to ``out``
+    (replaced), and the summary's percentages come back as ``eval_*`` columns."""
     result = run_evaluation(
         EvalRequest(
-            net=net,
+            net=site.path,
+            site=site,
             methods=("idas",),
             seed=seed,
             scenarios=scenarios,

@@ -28,6 +28,7 @@ from typing import Any, TypeAlias
 
 from idas_sumo.config import load_toml
 from idas_sumo.errors import InputError
+from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 from idas_sumo.training.config import TrainConfig, load_train_config, train_config_from_dict
 
 __all__ = [
@@ -59,8 +60,8 @@ class SweepRun:
     config: TrainConfig
 
 
-Evaluate: TypeAlias = Callable[[Path, Path, Path], dict[str, Any]]
-"""``evaluate(best checkpoint, net, output folder)``: columns for the run's row. It runs where the run
+Evaluate: TypeAlias = Callable[[Path, MergeSite, Path], dict[str, Any]]
+"""``evaluate(best checkpoint, the run's merge site, output folder)``: columns for the run's row. It runs where the run
 ran (a Ray task on the cluster): a module-level function, or a ``functools.partial`` of one."""
 
 
@@ -155,7 +156,7 @@ def plan_sweep(
     return runs
 
 
-def _run_one(job: tuple[SweepRun, Path, Path, Evaluate | None]) -> dict[str, Any]:
+def _run_one(job: tuple[SweepRun, MergeSite, Path, Evaluate | None]) -> dict[str, Any]:
     """Train one run (resuming it when its folder holds a checkpoint), optionally evaluate its best
     checkpoint; its table row. What a Ray task runs, and the local loop too."""
     from idas_sumo.training.curriculum import plan_stages
@@ -172,7 +173,7 @@ def _run_one(job: tuple[SweepRun, Path, Path, Evaluate | None]) -> dict[str, Any
 
 
 def _row(
-    run: SweepRun, run_dir: Path, stage: str, best: Path, net: Path, evaluate: Evaluate | None
+    run: SweepRun, run_dir: Path, stage: str, best: Path, net: MergeSite, evaluate: Evaluate | None
 ) -> dict[str, Any]:
     from idas_sumo.training.checkpoint import load_checkpoint
 
@@ -212,8 +213,10 @@ def run_sweep(
     if not net.is_file():
         raise InputError(f"{net}: network file not found")
     ensure_writable_dir(out)
-    # Absolute paths: a Ray task may run in another working directory (or on another node).
-    jobs = [(run, net.resolve(), out.resolve(), evaluate) for run in runs]
+    # Each merge the runs train on, parsed once here; its path absolute: a Ray task may run in another
+    # working directory (or on another node).
+    sites = {j: choose_merge(net.resolve(), j) for j in {run.config.env.junction for run in runs}}
+    jobs = [(run, sites[run.config.env.junction], out.resolve(), evaluate) for run in runs]
     if ray_address is None:
         rows = []
         for job in jobs:
