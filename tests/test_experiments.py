@@ -59,7 +59,9 @@ def _smoke_config(config: TrainConfig) -> TrainConfig:
         workers=1,
         copies=2,
         # a generated merge may need longer than the T-junction for its slowest car to finish
-        max_episode_s=config.max_episode_s if config.geometry else 12.0,
+        env=dataclasses.replace(
+            config.env, max_episode_s=config.env.max_episode_s if config.geometry else 12.0
+        ),
         validate_every=2 if config.validate_every else 0,
         validation_scenarios=2,
         init_from=str(POLICY_DIR / "idas_v.pt") if config.init_from else "",
