@@ -217,7 +217,9 @@ def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: st
     approach's (controlled) lane of the edge holding that point: ``departEdge`` (its index in the
     route) when that is not the first edge, ``departLane`` when the edge has several lanes (SUMO's
     default is not the rightmost one). Both are left out otherwise: the generated T-junction's route
-    file is what it was before merge sites."""
+    file is what it was before merge sites. A start speed above the limit of the lane it starts on (an
+    edge slower than its road's own, whose limit scales the drawn speeds) departs at that limit: SUMO
+    refuses a departure above it."""
     lines = []
     for v in sorted(vehicles, key=lambda v: (v.depart_s, v.id)):
         vtype = CONTROLLED_TYPE if v.controlled else ROBOT_TYPE
@@ -232,9 +234,10 @@ def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: st
         where = (f' departEdge="{edge_index}"' if edge_index else "") + (
             f' departLane="{lane.lane_index}"' if lane.lane_count > 1 else ""
         )
+        speed = min(v.speed_mps, math.floor(lane.speed_limit_mps * 1000.0) / 1000.0)  # as written: mm/s
         lines.append(
             f'  <vehicle id="{prefix}{v.id}" type="{vtype}" route="{prefix}{side}_route" depart="{v.depart_s:.2f}"'
-            f'{where} departPos="{pos:.3f}" departSpeed="{v.speed_mps:.3f}" insertionChecks="none"/>'
+            f'{where} departPos="{pos:.3f}" departSpeed="{speed:.3f}" insertionChecks="none"/>'
         )
     return lines
 
