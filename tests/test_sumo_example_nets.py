@@ -163,3 +163,19 @@ def test_merges_with_roads_shorter_than_the_sensor_range_are_one_line(
     assert main([*args, "--scenarios", "2", "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "m long" in err and "the scenarios need" in err and "sensor range" in err
+
+
+def test_a_scenario_file_start_past_the_edges_room_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """ramp's on-ramp is 240.6 m to the merge point, 230.7 m of it on edges: a file's car at 235 m is
+    refused up front, naming the file and the car."""
+    scenario = tmp_path / "far.toml"
+    scenario.write_text(
+        '[[vehicles]]\nid = "merge0"\nroad = "merge"\nstart_pos_m = 235.0\nspeed_mps = 5.0\n'
+        '[[vehicles]]\nid = "main0"\nroad = "main"\nstart_pos_m = 100.0\nspeed_mps = 10.0\n'
+    )
+    args = ["evaluate", "--baseline", "idm", "--net", str(GAME / "ramp/ramp.net.xml"), "--junction", "gneJ7"]
+    assert main([*args, "--scenario", str(scenario), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(scenario) in err and "'merge0'" in err and "230.7" in err

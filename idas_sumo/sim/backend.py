@@ -229,7 +229,10 @@ def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: st
         if v.start_pos_m < first.length_m:
             lane, pos, edge_index = first, v.start_pos_m, 0  # the position as given, no round trip
         else:
-            lane, pos = approach.edge_point(v.start_pos_m)
+            try:
+                lane, pos = approach.edge_point(v.start_pos_m)
+            except InputError as err:
+                raise InputError(f"vehicle {v.id!r}: {err}") from None
             edge_index = site.route_edge_ids(side).index(lane.edge_id)
         where = (f' departEdge="{edge_index}"' if edge_index else "") + (
             f' departLane="{lane.lane_index}"' if lane.lane_count > 1 else ""
