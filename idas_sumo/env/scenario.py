@@ -1,8 +1,10 @@
 """Scenarios: which vehicles start where, how fast, with which driver type and road priority.
 
 A scenario is either drawn by ``generate_scenario`` from a seed (docs/design-notes.md, "Definitions") or read from a
-TOML file in ``scenarios/`` with ``load_scenario``. Positions are measured from each road's start;
-the merge point lies at the end of each incoming road.
+TOML file in ``scenarios/`` with ``load_scenario``. Positions are measured from each road's start,
+along its edges (on a net whose approach has several, the junction-internal lanes between them count
+nothing: ``Approach.edge_point``, so no car starts on one); the merge point lies at the end of each
+incoming road.
 """
 
 from __future__ import annotations
