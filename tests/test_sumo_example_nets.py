@@ -28,20 +28,21 @@ from idas_sumo.sim.backend import (
     controlled_top_speed,
 )
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge, detect_merges
+from idas_sumo.sim.multinet import UnfaithfulCopies, build_copies, copies_run
 
 sumo = pytest.importorskip("sumo")
 GAME = Path(sumo.SUMO_HOME) / "tools" / "game"
 
-RUNS = {  # every merge detected in tools/game, with the extra CLI flags it needs
-    ("ramp/ramp.net.xml", "gneJ14"): (),
-    ("ramp/ramp.net.xml", "gneJ7"): (),
-    ("highway/highway.net.xml", "1658965310"): (),
-    ("highway/highway.net.xml", "2024041878"): (),
-    ("highway/highway.net.xml", "J3"): (),
-    # A 2018 net (format 0.27): netconvert rebuilds its edges 2.5 m shorter, so the 16-copy net is
-    # refused as unfaithful; one episode at a time runs on the file itself.
-    ("A10KW/osm.net.xml", "2314229789"): ("--copies", "1"),
-    ("A10KW/osm.net.xml", "2699976598"): ("--copies", "1"),
+RUNS = {  # every merge detected in tools/game that the scenarios can use
+    ("ramp/ramp.net.xml", "gneJ14"),
+    ("ramp/ramp.net.xml", "gneJ7"),
+    ("highway/highway.net.xml", "1658965310"),
+    ("highway/highway.net.xml", "2024041878"),
+    ("highway/highway.net.xml", "J3"),
+    # A 2018 net (format 0.27): netconvert rebuilds its edges 2.5 m shorter, so no multi-copy net is
+    # faithful; its episodes run one at a time on the file itself (multinet.copies_run).
+    ("A10KW/osm.net.xml", "2314229789"),
+    ("A10KW/osm.net.xml", "2699976598"),
 }
 TOO_SHORT = {  # approaches shorter than the 100 m sensor range: refused up front, one line
     ("A10KW/osm.net.xml", "32500260"),
@@ -60,7 +61,7 @@ def test_the_merges_in_sumos_examples_are_the_ones_listed_here() -> None:
         for p in sorted(GAME.glob("*/*.net.xml"))
         for site in detect_merges(p)
     }
-    assert found == set(RUNS) | TOO_SHORT
+    assert found == RUNS | TOO_SHORT
 
 
 def test_edge_point_counts_along_the_edges_hand_worked() -> None:
@@ -136,6 +137,20 @@ def test_a_start_above_its_edges_limit_departs_at_that_limit() -> None:
     assert speeds == {"merge0": 19.44, "merge1": 21.0}
 
 
+def test_a_net_no_copy_reproduces_runs_one_episode_at_a_time(tmp_path: Path) -> None:
+    """A10KW's copies are refused once (the reason kept in the cache), and not built again; the
+    T-junction's are built."""
+    source = GAME / "A10KW" / "osm.net.xml"
+    with pytest.raises(UnfaithfulCopies, match="not faithful"):
+        build_copies(source, 2, tmp_path)
+    assert not copies_run(source, 2, tmp_path)
+    (marker,) = tmp_path.glob("*.unfaithful")
+    assert "not faithful" in marker.read_text()
+    assert not copies_run(source, 2, tmp_path)  # from the marker: no build (none left in the cache)
+    assert not list(tmp_path.glob("*.net.xml"))
+    assert copies_run(DEFAULT_NET, 2, tmp_path) and len(list(tmp_path.glob("*-k2.net.xml"))) == 1
+
+
 @pytest.mark.sumo
 @pytest.mark.parametrize("method", ["idm", "idas"])
 @pytest.mark.parametrize(("net", "junction"), sorted(RUNS))
@@ -147,7 +162,6 @@ def test_every_merge_in_sumos_examples_evaluates(
     out = tmp_path / "out"
     args = ["evaluate", "--baseline", method, "--net", str(GAME / net), "--junction", junction]
     args += ["--scenarios", "2", "--copies", "2", "--config", str(config), "--out", str(out), "--no-progress"]
-    args += list(RUNS[(net, junction)])
     assert main(args) == 0
     episodes = pd.read_csv(out / "episodes.csv")
     assert len(episodes) == 2 and set(episodes["method"]) == {method}
