@@ -284,7 +284,7 @@ def _check_eval_net(args: argparse.Namespace, env: EnvConfig) -> MergeSite:
     source = f"{args.config}" if args.config is not None else "max_episode_s"
     check_road_lengths(site, road_needs(start_range, env.max_episode_s, source))
     # Cars placed by a file must start on the road (a car 1e308 m down a 250 m road once ran, exit 0).
-    from idas_sumo.env.scenario import Road, check_against_net, load_scenario
+    from idas_sumo.env.scenario import Road, check_against_net, load_scenario, start_room_m
     from idas_sumo.resources import SCENARIO_DIR
 
     files = args.scenario or (
@@ -294,9 +294,8 @@ def _check_eval_net(args: argparse.Namespace, env: EnvConfig) -> MergeSite:
         "main": site.main.road.speed_limit_mps,
         "merge": site.merge.road.speed_limit_mps,
     }
-    lengths: dict[Road, float] = {"main": site.main.length_m, "merge": site.merge.length_m}
     for path in files:
-        check_against_net(load_scenario(path, speed_limits), speed_limits, lengths, str(path))
+        check_against_net(load_scenario(path, speed_limits), speed_limits, start_room_m(site), str(path))
     return site
 
 

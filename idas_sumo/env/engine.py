@@ -70,6 +70,7 @@ from idas_sumo.sim.backend import (
 )
 from idas_sumo.sim.batch import BatchBackend, BatchStepEvents
 from idas_sumo.sim.merge_detect import MergeSite, as_site
+from idas_sumo.sim.multinet import copies_run
 from idas_sumo.sim.netgen import MergeNet
 
 FloatArray = npt.NDArray[np.float64]
@@ -98,8 +99,9 @@ class MergeEngine:
         check_terms(self.config.reward)
         self.site = as_site(net, self.config.junction)
         # libsumo holds one simulation per process: when it is taken (another environment is open), run
-        # the episodes one at a time in a SUMO child process. Results do not depend on K.
-        if copies > 1 and slot_taken():
+        # the episodes one at a time in a SUMO child process; a net netconvert cannot copy faithfully
+        # (sim/multinet.py) runs them one at a time too. Results do not depend on K.
+        if copies > 1 and (slot_taken() or not copies_run(self.site.path, copies)):
             copies = 1
         self.copies = copies
         self._seed = seed

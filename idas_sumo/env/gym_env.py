@@ -14,7 +14,14 @@ from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import Policy, placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.parallel import DEFAULT_NET
-from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, check_against_net, generate_scenario
+from idas_sumo.env.scenario import (
+    Scenario,
+    TrafficConfig,
+    VehicleSpec,
+    check_against_net,
+    generate_scenario,
+    start_room_m,
+)
 from idas_sumo.env.single import SingleEpisode
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.merge_detect import MergeSite
@@ -64,9 +71,8 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         self.render_mode = render_mode
         self.sim = SingleEpisode(net, config=with_safety_mask(config, safety_mask), gui=gui)
         if scenario is not None:
-            check_against_net(
-                scenario, self.sim.engine.speed_limits_mps, self.sim.engine.road_lengths_m, scenario.name
-            )
+            engine = self.sim.engine
+            check_against_net(scenario, engine.speed_limits_mps, start_room_m(engine.site), scenario.name)
             if ego is not None and ego not in {v.id for v in scenario.vehicles}:
                 raise ValueError(f"ego {ego!r} is not a vehicle of scenario {scenario.name!r}")
         self.fixed_scenario = scenario

@@ -6,13 +6,15 @@ collides; with 100 km roads no car reaches the merge before the timeout. Either 
 
 The bounds come from what an episode uses:
 
-- an incoming road holds the random start positions (``[car length, start_range_m]`` from its start)
-  with a whole car to spare before the merge point, and at least the sensor range behind the merge
-  point (``VISIBILITY_M``), which is what a merging car looks back along;
+- an incoming road holds the random start positions (``[car length, start_range_m]`` from its start,
+  counted along its edges: no car starts on a junction-internal lane, ``Approach.edge_point``) with a
+  whole car to spare before the merge point, and at least the sensor range behind the merge point
+  (``VISIBILITY_M``), which is what a merging car looks back along;
 - the outgoing road holds the finish line (``FINISH_DISTANCE_PAST_MERGE_M`` past the merge point, the
   merging zone's far edge) plus a car length, and the sensor range ahead of the merge point: a car
   must not leave the net before it counts as finished;
-- every speed limit is positive and at most the cars' top speed (``CONTROLLED_MAX_SPEED_MPS``);
+- every speed limit is positive and at most the robot cars' top speed (``ROBOT_MAX_SPEED_MPS``,
+  SUMO's default; the controlled cars' top speed follows the net, ``controlled_top_speed``);
 - a car at the very start of an incoming road, driving at the speed limits, reaches the finish line
   within the episode (the evaluation's ``DEFAULT_MAX_EPISODE_S`` or the run's own, if longer): a
   shorter run (a smoke test) may time out by choice, a road too long to drive may not;
@@ -30,7 +32,7 @@ from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S
 from idas_sumo.env.layout import VISIBILITY_M
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M
 from idas_sumo.errors import InputError
-from idas_sumo.sim.backend import CONTROLLED_MAX_SPEED_MPS, VEHICLE_LENGTH_M
+from idas_sumo.sim.backend import ROBOT_MAX_SPEED_MPS, VEHICLE_LENGTH_M
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
 
@@ -57,9 +59,13 @@ class RoadNeeds:
         return max(self.run_episode_s, DEFAULT_MAX_EPISODE_S)
 
     @property
+    def min_start_room_m(self) -> float:
+        """The edges an incoming road's starts need (junction-internal lanes excluded)."""
+        return 0.0 if self.start_range_m is None else self.start_range_m + VEHICLE_LENGTH_M
+
+    @property
     def min_incoming_m(self) -> float:
-        starts = 0.0 if self.start_range_m is None else self.start_range_m + VEHICLE_LENGTH_M
-        return max(starts, VISIBILITY_M)
+        return max(self.min_start_room_m, VISIBILITY_M)
 
     @property
     def min_out_m(self) -> float:
@@ -81,11 +87,17 @@ def road_needs(start_range_m: float | None, max_episode_s: float, source: str = 
 @dataclass(frozen=True)
 class _Road:
     """What the check needs of a road: its edges (for messages), length to the merge point (from it,
-    for the outgoing road) and speed limit."""
+    for the outgoing road), speed limit and the length of its edges alone (where cars start)."""
 
     edges: str
     length_m: float
     speed_limit_mps: float
+    start_room_m: float | None = None
+    """Its edges' summed length (None: ``length_m``, a road of one edge)."""
+
+    @property
+    def room_m(self) -> float:
+        return self.length_m if self.start_room_m is None else self.start_room_m
 
 
 @dataclass(frozen=True)
@@ -108,7 +120,7 @@ def _roads(net: MergeSite | MergeNet) -> _Roads:
 
     def approach(side: Literal["main", "merge"]) -> _Road:
         a = net.approach(side)
-        return _Road("+".join(a.edge_ids), a.length_m, a.road.speed_limit_mps)
+        return _Road("+".join(a.edge_ids), a.length_m, a.road.speed_limit_mps, a.edges_length_m)
 
     past = min(
         net.route(side)[-1].length_m - net.route(side)[-1].start_to_merge_m for side in ("main", "merge")
@@ -126,10 +138,10 @@ def check_road_lengths(site: MergeSite | MergeNet, needs: RoadNeeds) -> None:
     for what, road in (("main", net.main), ("merge", net.merge), ("outgoing", net.out)):
         # Checked first: the bounds below divide by the limits. A car cannot drive a limit above its
         # own top speed: SUMO refused such a start ("departure speed too high") mid-run, exit 1.
-        if not 0.0 < road.speed_limit_mps <= CONTROLLED_MAX_SPEED_MPS:
+        if not 0.0 < road.speed_limit_mps <= ROBOT_MAX_SPEED_MPS:
             raise InputError(
                 f"{net.path}: the {what} road {road.edges!r} has a speed limit of {road.speed_limit_mps:g} m/s; "
-                f"the cars need one above 0 and at most {CONTROLLED_MAX_SPEED_MPS:g} m/s (their top speed)"
+                f"the cars need one above 0 and at most {ROBOT_MAX_SPEED_MPS:.2f} m/s (their top speed)"
             )
     starts = (
         ""
@@ -145,9 +157,10 @@ def check_road_lengths(site: MergeSite | MergeNet, needs: RoadNeeds) -> None:
                 f"reaches the finish within {needs.episode_s:g} s only on a road of at most {hi:.0f} m "
                 "(lower start_range_m or raise max_episode_s)"
             )
-        if not lo <= road.length_m <= hi:
+        if not (needs.min_start_room_m <= road.room_m and lo <= road.length_m <= hi):
+            on_edges = f" ({road.room_m:g} m of it on edges)" if road.room_m < road.length_m else ""
             raise InputError(
-                f"{net.path}: the {what} road {road.edges!r} is {road.length_m:g} m long; the scenarios "
+                f"{net.path}: the {what} road {road.edges!r} is {road.length_m:g} m long{on_edges}; the scenarios "
                 f"need {lo:g} to {hi:.0f} m ({starts}the {VISIBILITY_M:g} m sensor range; "
                 f"from its start a car must reach the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m past the "
                 f"merge within {needs.episode_s:g} s at the speed limits)"

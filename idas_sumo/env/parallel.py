@@ -13,7 +13,14 @@ from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
-from idas_sumo.env.scenario import ROADS, Scenario, TrafficConfig, check_against_net, generate_scenario
+from idas_sumo.env.scenario import (
+    ROADS,
+    Scenario,
+    TrafficConfig,
+    check_against_net,
+    generate_scenario,
+    start_room_m,
+)
 from idas_sumo.env.single import SingleEpisode, StepOutcome
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.resources import DEFAULT_NET
@@ -68,9 +75,8 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         self.fixed_scenario = scenario
         self.traffic = traffic or TrafficConfig()
         if scenario is not None:
-            check_against_net(
-                scenario, self.sim.engine.speed_limits_mps, self.sim.engine.road_lengths_m, scenario.name
-            )
+            engine = self.sim.engine
+            check_against_net(scenario, engine.speed_limits_mps, start_room_m(engine.site), scenario.name)
             self.possible_agents = list(scenario.controlled_ids)
         else:
             self.possible_agents = [f"{r}{i}" for r in ROADS for i in range(self.traffic.max_on_one_road)]

@@ -1,8 +1,10 @@
 """Scenarios: which vehicles start where, how fast, with which driver type and road priority.
 
 A scenario is either drawn by ``generate_scenario`` from a seed (docs/design-notes.md, "Definitions") or read from a
-TOML file in ``scenarios/`` with ``load_scenario``. Positions are measured from each road's start;
-the merge point lies at the end of each incoming road.
+TOML file in ``scenarios/`` with ``load_scenario``. Positions are measured from each road's start,
+along its edges (on a net whose approach has several, the junction-internal lanes between them count
+nothing: ``Approach.edge_point``, so no car starts on one); the merge point lies at the end of each
+incoming road.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from idas_sumo.config import from_dict, load_toml
 from idas_sumo.errors import InputError
 from idas_sumo.physics.idm import DEFAULT_IDM
 from idas_sumo.sim.backend import STEP_LENGTH_S, VEHICLE_LENGTH_M
+from idas_sumo.sim.merge_detect import MergeSite
 
 Road = Literal["main", "merge"]
 ROADS: tuple[Road, ...] = ("main", "merge")
@@ -351,13 +354,20 @@ def load_scenario(path: str | Path, speed_limits_mps: dict[Road, float] | None =
     return scenario
 
 
+def start_room_m(site: MergeSite) -> dict[Road, float]:
+    """How far from its road's start a car may start: the summed length of the approach's edges
+    (``start_pos_m`` counts along them, ``Approach.edge_point``); a one-edge road's whole length."""
+    return {road: site.approach(road).edges_length_m for road in ROADS}
+
+
 def check_against_net(
     scenario: Scenario,
     speed_limits_mps: dict[Road, float],
     road_length_m: dict[Road, float] | None,
     where: str,
 ) -> None:
-    """Refuse insertion speeds above the road limit and positions beyond the road's end."""
+    """Refuse insertion speeds above the road limit and positions beyond the road's end
+    (``road_length_m``: ``start_room_m``, the room on its edges)."""
     for v in scenario.vehicles:
         limit = speed_limits_mps[v.road]
         if v.speed_mps > limit + 1e-9:
@@ -367,5 +377,5 @@ def check_against_net(
         if road_length_m is not None and v.start_pos_m > road_length_m[v.road]:
             raise InputError(
                 f"{where}: vehicle {v.id!r} starts at {v.start_pos_m} m, beyond the {v.road} road's "
-                f"length {road_length_m[v.road]} m"
+                f"length {road_length_m[v.road]:g} m along its edges"
             )

@@ -47,6 +47,11 @@ CONTROLLED_TYPE = "agent"
 ROBOT_TYPE = "robot"
 # Controlled cars must not be clipped by their vType: the paper's hard brake is -4 m/s².
 CONTROLLED_MAX_SPEED_MPS = 40.0
+"""The controlled cars' top speed on a net whose limits are all at most this (the vType's ``maxSpeed``);
+on a faster net it is the net's fastest limit (``controlled_top_speed``)."""
+ROBOT_MAX_SPEED_MPS = 200.0 / 3.6
+"""SUMO's default top speed of a passenger car, which the robot cars' vType keeps: no limit a car may
+drive can be above it (``env/net_needs.py`` refuses such a net)."""
 CONTROLLED_DECEL_MPS2 = 4.5
 ROBOT_ACCEL_MPS2 = 2.0
 ROBOT_DECEL_MPS2 = 2.0  # comfortable; a robot braking harder than HARD_BRAKE_DETECT counts as hard braking
@@ -173,13 +178,21 @@ def has_lane_changes(site: MergeSite) -> bool:
     return any(lane.lane_count > 1 for side in sides for lane in site.route(side))
 
 
-def _vtype_lines(lane_changes: bool = False) -> list[str]:
-    """The two vTypes; with ``lane_changes`` (a multi-lane merge) the controlled cars' lane changes
-    take any gap that is free (``CONTROLLED_LC_ASSERTIVE``)."""
+def controlled_top_speed(site: MergeSite) -> float:
+    """The controlled cars' vType top speed on ``site``: ``CONTROLLED_MAX_SPEED_MPS``, or the fastest
+    limit on its routes where that is higher (SUMO refuses a departure above a vType's top speed and
+    clips a commanded speed to it; the rule mask keeps the agents under each road's limit)."""
+    return max(CONTROLLED_MAX_SPEED_MPS, site.fastest_limit_mps)
+
+
+def _vtype_lines(lane_changes: bool = False, top_speed_mps: float = CONTROLLED_MAX_SPEED_MPS) -> list[str]:
+    """The two vTypes, the controlled one with ``top_speed_mps`` (``controlled_top_speed``); with
+    ``lane_changes`` (a multi-lane merge) the controlled cars' lane changes take any gap that is free
+    (``CONTROLLED_LC_ASSERTIVE``)."""
     assertive = f' lcAssertive="{CONTROLLED_LC_ASSERTIVE:g}"' if lane_changes else ""
     return [
         f'  <vType id="{CONTROLLED_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="2" '
-        f'decel="{CONTROLLED_DECEL_MPS2}" emergencyDecel="9" maxSpeed="{CONTROLLED_MAX_SPEED_MPS}" sigma="0" '
+        f'decel="{CONTROLLED_DECEL_MPS2}" emergencyDecel="9" maxSpeed="{top_speed_mps}" sigma="0" '
         f'speedFactor="1" speedDev="0"{assertive} color="1,0,0"/>',
         f'  <vType id="{ROBOT_TYPE}" length="{VEHICLE_LENGTH_M}" minGap="2" accel="{ROBOT_ACCEL_MPS2}" '
         f'decel="{ROBOT_DECEL_MPS2}" emergencyDecel="9" sigma="0" tau="1.0" speedFactor="1" speedDev="0" '
@@ -199,10 +212,14 @@ def _route_lines(site: MergeSite, prefix: str = "") -> list[str]:
 
 def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: str = "") -> list[str]:
     """The vehicles sorted by (departure, id), ids prefixed. A car starts ``start_pos_m`` from the start
-    of its approach's first lane, on the approach's (controlled) lane of the edge holding that point:
-    ``departEdge`` (its index in the route) when that is not the first edge, ``departLane`` when the
-    edge has several lanes (SUMO's default is not the rightmost one). Both are left out otherwise: the
-    generated T-junction's route file is what it was before merge sites."""
+    of its approach's first lane counted along the approach's edges (``Approach.edge_point``: a
+    junction-internal lane between two edges takes no room, so no car starts on one), on the
+    approach's (controlled) lane of the edge holding that point: ``departEdge`` (its index in the
+    route) when that is not the first edge, ``departLane`` when the edge has several lanes (SUMO's
+    default is not the rightmost one). Both are left out otherwise: the generated T-junction's route
+    file is what it was before merge sites. A start speed above the limit of the lane it starts on (an
+    edge slower than its road's own, whose limit scales the drawn speeds) departs at that limit: SUMO
+    refuses a departure above it."""
     lines = []
     for v in sorted(vehicles, key=lambda v: (v.depart_s, v.id)):
         vtype = CONTROLLED_TYPE if v.controlled else ROBOT_TYPE
@@ -212,14 +229,18 @@ def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: st
         if v.start_pos_m < first.length_m:
             lane, pos, edge_index = first, v.start_pos_m, 0  # the position as given, no round trip
         else:
-            lane, pos = approach.lane_at(approach.length_m - v.start_pos_m)
+            try:
+                lane, pos = approach.edge_point(v.start_pos_m)
+            except InputError as err:
+                raise InputError(f"vehicle {v.id!r}: {err}") from None
             edge_index = site.route_edge_ids(side).index(lane.edge_id)
         where = (f' departEdge="{edge_index}"' if edge_index else "") + (
             f' departLane="{lane.lane_index}"' if lane.lane_count > 1 else ""
         )
+        speed = min(v.speed_mps, math.floor(lane.speed_limit_mps * 1000.0) / 1000.0)  # as written: mm/s
         lines.append(
             f'  <vehicle id="{prefix}{v.id}" type="{vtype}" route="{prefix}{side}_route" depart="{v.depart_s:.2f}"'
-            f'{where} departPos="{pos:.3f}" departSpeed="{v.speed_mps:.3f}" insertionChecks="none"/>'
+            f'{where} departPos="{pos:.3f}" departSpeed="{speed:.3f}" insertionChecks="none"/>'
         )
     return lines
 
@@ -227,7 +248,7 @@ def _vehicle_lines(vehicles: Sequence[RouteVehicle], site: MergeSite, prefix: st
 def _route_xml(scenario: RouteScenario, site: MergeSite) -> str:
     lines = [
         "<routes>",
-        *_vtype_lines(has_lane_changes(site)),
+        *_vtype_lines(has_lane_changes(site), controlled_top_speed(site)),
         *_route_lines(site),
         *_vehicle_lines(scenario.vehicles, site),
         "</routes>",

@@ -37,6 +37,7 @@ from idas_sumo.sim.backend import (
     _route_lines,
     _vehicle_lines,
     _vtype_lines,
+    controlled_top_speed,
     has_lane_changes,
 )
 from idas_sumo.sim.merge_detect import MergeSite
@@ -72,7 +73,7 @@ def batch_route_xml(scenarios: Sequence[RouteScenario], net: MultiNet) -> str:
         "\n".join(
             [
                 "<routes>",
-                *_vtype_lines(has_lane_changes(net.site)),
+                *_vtype_lines(has_lane_changes(net.site), controlled_top_speed(net.site)),
                 *routes,
                 *(t[3] for t in keyed),
                 "</routes>",

@@ -109,6 +109,29 @@ class Approach:
         """Length of the junction-internal lanes from the merge point onto the outgoing lane."""
         return sum(lane.length_m for lane in self.through)
 
+    @property
+    def edges_length_m(self) -> float:
+        """The summed length of its ordinary edges: the room a car can start on (junction-internal lanes
+        between them take none)."""
+        return sum(lane.length_m for lane in self.edges)
+
+    def edge_point(self, along_edges_m: float) -> tuple[RouteLane, float]:
+        """The ordinary lane and position ``along_edges_m`` from the approach's start counted along its
+        edges only (each junction-internal lane passed adds its length to the distance driven, none to
+        this count), so every point lands on an edge and points drawn some metres apart end up at least
+        that far apart. A point on the first edge is its position there; an InputError beyond the last
+        edge's end or before the start."""
+        rest = along_edges_m
+        if rest >= 0.0:
+            for lane in self.edges:
+                if rest < lane.length_m:
+                    return lane, rest
+                rest -= lane.length_m
+        raise InputError(
+            f"{along_edges_m:g} m from the start of the approach {'+'.join(self.edge_ids)} lies outside its "
+            f"edges (0 to {self.edges_length_m:g} m along them)"
+        )
+
     def lane_at(self, dist_to_merge_m: float) -> tuple[RouteLane, float]:
         """The ordinary lane a point ``dist_to_merge_m`` before the merge point lies on, and the
         position on it; an InputError when the point lies outside the approach."""
@@ -169,6 +192,12 @@ class MergeSite:
         car on that lane has changed onto the main road's lane."""
         merge_edges = set(self.merge.edge_ids)
         return {lane.edge_id: lane.lane_index for lane in self.main.edges if lane.edge_id in merge_edges}
+
+    @property
+    def fastest_limit_mps(self) -> float:
+        """The highest speed limit on either route, the road after the merge included (the cars' top
+        speed must reach it)."""
+        return max(lane.speed_limit_mps for side in ("main", "merge") for lane in self.route(side))
 
     def route_edge_ids(self, side: Side) -> tuple[str, ...]:
         """The ordinary edges of ``side``'s route, as a SUMO route file lists them."""

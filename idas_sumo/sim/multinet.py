@@ -18,7 +18,10 @@ same cars in copies with either outline drove identical trajectories, collisions
 
 The result is checked with sumolib against the source: every edge of every copy, the junction-internal
 ones included, has the source's lanes with the same lengths and speed limits, the same priority and
-function, and the same connections. Any difference is a ``SimulationError``.
+function, and the same connections. Any difference is an ``UnfaithfulCopies`` error. A net that no copy
+reproduces (one an older netconvert wrote: SUMO's 2018 ``A10KW`` example comes back with every edge
+2.5 m shorter) runs one episode at a time on the file itself instead (``copies_run``; the engine's
+results do not depend on K).
 
 Built nets are cached by (source file content, K, SUMO version) in ``IDAS_SUMO_CACHE`` (else
 ``$XDG_CACHE_HOME/idas_sumo/nets``, else ``~/.cache/idas_sumo/nets``); a net is checked before it
@@ -181,8 +184,12 @@ def _renamed(facts: _EdgeFacts, prefix: str) -> _EdgeFacts:
     )
 
 
+class UnfaithfulCopies(SimulationError):
+    """The K-copy net differs from its source (``check_copies``)."""
+
+
 def check_copies(source: Path, built: Path, copies: int) -> None:
-    """Raise ``SimulationError`` unless ``built`` holds exactly ``copies`` faithful copies of ``source``."""
+    """Raise ``UnfaithfulCopies`` unless ``built`` holds exactly ``copies`` faithful copies of ``source``."""
     want = _edge_facts(source)
     got = _edge_facts(built)
     problems: list[str] = []
@@ -198,7 +205,7 @@ def check_copies(source: Path, built: Path, copies: int) -> None:
                 problems.append(f"edge {gid!r} differs from {edge_id!r}: {got[gid]} vs {facts}")
     if problems:
         shown = "; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else "")
-        raise SimulationError(f"the {copies}-copy net of {source} is not faithful: {shown}")
+        raise UnfaithfulCopies(f"the {copies}-copy net of {source} is not faithful: {shown}")
 
 
 # -- building ---------------------------------------------------------------------------------------
@@ -317,7 +324,7 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
     except OSError as err:
         raise InputError(f"{cache}: cannot create the net cache directory ({err.strerror})") from None
     remove_stale_temps(cache, older_than_s=STALE_TEMP_S)  # builds killed before their rename
-    out = cache / f"{cache_key(src, copies)[:24]}-k{copies}.net.xml"
+    out = _cached_path(src, copies, cache)
     digest = out.with_name(out.name + ".sha256")
     # A cached net is used only with the digest written when it was built and checked: a truncated
     # or edited cache file was blamed on the user's net, or ran silently with other roads.
@@ -333,6 +340,27 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     return out
+
+
+def _cached_path(source: Path, copies: int, cache: Path) -> Path:
+    return cache / f"{cache_key(source, copies)[:24]}-k{copies}.net.xml"
+
+
+def copies_run(source: str | Path, copies: int, cache_dir: str | Path | None = None) -> bool:
+    """Whether ``copies`` faithful copies of ``source`` can run (built and cached now if needed); False
+    for a net whose copies ``check_copies`` refuses, remembered beside the cache's nets (a
+    ``.unfaithful`` file with the reason) so the build is not tried again."""
+    cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    src = Path(source)
+    if src.is_file() and _cached_path(src, copies, cache).with_suffix(".unfaithful").is_file():
+        return False
+    try:
+        build_copies(src, copies, cache)
+    except UnfaithfulCopies as err:
+        with atomic_open(_cached_path(src, copies, cache).with_suffix(".unfaithful")) as f:
+            f.write(f"{err}\n")
+        return False
+    return True
 
 
 # -- the merge network, K times ---------------------------------------------------------------------
