@@ -7,6 +7,7 @@ not depend on ``copies``."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -129,8 +130,18 @@ def suite_cases(
 @dataclass
 class EpisodeResult:
     episode: dict[str, object]
+    """The episode's ``episodes.csv`` row."""
     flow: dict[str, object]
+    """Its ``flow.csv`` row."""
     trajectory: pd.DataFrame = field(repr=False)
+    """Every vehicle's row at every decision (``TRAJECTORY_COLUMNS``); ``no_trajectory()`` where it
+    was not kept (an evaluation worker without ``--trajectories``)."""
+
+
+@functools.cache
+def no_trajectory() -> pd.DataFrame:
+    """The one empty trajectory that stands for every dropped one (so a result costs its rows only)."""
+    return pd.DataFrame(columns=list(TRAJECTORY_COLUMNS))
 
 
 @dataclass(frozen=True)
