@@ -5,6 +5,8 @@ SUMO reads it."""
 from __future__ import annotations
 
 import gc
+import os
+import re
 import weakref
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -12,6 +14,7 @@ from typing import Any
 
 import pandas as pd
 import pytest
+from conftest import run_cli
 
 from idas_sumo.cli import common as cli_common
 from idas_sumo.cli import main
@@ -21,6 +24,11 @@ from idas_sumo.evaluation import runner
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS
 from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob, suite_cases
 from idas_sumo.evaluation.runner import EvalRequest, run_evaluation
+from idas_sumo.io_utils import file_digest
+from idas_sumo.sim import multinet
+from idas_sumo.sim.multinet import CACHE_ENV_VAR, sumo_load_problem
+from idas_sumo.sim.net_cache import cached_net
+from idas_sumo.sim.netgen import NetParams, read_merge_net
 from idas_sumo.training.config import ConfigValueError, TrainConfig
 
 
@@ -146,3 +154,57 @@ def _traffic() -> Any:
     from idas_sumo.env.scenario import TrafficConfig
 
     return TrafficConfig()
+
+
+# --- a cached net is checked again before SUMO reads it ---------------------------------------------
+
+
+def _tamper(net: Path) -> None:
+    """Empty every shape (SUMO segfaults loading it) and write the matching digest beside it."""
+    text = re.sub(r'shape="[^"]*"', 'shape=""', net.read_text())
+    net.write_text(text)
+    net.with_name(net.name + ".sha256").write_text(file_digest(net) + "\n")
+
+
+def test_a_tampered_cached_net_with_its_digest_is_rebuilt_before_sumo_reads_it(
+    tmp_path: Path, net_path: Path
+) -> None:
+    """Before: the edited multi-copy net passed the digest check and SUMO crashed (rc -11, no message)."""
+    env = {**os.environ, CACHE_ENV_VAR: str(tmp_path / "cache"), "PYTHONUNBUFFERED": "1"}
+    args = ["evaluate", "--baseline", "idm", "--others", "idm", "--scenarios", "2", "--copies", "2"]
+    args += ["--net", str(net_path), "--no-progress"]
+    first = run_cli(*args, "--out", str(tmp_path / "first"), env=env)
+    assert first.returncode == 0, first.stderr
+    (cached,) = (tmp_path / "cache").glob("*-k2.net.xml")
+    _tamper(cached)
+    assert sumo_load_problem(cached) == "SUMO crashed loading it (signal 11)"
+    again = run_cli(*args, "--out", str(tmp_path / "again"), env=env)
+    assert again.returncode == 0, again.stderr
+    assert "the cached net fails its check (SUMO crashed loading it" in again.stderr
+    assert sumo_load_problem(cached) is None  # built again
+    for name in ("episodes.csv", "flow.csv"):
+        assert (tmp_path / "again" / name).read_bytes() == (tmp_path / "first" / name).read_bytes()
+
+
+def test_a_tampered_generated_net_is_rebuilt_and_a_good_one_checked_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    loads: list[Path] = []
+
+    def counted(path: Path) -> str | None:
+        loads.append(path)
+        return sumo_load_problem(path)
+
+    monkeypatch.setattr(multinet, "_CHECKED", set())
+    monkeypatch.setattr(multinet, "sumo_load_problem", counted)
+    params = NetParams(main_length_m=180.0)
+    path = cached_net(params, tmp_path)
+    assert loads == []  # just built and checked: trusted in this process
+    multinet._CHECKED.clear()
+    assert cached_net(params, tmp_path) == path and cached_net(params, tmp_path) == path
+    assert loads == [path]  # checked once per process
+    _tamper(path)
+    multinet._CHECKED.clear()
+    assert cached_net(params, tmp_path) == path
+    assert loads[-1] == path and sumo_load_problem(path) is None  # rebuilt: loads again
+    assert read_merge_net(path).main.length_m > 0
