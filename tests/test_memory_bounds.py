@@ -208,3 +208,13 @@ def test_a_tampered_generated_net_is_rebuilt_and_a_good_one_checked_once(
     assert cached_net(params, tmp_path) == path
     assert loads[-1] == path and sumo_load_problem(path) is None  # rebuilt: loads again
     assert read_merge_net(path).main.length_m > 0
+
+
+def test_validation_merges_are_bounded_by_the_validation_scenarios() -> None:
+    """Before: 10^6 validation merges were accepted, each a net built (netconvert) up front."""
+    from idas_sumo.training.geometry import GeometryConfig
+
+    ok = TrainConfig(validation_scenarios=8, geometry=GeometryConfig(validation_geometries=8))
+    assert ok.geometry is not None and ok.geometry.validation_geometries == 8
+    with pytest.raises(ConfigValueError, match=r"validation_geometries \(1000000\) must be at most"):
+        TrainConfig(validation_scenarios=40, geometry=GeometryConfig(validation_geometries=1_000_000))

@@ -139,6 +139,12 @@ class TrainConfig:
             raise ConfigValueError(
                 f"validation_scenarios must be at most {MAX_SCENARIOS}, got {self.validation_scenarios}"
             )
+        if self.geometry is not None and self.geometry.validation_geometries > self.validation_scenarios:
+            # Each validation merge is a net built up front: more merges than scenarios only costs builds.
+            raise ConfigValueError(
+                f"geometry.validation_geometries ({self.geometry.validation_geometries}) must be at most "
+                f"validation_scenarios ({self.validation_scenarios}): each validation merge needs a scenario"
+            )
         for name in ("seed", "validate_every", "validation_seed"):
             if getattr(self, name) < 0:
                 raise ConfigValueError(f"{name} must be non-negative, got {getattr(self, name)}")
