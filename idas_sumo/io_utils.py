@@ -173,14 +173,17 @@ def output_directory(
     flag: str = "--out",
     keep: bool = False,
     writes: Iterable[str] = (),
+    clear_first: bool = False,
 ) -> Iterator[Path]:
     """The directory a command writes into, for the duration of the block, locked (``LOCK_NAME``) and
     with every file written into it recorded in its manifest.
 
     ``fresh``: ``out`` or, when that exists, the first free ``out-2``, ``out-3``, …; otherwise ``out``
-    itself: refused when it holds files, unless ``force`` (which first removes what the manifest lists)
-    or ``keep`` (a resumed run adds to its files); ``writes``: names the command writes, refused
-    when a symlink leads there. Temp files of writes killed before their rename are removed.
+    itself: refused when it holds files, unless ``force`` or ``keep`` (a resumed run adds to its files).
+    With ``force``, the files the manifest lists that the block did not write again are removed when it
+    completes (a failed run keeps the earlier outputs), or before it starts with ``clear_first``; all of
+    them are checked first. ``writes``: names the command writes, refused when a symlink leads there.
+    Temp files of writes killed before their rename are removed.
     If the block fails or is interrupted, every
     directory made here that is still empty is removed again (a new ``out``, empty folders inside it,
     and the parents made for it): completed files stay, empty folders do not.
@@ -202,12 +205,12 @@ def output_directory(
                 raise InputError(
                     f"{flag} {out}: directory exists and is not empty (use --force to overwrite its files)"
                 )
-            if keep:
-                folder.check_links(writes)
-            else:
-                folder.remove_recorded(writes)
+            earlier = folder.check_removal(writes) if not keep else folder.check_links(writes)
+            if clear_first:
+                folder.remove(earlier)
             remove_stale_temps(where)
             yield where
+            folder.remove([path for path in earlier if path not in folder.written])
     except BaseException:
         if new_out is not None and new_out.is_dir():
             _remove_empty_dirs(new_out)
@@ -239,6 +242,8 @@ class OutputFolder:
         self.root, self.flag = root, flag
         self.manifest = root / MANIFEST_NAME
         self.recorded = self._read()
+        self.written: set[Path] = set()
+        """The files recorded while the folder is open (what a ``--force`` run wrote again)."""
 
     @classmethod
     @contextlib.contextmanager
@@ -276,7 +281,10 @@ class OutputFolder:
         return set(lines)
 
     def record(self, relative: str) -> None:
-        if relative in self.recorded or relative in _TOOL_FILES:
+        if relative in _TOOL_FILES:
+            return
+        self.written.add(self.root / relative)
+        if relative in self.recorded:
             return
         self.recorded.add(relative)
         self._write()
@@ -290,12 +298,11 @@ class OutputFolder:
             f.write("".join(f"{name}\n" for name in sorted(self.recorded)))
         os.replace(tmp, self.manifest)
 
-    def remove_recorded(self, also_check: Iterable[str] = ()) -> list[Path]:
-        """Remove every file the manifest lists (``--force``), and the folders that leaves empty; the
-        files removed. Everything is checked first: a recorded path that is now a folder, or that
-        leads through a symlink (as could ``also_check``, names the run writes next), is one InputError
-        and nothing is removed."""
-        victims = []
+    def check_removal(self, also_check: Iterable[str] = ()) -> list[Path]:
+        """The files the manifest lists that are there (what ``--force`` removes), all checked first: a
+        recorded path that is now a folder, or that leads through a symlink (as could ``also_check``,
+        names the run writes next), is one InputError, and nothing is removed."""
+        files = []
         for relative in sorted({*self.recorded, *also_check}):
             path = self.root / relative
             self._refuse_links(relative)
@@ -305,21 +312,27 @@ class OutputFolder:
                         f"{path}: idas-sumo wrote a file there, now it is not one; nothing was removed "
                         f"(remove it yourself or choose another {self.flag})"
                     )
-                victims.append(path)
-        for path in victims:
+                files.append(path)
+        return files
+
+    def remove(self, files: list[Path]) -> None:
+        """Remove ``files`` (from ``check_removal``) and the folders that leaves empty; forget them."""
+        for path in files:
             path.unlink(missing_ok=True)
-        for folder in sorted({p.parent for p in victims}, key=lambda p: len(p.parts), reverse=True):
+            self.recorded.discard(path.relative_to(self.root).as_posix())
+        for folder in sorted({p.parent for p in files}, key=lambda p: len(p.parts), reverse=True):
             while folder != self.root and self.root in folder.parents:
                 with contextlib.suppress(OSError):
                     folder.rmdir()
                 folder = folder.parent
-        self.recorded.clear()
-        self._write()
-        return victims
+        if files:
+            self._write()
 
-    def check_links(self, names: Iterable[str]) -> None:
+    def check_links(self, names: Iterable[str]) -> list[Path]:
+        """Refuse a symlink on the way to any of ``names``; nothing to remove (``[]``)."""
         for name in names:
             self._refuse_links(name)
+        return []
 
     def _refuse_links(self, relative: str) -> None:
         """A symlink on the way to ``relative``: writing or removing there would reach outside the folder."""

@@ -52,7 +52,9 @@ def assert_refused(code: int, err: str, *needles: str) -> None:
 
 
 def snapshot(directory: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()
+    }
 
 
 def train(out: Path, tmp_path: Path, *extra: str) -> list[str]:
@@ -156,7 +158,9 @@ def test_train_force_checks_before_it_deletes(tmp_path: Path, capsys: pytest.Cap
 
 
 @pytest.mark.sumo
-def test_evaluate_force_removes_only_what_it_wrote(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_evaluate_force_removes_only_what_it_wrote(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "out"
     assert run_main(capsys, *evaluate(out, "--trajectories"))[0] == 0
     assert "trajectories.csv" in (out / MANIFEST_NAME).read_text()

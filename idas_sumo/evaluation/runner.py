@@ -139,8 +139,9 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         cases = _cases(req, site, eval_config)
         log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
         jobs = eval_jobs(cases, list(policies))
-        for job in jobs if tripinfo_dir is not None else ():  # SUMO writes these itself
-            record_output(tripinfo_path(tripinfo_dir, job))
+        if tripinfo_dir is not None:  # SUMO writes these itself
+            for job in jobs:
+                record_output(tripinfo_path(tripinfo_dir, job))
         episodes, flows, trajectories = [], [], []
         description = f"evaluate ({req.suite}, others: {others_name})"
         with _progress(req.progress, len(jobs), description) as advance:

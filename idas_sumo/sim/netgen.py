@@ -371,12 +371,12 @@ __all__ = [
     "MergeNet",
     "NetParams",
     "RoadInfo",
+    "check_net_out",
     "describe",
     "generate_net",
     "load_sumo_net",
     "read_merge_net",
     "road_rank",
     "turn_deg",
-    "check_net_out",
     "write_plain_xml",
 ]

@@ -38,7 +38,9 @@ def add_nets_parser(sub: argparse._SubParsersAction[P]) -> None:
     sample.add_argument("name", choices=sorted(SAMPLE_NETS), help="which net")
     sample.add_argument("--out", type=Path, required=True, help="output .net.xml")
     sample.add_argument(
-        "--force", action="store_true", help="replace an --out (or its plain XML) that idas-sumo did not write"
+        "--force",
+        action="store_true",
+        help="replace an --out (or its plain XML) that idas-sumo did not write",
     )
 
 

@@ -96,7 +96,7 @@ def run_training(
         _refuse_used_out_dir(out_dir)
     init_weights = _init_weights(config) if resumed is None else None
     names = [path.name for path in _run_outputs(out_dir)]
-    with output_directory(out_dir, force, keep=resume, writes=names):
+    with output_directory(out_dir, force, keep=resume, writes=names, clear_first=True):
         return _train_in(net_path, config, out_dir, resumed, init_weights, gui, ray_address, progress)
 
 
