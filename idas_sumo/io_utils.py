@@ -134,7 +134,7 @@ def claim_output_file(path: Path, force: bool, ours: Any, flag: str = "--out") -
     directory, and over an existing file only when ``ours(path)`` says the tool wrote it, or with ``force``."""
     refuse_package_path(path, flag)
     if path.is_dir():
-        raise InputError(f"{flag} {path}: is a directory, expected a file name")
+        raise InputError(f"{flag} {path}: exists and is not a file")
     if path.exists() and not force and not ours(path):
         raise InputError(
             f"{flag} {path}: exists and was not written by idas-sumo (use --force to replace it)"
@@ -380,7 +380,9 @@ def _remove_empty_dirs(top: Path) -> None:
 
 
 def ensure_writable_dir(out: Path, flag: str = "--out") -> Path:
-    """Create ``out`` (and its parents) if needed; a file in the way or no write permission is an InputError."""
+    """Create ``out`` (and its parents) if needed; a file in the way, no write permission or a folder of
+    the installed package is an InputError."""
+    refuse_package_path(out, flag)
     if out.exists() and not out.is_dir():
         raise InputError(f"{flag} {out}: exists and is not a directory")
     try:
@@ -399,6 +401,16 @@ def file_digest(path: Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def is_matplotlib_png(path: Path) -> bool:
+    """A PNG that matplotlib wrote (``save_png``'s files: their ``Software`` text chunk names it)."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(256)
+    except OSError:
+        return False
+    return head.startswith(b"\x89PNG") and b"Software\x00Matplotlib" in head
 
 
 def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
