@@ -268,3 +268,42 @@ def test_a_scenario_name_that_is_a_path_is_refused(
     code, err = run_main(capsys, *evaluate(out, "--scenario", str(scenario), "--sumo-output"))
     assert_refused(code, err, str(scenario), "scenario name")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.toml"]
+
+
+# --- the other commands that write ---------------------------------------------------------------------
+
+
+def test_plot_and_replay_never_replace_a_file_they_did_not_write(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``plot --out`` and ``replay --out`` replaced any file at their path."""
+    mine = tmp_path / "mine.png"
+    mine.write_bytes(b"my own picture")
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for run in runs:
+        run.mkdir()
+    plot = ["plot", *map(str, runs), "--out", str(mine)]
+    assert_refused(*run_main(capsys, *plot), str(mine), "--force")
+    gif = tmp_path / "mine.gif"
+    gif.write_bytes(b"GIF89a mine")
+    assert_refused(*run_main(capsys, "replay", str(tmp_path), "--scenario", "0", "--out", str(gif)), "--force")
+    assert mine.read_bytes() == b"my own picture" and gif.read_bytes() == b"GIF89a mine"
+    # With --force the command goes on (and here fails on the empty run folders, not on the file).
+    code, err = run_main(capsys, *plot, "--force")
+    assert code == 2 and "not a training run" in err
+
+
+@pytest.mark.parametrize("command", ["evaluate", "train", "sweep", "plot"])
+def test_no_command_writes_into_the_installed_package(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    target = PACKAGE_DIR / "policies" / "written-by-a-test"
+    args = {
+        "evaluate": evaluate(target),
+        "train": train(target, tmp_path),
+        "sweep": ["sweep", str(tmp_path / "tiny.toml"), "--seeds", "1", "--out", str(target)],
+        "plot": ["plot", str(tmp_path), str(tmp_path), "--out", str(target / "x.png")],
+    }[command]
+    (tmp_path / "tiny.toml").write_text("validate_every = 1\n" + TINY_TOML)
+    assert_refused(*run_main(capsys, *args), "installed idas_sumo package")
+    assert not target.exists()
