@@ -286,7 +286,9 @@ def test_plot_and_replay_never_replace_a_file_they_did_not_write(
     assert_refused(*run_main(capsys, *plot), str(mine), "--force")
     gif = tmp_path / "mine.gif"
     gif.write_bytes(b"GIF89a mine")
-    assert_refused(*run_main(capsys, "replay", str(tmp_path), "--scenario", "0", "--out", str(gif)), "--force")
+    assert_refused(
+        *run_main(capsys, "replay", str(tmp_path), "--scenario", "0", "--out", str(gif)), "--force"
+    )
     assert mine.read_bytes() == b"my own picture" and gif.read_bytes() == b"GIF89a mine"
     # With --force the command goes on (and here fails on the empty run folders, not on the file).
     code, err = run_main(capsys, *plot, "--force")
