@@ -359,9 +359,10 @@ def _lock(root: Path, flag: str) -> int:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)
+            other = f" or choose another {flag}" if flag.startswith("--") else ""
             raise InputError(
                 f"{flag} {root}: another idas-sumo command is writing into this folder; "
-                f"wait for it to finish or choose another {flag}"
+                f"wait for it to finish{other}"
             ) from None
         try:
             current = os.stat(path, follow_symlinks=False).st_ino
