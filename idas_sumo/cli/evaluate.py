@@ -177,11 +177,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         site = _check_eval_net(args, env)
     out = args.out if args.out is not None else _default_out(args)
-    if args.force and out.is_dir():
-        from idas_sumo.io_utils import remove_stale_temps
-
-        # Writes killed before their rename (SIGKILL, power loss) leave their temp files behind.
-        remove_stale_temps(out)
     others = args.others or default_others()
     request = EvalRequest(
         net=Path(args.net),

@@ -14,7 +14,7 @@ from idas_sumo.errors import InputError
 from idas_sumo.evaluation.metrics import BASE_EPISODE_COLUMNS, FLOW_COLUMNS, TRAJECTORY_COLUMNS
 from idas_sumo.evaluation.policies import METHOD_LABELS
 from idas_sumo.evaluation.sweep import is_sweep_scenario, spearman_test
-from idas_sumo.io_utils import read_csv_columns, save_png
+from idas_sumo.io_utils import OutputFolder, read_csv_columns, save_png
 
 ZONE_COLOR = "#9ecae1"
 
@@ -40,6 +40,12 @@ def plot_directory(directory: Path) -> list[Path]:
             f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first) "
             "and no metrics.csv (not a training run either)"
         )
+    # Locked as evaluate locks it, and each PNG recorded as the tool's (so `evaluate --force` clears it).
+    with OutputFolder.open(directory, "plot"):
+        return _plot_evaluation(directory)
+
+
+def _plot_evaluation(directory: Path) -> list[Path]:
     # The columns of every episodes.csv ever written: older directories plot too.
     episodes = _read(directory / "episodes.csv", BASE_EPISODE_COLUMNS)
     written = [summary_bars(episodes, directory / "summary.png")]
