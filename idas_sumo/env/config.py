@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
@@ -33,8 +34,9 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if self.junction == "":
             object.__setattr__(self, "junction", None)  # frozen: the one normalisation, at the edge
-        if not (self.max_episode_s > 0):
-            raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+        t = self.max_episode_s
+        if isinstance(t, bool) or not isinstance(t, int | float) or not (0 < t < math.inf):
+            raise ValueError(f"max_episode_s must be positive and finite, got {t!r}")
         if self.safety_mask not in SAFETY_MASKS:
             raise ValueError(
                 f"safety_mask must be one of {', '.join(SAFETY_MASKS)}, got {self.safety_mask!r}"
