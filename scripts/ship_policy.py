@@ -25,12 +25,25 @@ from pathlib import Path
 
 import pandas as pd
 
+from idas_sumo.errors import InputError
 from idas_sumo.evaluation.policies import LEARNED_METHODS
-from idas_sumo.io_utils import file_digest
+from idas_sumo.io_utils import atomic_open, file_digest, read_csv_columns
 from idas_sumo.resources import POLICY_DIR
 from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint
+from idas_sumo.training.metrics import METRICS_NAME
 
 CURVE_WINDOW = 200  # episodes averaged for the end-of-stage numbers
+USED_COLUMNS = (
+    "stage",
+    "episode",
+    "global_episode",
+    "success",
+    "perfect",
+    "timed_out",
+    "return_mean",
+    "wall_time_s",
+)
+"""The metrics.csv columns read here."""
 
 
 def stage_summaries(metrics: pd.DataFrame) -> dict[str, dict[str, float]]:
@@ -115,8 +128,12 @@ def main() -> None:
         help="the same seed's run on a larger budget (its first episodes are this run's)",
     )
     args = parser.parse_args()
-    data = load_checkpoint(args.checkpoint)
-    metrics = pd.read_csv(args.checkpoint.parent / "metrics.csv")
+    try:  # a damaged checkpoint or metrics file is one line, and nothing in the package is touched
+        data = load_checkpoint(args.checkpoint)
+        metrics = read_csv_columns(args.checkpoint.parent / METRICS_NAME, USED_COLUMNS, "idas-sumo train")
+    except InputError as err:
+        print(f"ship_policy: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
     if args.stages:
         metrics = metrics[metrics["stage"].isin(args.stages)]
     wall_s = float(metrics["wall_time_s"].max())
@@ -156,8 +173,11 @@ def main() -> None:
     }
     out = POLICY_DIR
     out.mkdir(exist_ok=True)
-    shutil.copyfile(args.checkpoint, out / f"{args.name}.pt")
-    (out / f"{args.name}.json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
+    # Each file whole or not at all (the shipped policy is read by every default evaluate).
+    with atomic_open(out / f"{args.name}.pt", "wb") as f, args.checkpoint.open("rb") as source:
+        shutil.copyfileobj(source, f)
+    with atomic_open(out / f"{args.name}.json") as f:
+        f.write(json.dumps(meta, indent=2, default=str) + "\n")
     print(f"wrote {out / (args.name + '.pt')} and {args.name}.json")
 
 

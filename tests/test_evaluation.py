@@ -24,6 +24,7 @@ from idas_sumo.evaluation.metrics import (
     merge_crossings,
     summary_rows,
 )
+from idas_sumo.io_utils import MANIFEST_NAME
 from idas_sumo.resources import shipped
 
 # The column lists exactly as docs/design-notes.md ("Evaluation output") spells them (not imported: this is the contract).
@@ -132,7 +133,7 @@ def test_one_row_per_scenario_and_method(request: pytest.FixtureRequest, fixture
 @pytest.mark.sumo
 def test_no_temporary_files_are_left_behind(run_dir: Path) -> None:
     assert sorted(p.name for p in run_dir.iterdir()) == sorted(
-        [*CSV_NAMES, "trajectories.csv", "settings.json", "replay"]
+        [*CSV_NAMES, "trajectories.csv", "settings.json", "replay", MANIFEST_NAME]
     )
     assert sorted(p.name for p in (run_dir / "replay").iterdir()) == [
         "net.net.xml",

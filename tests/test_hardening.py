@@ -111,7 +111,14 @@ def snapshot(directory: Path) -> dict[str, bytes]:
 
 
 def temp_files(directory: Path) -> list[str]:
-    return sorted(p.name for p in directory.rglob("*") if p.name.endswith(".tmp") or p.name.startswith("."))
+    """Temp files and dotfiles left behind (the output folder's manifest of what it holds is meant to stay)."""
+    from idas_sumo.io_utils import MANIFEST_NAME
+
+    return sorted(
+        p.name
+        for p in directory.rglob("*")
+        if (p.name.endswith(".tmp") or p.name.startswith(".")) and p.name != MANIFEST_NAME
+    )
 
 
 def eval_args(out: Path, *extra: str, baseline: str = "idm", net: Path = NET) -> list[str]:

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from idas_sumo.cli import main
+from idas_sumo.io_utils import MANIFEST_NAME
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -47,7 +48,9 @@ def representative(tmp_path_factory: pytest.TempPathFactory, net_path: Path) -> 
 def test_evaluate_plots_writes_pngs(representative: Path) -> None:
     for name in ("summary.png", "representative.png", "profiles.png"):
         assert_png(representative / name)
-    assert not [p.name for p in representative.iterdir() if p.name.startswith(".") or p.suffix == ".tmp"]
+    left = [p.name for p in representative.iterdir() if p.name.startswith(".") or p.suffix == ".tmp"]
+    assert left == [MANIFEST_NAME]  # what the folder's files are: the tool's, the PNGs among them
+    assert {"summary.png", "profiles.png"} <= set((representative / MANIFEST_NAME).read_text().split())
 
 
 @pytest.mark.sumo

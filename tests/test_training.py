@@ -19,6 +19,7 @@ from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.layout import OBS_LAYOUT_ID
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.errors import InputError
+from idas_sumo.io_utils import MANIFEST_NAME
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG
 from idas_sumo.training.checkpoint import load_checkpoint, save_checkpoint
 from idas_sumo.training.config import TrainConfig, load_train_config
@@ -597,7 +598,9 @@ def test_train_force_starts_over_and_is_needed_for_a_used_out(
     args = ["--config", str(config), "--stage", "robot", "--episodes", "2", "--out", str(run)]
     assert _train_cli(net_path, *args) == 0
     first = _metric_rows(run)
-    (run / "direct.pt").write_bytes((run / "robot.pt").read_bytes())  # a file of an earlier run there
+    (run / "direct.pt").write_bytes((run / "robot.pt").read_bytes())  # a file of an earlier run there,
+    with (run / MANIFEST_NAME).open("a") as manifest:  # recorded as the tool's own, as that run would have
+        manifest.write("direct.pt\n")
     (run / "notes.txt").write_text("mine\n")
     capsys.readouterr()
 

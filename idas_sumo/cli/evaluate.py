@@ -177,11 +177,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         site = _check_eval_net(args, env)
     out = args.out if args.out is not None else _default_out(args)
-    if args.force and out.is_dir():
-        from idas_sumo.io_utils import remove_stale_temps
-
-        # Writes killed before their rename (SIGKILL, power loss) leave their temp files behind.
-        remove_stale_temps(out)
     others = args.others or default_others()
     request = EvalRequest(
         net=Path(args.net),
@@ -295,7 +290,14 @@ def _check_eval_net(args: argparse.Namespace, env: EnvConfig) -> MergeSite:
         "merge": site.merge.road.speed_limit_mps,
     }
     for path in files:
-        check_against_net(load_scenario(path, speed_limits), speed_limits, start_room_m(site), str(path))
+        scenario = load_scenario(path, speed_limits)
+        check_against_net(scenario, speed_limits, start_room_m(site), str(path))
+        for v in scenario.vehicles:  # SUMO refused 1e300 s after writing its tripinfo file into --out
+            if v.depart_s >= env.max_episode_s:
+                raise InputError(
+                    f"{path}: vehicle {v.id!r} departs at {v.depart_s:g} s, not before the episode's "
+                    f"{env.max_episode_s:g} s timeout (max_episode_s): it would never drive"
+                )
     return site
 
 

@@ -31,6 +31,11 @@ def add_parser(sub: Subparsers) -> None:
     net.add_argument(
         "--out", type=out_path, default=DEFAULT_NET_NAME, help="output .net.xml (default: %(default)s)"
     )
+    net.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an --out (or its .nod.xml/.edg.xml) that idas-sumo did not write",
+    )
     defaults = NetParams()
     for field, (flag, what) in NETGEN_FLAGS.items():
         net.add_argument(
@@ -56,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from idas_sumo.sim.netgen import describe, generate_net, read_merge_net
 
     params = NetParams(**{field: getattr(args, field) for field in NETGEN_FLAGS}, priority=args.priority)
-    path = generate_net(args.out, params)
+    path = generate_net(args.out, params, force=args.force)
     net = read_merge_net(path)
     print(describe(net))
     try:  # a net for other scenarios is fine to write, but say now what train/evaluate will say

@@ -26,11 +26,12 @@ def add_parser(sub: Subparsers) -> None:
     plot.add_argument(
         "--out", type=out_path, help="the comparison's .png (with several training run directories)"
     )
+    plot.add_argument("--force", action="store_true", help="replace an --out that idas-sumo did not write")
 
 
 def run(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.plots import plot_directory
-    from idas_sumo.io_utils import ensure_writable_dir
+    from idas_sumo.io_utils import claim_output_file, ensure_writable_dir, is_matplotlib_png
     from idas_sumo.training.plots import compare_runs, is_training_run, plot_training_run
 
     for directory in args.dir:
@@ -44,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
             )
         if args.out is None or args.out.suffix.lower() != ".png":
             raise InputError("comparing several training runs needs --out FILE.png")
+        claim_output_file(args.out, args.force, is_matplotlib_png)
         ensure_writable_dir(args.out.parent, "--out")
         print(f"wrote {compare_runs(args.dir, args.out)}")
         return 0

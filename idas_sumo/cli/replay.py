@@ -22,6 +22,7 @@ def add_parser(sub: Subparsers) -> None:
     view = rep.add_mutually_exclusive_group()
     view.add_argument("--gui", action="store_true", help="show it in sumo-gui (needs a display)")
     view.add_argument("--out", type=out_path, help="write an animation: .gif, or .mp4 (needs ffmpeg)")
+    rep.add_argument("--force", action="store_true", help="replace an existing --out file")
     rep.add_argument(
         "--policy", type=input_file, help="the evaluated checkpoint, if it moved (its SHA-256 must match)"
     )
@@ -29,5 +30,8 @@ def add_parser(sub: Subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from idas_sumo.evaluation.replay import replay_from_args
+    from idas_sumo.io_utils import claim_output_file
 
+    if args.out is not None:  # an animation has no mark of its own: any existing file needs --force
+        claim_output_file(args.out, args.force, lambda path: False)
     return replay_from_args(args)

@@ -9,6 +9,9 @@ from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS, SafetyMask
 from idas_sumo.env.rewards import RewardConfig
 
 DEFAULT_MAX_EPISODE_S = 60.0  # ours: timeout, not a success
+MAX_EPISODE_S = 86_400.0
+"""The longest episode accepted (a day of simulated time; the paper's last 60 s): bounded like every count,
+so that a typo cannot ask SUMO for a time it cannot represent."""
 
 
 @dataclass(frozen=True)
@@ -33,8 +36,9 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if self.junction == "":
             object.__setattr__(self, "junction", None)  # frozen: the one normalisation, at the edge
-        if not (self.max_episode_s > 0):
-            raise ValueError(f"max_episode_s must be positive, got {self.max_episode_s}")
+        t = self.max_episode_s
+        if isinstance(t, bool) or not isinstance(t, int | float) or not (0 < t <= MAX_EPISODE_S):
+            raise ValueError(f"max_episode_s must be positive and at most {MAX_EPISODE_S:g} s, got {t!r}")
         if self.safety_mask not in SAFETY_MASKS:
             raise ValueError(
                 f"safety_mask must be one of {', '.join(SAFETY_MASKS)}, got {self.safety_mask!r}"

@@ -70,8 +70,9 @@ from idas_sumo.sim.backend import (
 )
 from idas_sumo.sim.batch import BatchBackend, BatchStepEvents
 from idas_sumo.sim.merge_detect import MergeSite, as_site
-from idas_sumo.sim.multinet import copies_run
+from idas_sumo.sim.multinet import MAX_COPIES, copies_run
 from idas_sumo.sim.netgen import MergeNet
+from idas_sumo.sim.processes import SEED_LIMIT
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -91,8 +92,19 @@ class MergeEngine:
     ) -> None:
         """``net``: the merge the episodes run on: a ``MergeSite``, a ``MergeNet`` or a net file with one
         merge (or several and ``config.junction`` naming one: ``choose_merge``)."""
-        if copies < 1:
-            raise ValueError(f"copies must be at least 1, got {copies}")
+        # Checked as the CLI's --copies and --seed are: an out-of-range seed once failed in SUMO, blaming the net.
+        if (
+            isinstance(copies, bool)
+            or not isinstance(copies, int | np.integer)
+            or not 1 <= copies <= MAX_COPIES
+        ):
+            raise ValueError(f"copies must be an integer in [1, {MAX_COPIES}], got {copies!r}")
+        if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed < SEED_LIMIT:
+            raise ValueError(
+                f"seed must be an integer in [0, {SEED_LIMIT}) (SUMO's seed range), got {seed!r}"
+            )
+        if config is not None and not isinstance(config, EnvConfig):
+            raise TypeError(f"config must be an EnvConfig, got {type(config).__name__}")
         if gui and copies != 1:
             raise ValueError("sumo-gui shows one simulation: copies must be 1 with gui")
         self.config = config or EnvConfig()

@@ -22,7 +22,7 @@ from idas_sumo.env.scenario import (
     generate_scenario,
     start_room_m,
 )
-from idas_sumo.env.single import SingleEpisode
+from idas_sumo.env.single import EPISODE_OVER, ResetFirst, SingleEpisode
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
@@ -83,6 +83,8 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         self.action_space: spaces.Space[Any] = spaces.Discrete(N_ACTIONS)
         self.ego = ""
         self._mask = placeholder_mask()
+        self._ended = False
+        """The ego's episode ended (terminated or truncated was returned): step() needs a reset() first."""
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -107,9 +109,13 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
                     f"{self.sim.engine.config.max_episode_s:g} s timeout or collides as it enters"
                 )
         else:
-            raise SimulationError(f"no drawn scenario let the ego drive in {_EGO_ATTEMPTS} attempts (a bug)")
+            raise SimulationError(
+                f"no drawn scenario let the ego drive in {_EGO_ATTEMPTS} attempts: each entered after the "
+                f"{self.sim.engine.config.max_episode_s:g} s timeout (max_episode_s) or collided as it entered"
+            )
         obs, masks = self.sim.observe([self.ego])
         self._mask = masks[0]
+        self._ended = False
         return obs[0], self._info(self._mask)
 
     def _advance_until_ego(self) -> None:
@@ -137,6 +143,8 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         return {"action_mask": mask, "ego": self.ego, **self.sim.agent_info(self.ego), **extra}
 
     def step(self, action: int) -> tuple[npt.NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        if self._ended:  # the ego has left: there is no next step until reset() (was a KeyError)
+            raise ResetFirst(EPISODE_OVER)
         actions = self._others_actions()
         actions[self.ego] = action  # checked in the simulation, with the agent named
         outcome = self.sim.step(actions)
@@ -147,6 +155,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         if self.ego in outcome.end_reason:
             extra["end_reason"] = outcome.end_reason[self.ego]
         if terminated or truncated:
+            self._ended = True
             self._mask = placeholder_mask()
             return (
                 self.sim.last_observation(self.ego),

@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
+from pettingzoo.utils.env_logger import EnvLogger
 
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
@@ -21,7 +22,7 @@ from idas_sumo.env.scenario import (
     generate_scenario,
     start_room_m,
 )
-from idas_sumo.env.single import SingleEpisode, StepOutcome
+from idas_sumo.env.single import ResetFirst, SingleEpisode, StepOutcome
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.merge_detect import MergeSite
@@ -131,6 +132,13 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         dict[str, bool],
         dict[str, dict[str, Any]],
     ]:
+        if not self.agents:
+            if self.sim.scenario is None:
+                raise ResetFirst("step() before reset(): call reset() first")
+            # After the episode: PettingZoo's convention (its OrderEnforcingWrapper), a warning and nothing
+            # done; SUMO is not stepped past the episode's end.
+            EnvLogger.warn_step_after_terminated_truncated()
+            return {}, {}, {}, {}, {}
         acting = list(self.agents)
         outcome = self.sim.step({a: actions[a] for a in acting if a in actions})  # checked there, per agent
         self.last_outcome = outcome

@@ -29,6 +29,17 @@ B_TYPE_RANGE = (-2.0, 2.0)
 _BAD_ID_CHARS = "<>&\"'"  # XML's special characters: SUMO's route file quotes ids in attributes
 
 
+def check_scenario_name(name: str) -> None:
+    """A scenario's name becomes part of file names (``evaluate --sumo-output``): checked as vehicle ids
+    are, and it must name a file, not a path (no ``/``, ``\\``, ``..``), so no output escapes ``--out``."""
+    bad = [c for c in name if c in _BAD_ID_CHARS or c in "/\\" or not c.isprintable()]
+    if not name.strip() or name in (".", "..") or bad:
+        raise ValueError(
+            f"scenario name {name!r} must be a file name: non-empty, without /, \\, control characters "
+            f"or any of {_BAD_ID_CHARS} (it names the episode's output files)"
+        )
+
+
 @dataclass(frozen=True)
 class VehicleSpec:
     """One vehicle at the start of an episode."""
@@ -78,6 +89,7 @@ class Scenario:
     merge_prio: int = 0
 
     def __post_init__(self) -> None:
+        check_scenario_name(self.name)
         for key in ("main_prio", "merge_prio"):
             if getattr(self, key) not in (0, 1):
                 raise ValueError(f"{key} must be 0 or 1, got {getattr(self, key)}")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+from gymnasium.error import ResetNeeded
 
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.config import EnvConfig
@@ -23,6 +24,13 @@ from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import Backend
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
+
+EPISODE_OVER = "step() after the episode ended (terminated or truncated): call reset() to start the next one"
+
+
+class ResetFirst(ResetNeeded, SimulationError):
+    """A step with no episode running (before ``reset()``, or after the episode ended): gymnasium's own
+    ``ResetNeeded``, as its ``OrderEnforcing`` raises it, and an idas-sumo ``SimulationError``."""
 
 
 @dataclass
@@ -74,7 +82,7 @@ class SingleEpisode:
     def batch(self) -> AgentBatch:
         """Every active agent now (in scenario order), with observations and masks."""
         if self._batch is None:
-            raise SimulationError("step() before reset()")
+            raise ResetFirst("step() before reset(): call reset() first")
         return self._batch
 
     def _observe(self) -> None:
@@ -160,6 +168,8 @@ class SingleEpisode:
     def step(self, actions: Mapping[str, object]) -> StepOutcome:
         """Apply one action per active agent, advance SUMO one step, score it and end whoever is done."""
         batch = self.batch
+        if self.engine.over(0):  # as gymnasium's OrderEnforcing refuses a step before reset()
+            raise ResetFirst(EPISODE_OVER)
         acting = list(batch.ids)
         missing = [a for a in acting if a not in actions]
         if missing:

@@ -11,17 +11,54 @@ import pandas as pd
 
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.errors import InputError
-from idas_sumo.evaluation.metrics import BASE_EPISODE_COLUMNS, FLOW_COLUMNS, TRAJECTORY_COLUMNS
+from idas_sumo.evaluation.metrics import (
+    BASE_EPISODE_COLUMNS,
+    EPISODE_COLUMNS,
+    FLOW_COLUMNS,
+    TRAJECTORY_COLUMNS,
+)
 from idas_sumo.evaluation.policies import METHOD_LABELS
 from idas_sumo.evaluation.sweep import is_sweep_scenario, spearman_test
-from idas_sumo.io_utils import read_csv_columns, save_png
+from idas_sumo.io_utils import OutputFolder, read_csv_columns, save_png
 
 ZONE_COLOR = "#9ecae1"
 
 
+NUMBER_COLUMNS = frozenset({*EPISODE_COLUMNS, *FLOW_COLUMNS, *TRAJECTORY_COLUMNS}) - {
+    "scenario",
+    "method",
+    "ego_id",
+    "ego_road",
+    "vehicle",
+    "controlled",
+    "road",
+    "action",
+    "allowed_actions",
+}
+"""The columns of evaluate's CSVs that hold numbers (the others hold names, flags and action lists)."""
+
+
 def _read(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
     frame: pd.DataFrame = read_csv_columns(path, columns, "idas-sumo evaluate")
+    for column in frame.columns:
+        if column in NUMBER_COLUMNS:
+            frame[column] = numbers(frame[column], path)
     return frame
+
+
+def numbers(values: pd.Series, path: Path) -> pd.Series:
+    """A CSV column the plots compute with, as numbers (empty cells: NaN); text in it is one InputError naming
+    the file, the column and the first such row, not a traceback deep in pandas or matplotlib."""
+    if pd.api.types.is_numeric_dtype(values):
+        return values
+    parsed = pd.to_numeric(values, errors="coerce")
+    bad = parsed.isna() & values.notna()
+    if bad.any():
+        row = int(bad.to_numpy().argmax())
+        raise InputError(
+            f"{path}: column {values.name!r} holds {values.iloc[row]!r} in row {row + 1}, expected a number"
+        )
+    return parsed
 
 
 def _label(method: object) -> str:
@@ -40,6 +77,12 @@ def plot_directory(directory: Path) -> list[Path]:
             f"{directory}: no episodes.csv (run `idas-sumo evaluate --out {directory}` first) "
             "and no metrics.csv (not a training run either)"
         )
+    # Locked as evaluate locks it, and each PNG recorded as the tool's (so `evaluate --force` clears it).
+    with OutputFolder.open(directory, "plot"):
+        return _plot_evaluation(directory)
+
+
+def _plot_evaluation(directory: Path) -> list[Path]:
     # The columns of every episodes.csv ever written: older directories plot too.
     episodes = _read(directory / "episodes.csv", BASE_EPISODE_COLUMNS)
     written = [summary_bars(episodes, directory / "summary.png")]

@@ -294,6 +294,11 @@ def iterate_runs(
         yield job.method, job.case, result
 
 
+def tripinfo_path(directory: Path, job: EvalJob) -> Path:
+    """Where SUMO writes ``job``'s own tripinfo output (``evaluate --sumo-output``)."""
+    return directory / f"{job.method}-{job.case.scenario.name}.tripinfo.xml"
+
+
 def run_jobs(
     engine: MergeEngine,
     jobs: Sequence[EvalJob],
@@ -327,7 +332,7 @@ def run_jobs(
             return (
                 *sumo_options,
                 "--tripinfo-output",
-                str(directory / f"{job.method}-{job.case.scenario.name}.tripinfo.xml"),
+                str(tripinfo_path(directory, job)),
                 # The episode ends before every car has left the net; report those cars too.
                 "--tripinfo-output.write-unfinished",
             )

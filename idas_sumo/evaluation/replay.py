@@ -16,17 +16,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
 
+from idas_sumo.config import from_dict
 from idas_sumo.env.engine import (
     AgentBatch,
     EnvConfig,
@@ -35,12 +37,13 @@ from idas_sumo.env.engine import (
     Policy,
     StepResult,
 )
+from idas_sumo.env.net_needs import check_road_lengths, road_needs
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.errors import IdasError, InputError
 from idas_sumo.evaluation.metrics import EPISODE_COLUMNS
 from idas_sumo.evaluation.plots import ZONE_COLOR as ZONE_COLOUR
-from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, resolve_policy
+from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, check_method, resolve_policy
 from idas_sumo.evaluation.protocol import (
     EpisodeResult,
     EvalCase,
@@ -53,6 +56,7 @@ from idas_sumo.resources import POLICY_DIR
 from idas_sumo.sim.backend import STEP_LENGTH_S, require_display
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 from idas_sumo.sim.netgen import NetParams
+from idas_sumo.sim.processes import SEED_LIMIT
 
 REPLAY_DIR = "replay"
 """The results directory's folder of replay data (written by ``evaluate``)."""
@@ -161,7 +165,98 @@ class ReplayData:
     cases: tuple[EvalCase, ...]
 
 
+@dataclass(frozen=True)
+class _RunRecord:
+    """``run.json`` as ``write_replay_data`` writes it, read through ``config.from_dict``: every key's type
+    and range checked once, each problem one line naming the file and the key."""
+
+    FLAT_FIELDS: ClassVar[tuple[str, ...]] = ("env",)
+
+    format: int
+    seed: int
+    net_sha256: str
+    methods: Any
+    """{method: PolicyRecord as a table}: checked by ``_policy_records``."""
+    others: Any
+    env: EnvConfig = field(default_factory=EnvConfig)
+
+
+@dataclass(frozen=True)
+class _CaseLine:
+    """One line of ``scenarios.jsonl``."""
+
+    name: str
+    ego: str
+    seed: int
+    method_vehicles: tuple[str, ...]
+    vehicles: tuple[VehicleSpec, ...]
+    main_prio: int = 1
+    merge_prio: int = 0
+
+
+def _json(text: str, where: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as err:
+        raise InputError(f"{where}: not JSON ({err})") from None
+
+
+def _policy_record(data: Any, where: str, method: str | None = None) -> PolicyRecord:
+    record = from_dict(PolicyRecord, data, where)
+    check_method(record.method, where)
+    if method is not None and record.method != method:
+        raise InputError(f"{where}.method: {record.method!r}, but it is listed under {method!r}")
+    learned = record.method in LEARNED_METHODS
+    if learned != (record.path is not None) or learned != (record.sha256 is not None):
+        kind = "a learned method needs" if learned else "a rule-based method has no"
+        raise InputError(f"{where}: {kind} path and sha256")
+    return record
+
+
+def _read_run(path: Path) -> tuple[_RunRecord, dict[str, PolicyRecord], PolicyRecord]:
+    """``run.json`` read and checked whole, before anything runs."""
+    data = _json(path.read_text(encoding="utf-8"), str(path))
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    if data.get("format") != REPLAY_FORMAT:
+        raise InputError(
+            f"{path}: replay format {data.get('format')!r}, this idas-sumo reads {REPLAY_FORMAT}"
+        )
+    run = from_dict(_RunRecord, data, str(path))
+    if not 0 <= run.seed < SEED_LIMIT:
+        raise InputError(f"{path}.seed: must be in [0, {SEED_LIMIT}) (SUMO's seed range), got {run.seed}")
+    if not isinstance(run.methods, dict) or not run.methods:
+        raise InputError(f"{path}.methods: expected a table of one or more methods, got {run.methods!r}")
+    methods = {str(m): _policy_record(r, f"{path}.methods.{m}", str(m)) for m, r in run.methods.items()}
+    return run, methods, _policy_record(run.others, f"{path}.others")
+
+
+def _read_cases(path: Path) -> tuple[EvalCase, ...]:
+    """``scenarios.jsonl``, each line checked (``path:LINE`` in the message)."""
+    cases = []
+    for n, text in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        if not text:
+            continue
+        where = f"{path}:{n}"
+        line = from_dict(_CaseLine, _json(text, where), where)
+        try:
+            scenario = Scenario(line.name, line.vehicles, line.main_prio, line.merge_prio)
+        except ValueError as err:
+            raise InputError(f"{where}: {err}") from None
+        ids = {v.id for v in line.vehicles}
+        if line.ego not in ids or not set(line.method_vehicles) <= ids:
+            raise InputError(f"{where}: ego and method_vehicles must be vehicles of the scenario")
+        if not 0 <= line.seed < SEED_LIMIT:
+            raise InputError(f"{where}.seed: must be in [0, {SEED_LIMIT}), got {line.seed}")
+        cases.append(EvalCase(scenario, line.ego, line.seed, line.method_vehicles))
+    if not cases:
+        raise InputError(f"{path}: no scenarios")
+    return tuple(cases)
+
+
 def load_replay_data(directory: Path) -> ReplayData:
+    """``directory``'s replay data, every file checked whole when read: an ``InputError`` names the file,
+    the key (or line) and what is wrong."""
     folder = directory / REPLAY_DIR
     if not directory.is_dir():
         raise InputError(f"{directory}: not a directory written by `idas-sumo evaluate`")
@@ -172,43 +267,15 @@ def load_replay_data(directory: Path) -> ReplayData:
         )
     where = folder / RUN_NAME
     try:
-        run = json.loads(where.read_text(encoding="utf-8"))
-        if run.get("format") != REPLAY_FORMAT:
-            raise InputError(
-                f"{where}: replay format {run.get('format')!r}, this idas-sumo reads {REPLAY_FORMAT}"
-            )
+        run, methods, others = _read_run(where)
         where = folder / SCENARIOS_NAME
-        cases = tuple(
-            _case(json.loads(line)) for line in where.read_text(encoding="utf-8").splitlines() if line
-        )
-        net_path = folder / NET_NAME
-        if file_digest(net_path) != run["net_sha256"]:
-            raise InputError(f"{net_path}: changed since the evaluation (its SHA-256 differs)")
-        return ReplayData(
-            directory=directory,
-            seed=int(run["seed"]),
-            env=EnvConfig(
-                max_episode_s=float(run["max_episode_s"]),
-                safety_mask=run["safety_mask"],
-                junction=run.get("junction"),
-            ),
-            net_path=net_path,
-            methods={m: PolicyRecord(**r) for m, r in run["methods"].items()},
-            others=PolicyRecord(**run["others"]),
-            cases=cases,
-        )
-    except (OSError, ValueError, KeyError, TypeError) as err:
+        cases = _read_cases(where)
+        where = folder / NET_NAME
+        if file_digest(where) != run.net_sha256:
+            raise InputError(f"{where}: changed since the evaluation (its SHA-256 differs)")
+    except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"{where}: cannot read replay data ({err})") from None
-
-
-def _case(line: dict[str, Any]) -> EvalCase:
-    scenario = Scenario(
-        name=line["name"],
-        vehicles=tuple(VehicleSpec(**v) for v in line["vehicles"]),
-        main_prio=line["main_prio"],
-        merge_prio=line["merge_prio"],
-    )
-    return EvalCase(scenario, line["ego"], int(line["seed"]), tuple(line["method_vehicles"]))
+    return ReplayData(directory, run.seed, run.env, folder / NET_NAME, methods, others, cases)
 
 
 def pick_case(data: ReplayData, scenario: str) -> EvalCase:
@@ -366,6 +433,8 @@ def replay_episode(
     policies = {method: checked_policy(data.methods[method], data.seed, policy)}
     others = checked_policy(data.others, data.seed, flag="(others)")
     site = choose_merge(data.net_path, data.env.junction)
+    # As evaluate checks it: a max_episode_s no car can finish in is one line, not a ZeroDivisionError.
+    check_road_lengths(site, road_needs(None, data.env.max_episode_s, str(directory / REPLAY_DIR / RUN_NAME)))
     job = eval_jobs([case], [method])[0]
     marks = Marks(colour_gui=gui)
     engine = MergeEngine(site, copies=1, seed=data.seed, config=data.env, gui=gui)
@@ -422,6 +491,10 @@ def check_animation_path(path: Path) -> None:
         raise InputError(f"--out {path}: exists and is not a file")
     if not path.parent.is_dir():
         raise InputError(f"--out {path}: folder {path.parent} does not exist")
+    try:  # the very folder ``_save`` writes into: a read-only one is refused before the episode runs
+        os.rmdir(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMP_SUFFIX))
+    except OSError as err:
+        raise InputError(f"--out {path}: cannot write into {path.parent} ({err.strerror or err})") from None
 
 
 def _unit_rgb(rgb: tuple[int, int, int]) -> tuple[float, float, float]:

@@ -35,6 +35,7 @@ from idas_sumo.evaluation.protocol import (
     load_eval_config,
     run_jobs,
     suite_cases,
+    tripinfo_path,
 )
 from idas_sumo.evaluation.replay import write_replay_data
 from idas_sumo.evaluation.sweep import (
@@ -44,7 +45,7 @@ from idas_sumo.evaluation.sweep import (
     trend_rows,
     verdict,
 )
-from idas_sumo.io_utils import atomic_open, output_directory, write_csv_atomic
+from idas_sumo.io_utils import atomic_open, output_directory, record_output, write_csv_atomic
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 
@@ -134,7 +135,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
     }
     others_policy = resolve_policy(others_name, None, req.seed)
     _check_gui(req)
-    with output_directory(req.out, req.force, fresh=req.fresh_out) as out:
+    with output_directory(req.out, req.force, fresh=req.fresh_out, writes=("sumo", "replay")) as out:
         tripinfo_dir = None
         if req.sumo_output:
             tripinfo_dir = out / "sumo"
@@ -142,6 +143,9 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         cases = _cases(req, site, eval_config)
         log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
         jobs = eval_jobs(cases, list(policies))
+        if tripinfo_dir is not None:  # SUMO writes these itself
+            for job in jobs:
+                record_output(tripinfo_path(tripinfo_dir, job))
         description = f"evaluate ({req.suite}, others: {others_name})"
         with (
             _progress(req.progress, len(jobs), description) as advance,

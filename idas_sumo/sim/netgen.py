@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from idas_sumo.errors import InputError, SimulationError
-from idas_sumo.io_utils import atomic_open, atomic_path
+from idas_sumo.io_utils import atomic_open, atomic_path, claim_output_file
 
 _BAD_PLACE_ERRNOS = frozenset(
     {errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EISDIR}
@@ -137,25 +137,69 @@ def _plain_xml(params: NetParams) -> tuple[str, str]:
     return node_xml, edge_xml
 
 
-def write_plain_xml(out: Path, plain: Sequence[tuple[str, str]]) -> list[Path]:
-    """Check that the net ``out`` can be written there, then write each (kind, text) of ``plain`` beside
-    it as ``<stem>.<kind>.xml`` (atomically); the files written. A place that cannot hold files is an
-    InputError naming ``--out``; a full disk is an OSError (exit 1)."""
+PLAIN_MARK = "<!-- written by idas-sumo beside its net; replaced when that net is written again -->\n"
+"""The first line of every plain XML file written here: a file without it is the user's, never replaced."""
+NET_SUFFIX = ".net.xml"
+
+
+def check_net_out(out: Path, kinds: Sequence[str], force: bool = False) -> None:
+    """Refuse to write the net ``out`` (and its ``<stem>.<kind>.xml`` beside it) where a file the tool
+    did not write would be replaced (unless ``force``), inside the installed package, or under a name
+    that is not ``*.net.xml`` (its plain XML would land beside it as ``notes.py.nod.xml``)."""
     if out.is_dir():
         raise InputError(f"--out {out}: is a directory, expected a .net.xml file name")
+    if not out.name.endswith(NET_SUFFIX) or out.name == NET_SUFFIX:
+        raise InputError(f"--out {out}: a net's file name ends in {NET_SUFFIX}, e.g. sumo_nets/my.net.xml")
+    stem = out.name.removesuffix(NET_SUFFIX)
+    claim_output_file(out, force, lambda p: _written_by_netconvert(p, f"{stem}.nod.xml"))
+    for kind in kinds:
+        claim_output_file(out.with_name(f"{stem}.{kind}.xml"), force, _has_plain_mark)
+
+
+def _head(path: Path, size: int = 4096) -> str:
+    try:
+        with path.open("rb") as f:
+            return f.read(size).decode("utf-8", "replace")
+    except OSError:
+        return ""
+
+
+def _written_by_netconvert(path: Path, nodes: str) -> bool:
+    """A net netconvert built from the plain XML beside it (its header names ``nodes`` as its node file)."""
+    head = _head(path)
+    return "netconvert" in head and any(
+        value == nodes or value.endswith("/" + nodes) for value in _node_files(head)
+    )
+
+
+def _node_files(head: str) -> list[str]:
+    marker = '<node-files value="'
+    return [part.split('"', 1)[0] for part in head.split(marker)[1:]]
+
+
+def _has_plain_mark(path: Path) -> bool:
+    return _head(path, len(PLAIN_MARK)) == PLAIN_MARK
+
+
+def write_plain_xml(out: Path, plain: Sequence[tuple[str, str]], force: bool = False) -> list[Path]:
+    """Check that the net ``out`` can be written there (``check_net_out``), then write each (kind, text)
+    of ``plain`` beside it as ``<stem>.<kind>.xml`` (atomically, marked ``PLAIN_MARK``); the files
+    written. A place that cannot hold files is an InputError naming ``--out``; a full disk is an
+    OSError (exit 1)."""
+    check_net_out(out, [kind for kind, _ in plain], force)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise InputError(f"--out {out}: cannot create directory {out.parent} ({err.strerror})") from None
     if not os.access(out.parent, os.W_OK):
         raise InputError(f"--out {out}: directory {out.parent} is not writable")
-    stem = out.name.removesuffix(".net.xml")
+    stem = out.name.removesuffix(NET_SUFFIX)
     written = []
     for kind, text in plain:
         path = out.with_name(f"{stem}.{kind}.xml")
         try:
             with atomic_open(path) as f:
-                f.write(text)
+                f.write(text if text.startswith(PLAIN_MARK) else PLAIN_MARK + text)
         except OSError as err:
             if err.errno not in _BAD_PLACE_ERRNOS:
                 raise  # a full disk or an I/O error: a runtime failure (exit 1), named by the CLI
@@ -164,11 +208,12 @@ def write_plain_xml(out: Path, plain: Sequence[tuple[str, str]]) -> list[Path]:
     return written
 
 
-def generate_net(out_path: str | Path, params: NetParams = NetParams()) -> Path:
-    """Write the merge network to ``out_path`` (atomically) and keep its plain XML beside it."""
+def generate_net(out_path: str | Path, params: NetParams = NetParams(), force: bool = False) -> Path:
+    """Write the merge network to ``out_path`` (atomically) and keep its plain XML beside it; a file
+    the tool did not write is replaced only with ``force`` (``check_net_out``)."""
     out = Path(out_path)
     node_xml, edge_xml = _plain_xml(params)
-    nod, edg = write_plain_xml(out, [("nod", node_xml), ("edg", edge_xml)])
+    nod, edg = write_plain_xml(out, [("nod", node_xml), ("edg", edge_xml)], force)
     with atomic_path(out) as tmp:
         cmd = [
             str(sumo_binary("netconvert")),
@@ -326,6 +371,7 @@ __all__ = [
     "MergeNet",
     "NetParams",
     "RoadInfo",
+    "check_net_out",
     "describe",
     "generate_net",
     "load_sumo_net",

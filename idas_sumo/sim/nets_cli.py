@@ -37,13 +37,18 @@ def add_nets_parser(sub: argparse._SubParsersAction[P]) -> None:
     sample = actions.add_parser("sample", help="build one of the sample nets with netconvert")
     sample.add_argument("name", choices=sorted(SAMPLE_NETS), help="which net")
     sample.add_argument("--out", type=Path, required=True, help="output .net.xml")
+    sample.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an --out (or its plain XML) that idas-sumo did not write",
+    )
 
 
 def run_nets(args: argparse.Namespace) -> int:
     if args.nets_command == "sample":
         from idas_sumo.sim.sample_nets import build_sample_net
 
-        print(f"wrote {build_sample_net(args.name, args.out)}")
+        print(f"wrote {build_sample_net(args.name, args.out, force=args.force)}")
         return 0
     from idas_sumo.sim.merge_detect import choose_merge, describe_site, detect_merges
 

@@ -129,12 +129,12 @@ SAMPLE_NETS: dict[str, Callable[[], _Plain]] = {
 """Name -> the net's plain XML."""
 
 
-def build_sample_net(name: str, out: str | Path) -> Path:
+def build_sample_net(name: str, out: str | Path, force: bool = False) -> Path:
     """Build the sample net ``name`` into ``out`` (a .net.xml) with netconvert; its plain XML is kept
-    beside it."""
+    beside it. A file the tool did not write is replaced only with ``force``."""
     if name not in SAMPLE_NETS:
         raise InputError(f"sample net {name!r}: not one of {', '.join(SAMPLE_NETS)}")
-    return build_plain_net(*SAMPLE_NETS[name](), out)
+    return build_plain_net(*SAMPLE_NETS[name](), out, force=force)
 
 
 def _plain_kinds(nodes_xml: str, edges_xml: str, connections_xml: str) -> list[tuple[str, str, str]]:
@@ -142,14 +142,16 @@ def _plain_kinds(nodes_xml: str, edges_xml: str, connections_xml: str) -> list[t
     return [("-n", "nod", nodes_xml), ("-e", "edg", edges_xml), ("-x", "con", connections_xml)]
 
 
-def build_plain_net(nodes_xml: str, edges_xml: str, connections_xml: str, out: str | Path) -> Path:
+def build_plain_net(
+    nodes_xml: str, edges_xml: str, connections_xml: str, out: str | Path, force: bool = False
+) -> Path:
     """A net from plain XML (nodes, edges, connections: "" for netconvert's own) into ``out``,
     written atomically, the plain XML kept beside it (``<stem>.nod.xml`` ...)."""
     path = Path(out)
     given = [
         (flag, kind, text) for flag, kind, text in _plain_kinds(nodes_xml, edges_xml, connections_xml) if text
     ]
-    files = write_plain_xml(path, [(kind, text) for _, kind, text in given])
+    files = write_plain_xml(path, [(kind, text) for _, kind, text in given], force)
     cmd = [str(sumo_binary("netconvert"))]
     for (flag, _, _), plain in zip(given, files, strict=True):
         cmd += [flag, str(plain)]

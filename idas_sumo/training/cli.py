@@ -8,7 +8,6 @@ from pathlib import Path
 from idas_sumo.distributed import LOCAL
 from idas_sumo.env.net_needs import check_road_lengths, road_needs
 from idas_sumo.errors import InputError
-from idas_sumo.io_utils import remove_stale_temps
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 from idas_sumo.sim.processes import SEED_LIMIT, max_workers
@@ -77,9 +76,6 @@ def train_from_args(args: argparse.Namespace) -> int:
         config = config_from_args(args, base=stored_config(out))
         source = str(out / CHECKPOINT_NAME)
     site = _check_run(args, config, source)
-    if out.is_dir():
-        # Writes killed before their rename (SIGKILL, power loss) leave their temp files behind.
-        remove_stale_temps(out)
     final = run_training(
         site,
         config,

@@ -15,7 +15,6 @@ import collections
 import contextlib
 import dataclasses
 import logging
-import shutil
 import sys
 import threading
 import time
@@ -32,7 +31,7 @@ from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
 from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
 from idas_sumo.env.scenario import Road, generate_scenario
 from idas_sumo.errors import InputError
-from idas_sumo.io_utils import ensure_writable_dir
+from idas_sumo.io_utils import holds_files, output_directory
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 from idas_sumo.sim.multinet import build_copies
@@ -83,8 +82,8 @@ def run_training(
     Returns the final checkpoint (``out_dir/<last stage>.pt``). ``resume`` continues the run in
     ``out_dir`` from its ``checkpoint.pt`` with the saved config, taking only ``RESUME_FIELDS``
     (workers, copies, the stage budgets) from ``config``: a larger budget extends a finished run. Without
-    ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which replaces the
-    files a run writes. ``gui`` shows the rollouts in sumo-gui (one worker only). ``ray_address``: the
+    ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which first removes the
+    files earlier runs recorded there (io_utils.output_directory); two runs never share it. ``gui`` shows the rollouts in sumo-gui (one worker only). ``ray_address``: the
     rollout workers are ``config.workers`` Ray actors on that cluster (distributed/ray_pool.py; the
     learner stays here); the run is the same as with local workers. Ctrl-C saves a checkpoint of the
     completed rounds, then re-raises KeyboardInterrupt.
@@ -98,12 +97,26 @@ def run_training(
     elif not force:
         _refuse_used_out_dir(out_dir)
     init_weights = _init_weights(config) if resumed is None else None
-    ensure_writable_dir(out_dir)
+    names = [path.name for path in _run_outputs(out_dir)]
+    with output_directory(out_dir, force, keep=resume, writes=names, clear_first=True):
+        return _train_in(net, config, out_dir, resumed, init_weights, gui, ray_address, progress)
 
+
+def _train_in(
+    net: MergeSite | Path | str,
+    config: TrainConfig,
+    out_dir: Path,
+    resumed: TrainingCheckpoint | None,
+    init_weights: dict[str, Any] | None,
+    gui: bool,
+    ray_address: str | None,
+    progress: bool,
+) -> Path:
+    """``run_training`` once ``out_dir`` is locked for the run (and, with ``force``, cleared)."""
     plans = plan_stages(config)
-    site = net if isinstance(net, MergeSite) else choose_merge(net_path, config.env.junction)
+    site = net if isinstance(net, MergeSite) else choose_merge(Path(net), config.env.junction)
     geometry_needs = _check_geometry(config) if config.geometry is not None else None
-    state = _starting_state(config, plans, out_dir, resumed, force)
+    state = _starting_state(config, plans, out_dir, resumed)
 
     run = _Run(config, out_dir, _site_limits(site))
     # On resume, the metrics rows past the checkpoint go (they are written again).
@@ -147,16 +160,12 @@ def _starting_state(
     plans: list[StagePlan],
     out_dir: Path,
     resumed: TrainingCheckpoint | None,
-    force: bool,
 ) -> _RunState:
-    """Where the run starts: where ``resumed`` left off (its later best weights dropped), or at episode 0 (with
-    ``force``, the files of an earlier run in ``out_dir`` removed)."""
+    """Where the run starts: where ``resumed`` left off (its later best weights dropped), or at episode 0."""
     if resumed is not None:
         state = _RunState.resume(resumed, plans, out_dir / CHECKPOINT_NAME)
         _drop_best_after(out_dir, state.global_episode)
         return state
-    if force:
-        _remove_run_outputs(out_dir)
     return _RunState.start(config.seed)
 
 
@@ -267,7 +276,7 @@ def _resumed_config(saved: TrainConfig, requested: TrainConfig) -> TrainConfig:
 
 def _refuse_used_out_dir(out_dir: Path) -> None:
     """A new run (no ``force``) writes only into an empty or new ``out_dir``."""
-    if not (out_dir.is_dir() and any(out_dir.iterdir())):
+    if not holds_files(out_dir):
         return
     if (out_dir / CHECKPOINT_NAME).exists():
         raise InputError(
@@ -293,19 +302,11 @@ def _init_weights(config: TrainConfig) -> dict[str, Any] | None:
 
 
 def _run_outputs(out_dir: Path) -> list[Path]:
-    """Every file or folder a training run writes into ``out_dir`` (what ``force`` replaces)."""
+    """Every file or folder a training run writes into ``out_dir``."""
     stages = {plan.name for stage in get_args(Stage) for plan in plan_stages(TrainConfig(stage=stage))}
     names = [CHECKPOINT_NAME, METRICS_NAME, VALIDATION_NAME, GEOMETRIES_NAME, TENSORBOARD_DIR]
     names += [f"{stage}{suffix}" for stage in sorted(stages) for suffix in (".pt", "_best.pt")]
     return [out_dir / name for name in names]
-
-
-def _remove_run_outputs(out_dir: Path) -> None:
-    for path in _run_outputs(out_dir):
-        if path.is_dir():
-            shutil.rmtree(path)
-        else:
-            path.unlink(missing_ok=True)
 
 
 def _drop_best_after(out_dir: Path, global_episode: int) -> None:

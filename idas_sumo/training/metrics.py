@@ -8,7 +8,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from idas_sumo.io_utils import atomic_open
+from idas_sumo.errors import InputError
+from idas_sumo.io_utils import atomic_open, record_output
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +58,9 @@ class MetricsSink:
     TensorBoard too when it is installed.
 
     On resume, ``keep_below_global_episode`` first drops every row whose ``global_episode`` is not
-    below it (rows written after the checkpoint, and a row cut short); ``kept`` then holds the rows
-    that stayed.
+    below it (rows written after the checkpoint, and a last row cut short); ``kept`` then holds the rows
+    that stayed. A file that is not such a sink's (another header, a damaged row) is one InputError
+    and is left as it was. Without it (a new run) the file starts empty.
     """
 
     def __init__(
@@ -73,30 +75,22 @@ class MetricsSink:
         self.columns = columns
         self.tensorboard_keys = tensorboard_keys
         self.kept: list[dict[str, str]] = []
+        resume = keep_below_global_episode is not None
         if keep_below_global_episode is not None and self.path.exists():
             self._truncate(keep_below_global_episode)
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        self._file = self.path.open("a", newline="", encoding="utf-8")
+        new = not resume or not self.path.exists() or self.path.stat().st_size == 0
+        record_output(self.path)
+        self._file = self.path.open("a" if resume else "w", newline="", encoding="utf-8")
         self._writer = csv.DictWriter(self._file, fieldnames=columns)
         if new:
             self._writer.writeheader()
             self._file.flush()
         self._tb: Any = None
         if tensorboard_keys:
-            try:
-                from torch.utils.tensorboard import SummaryWriter
-
-                self._tb = SummaryWriter(log_dir=str(out_dir / TENSORBOARD_DIR))
-            except Exception:  # tensorboard not installed: CSV only
-                self._tb = None
+            self._tb = _summary_writer(out_dir / TENSORBOARD_DIR)
 
     def _truncate(self, keep_below: int) -> None:
-        with self.path.open(newline="", encoding="utf-8") as f:
-            rows = []
-            for row in csv.DictReader(f):
-                episode = _episode_of(row, self.columns)
-                if episode is not None and episode < keep_below:
-                    rows.append(row)
+        rows = [row for row in read_rows(self.path, self.columns) if int(row["global_episode"]) < keep_below]
         with atomic_open(self.path, "w", newline="", encoding="utf-8") as f:
             w = csv.DictWriter(f, fieldnames=self.columns)
             w.writeheader()
@@ -126,14 +120,48 @@ class MetricsSink:
         self.close()
 
 
-def _episode_of(row: dict[str, Any], columns: tuple[str, ...]) -> int | None:
-    """The row's global episode, or None for a row cut short (a crash or Ctrl-C mid-write)."""
-    if None in row or any(row.get(k) is None for k in columns):
-        return None
+def _summary_writer(folder: Path) -> Any:
+    """A TensorBoard SummaryWriter into ``folder`` (None when TensorBoard is not installed); the event
+    file it creates is recorded as the tool's own, so ``--force`` removes it and nothing else there."""
+    before = set(folder.iterdir()) if folder.is_dir() else set()
     try:
-        return int(row["global_episode"])
-    except ValueError:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(log_dir=str(folder))
+    except Exception:  # tensorboard not installed: CSV only
         return None
+    for path in set(folder.iterdir()) - before:
+        record_output(path)
+    return writer
+
+
+def read_rows(path: Path, columns: tuple[str, ...]) -> list[dict[str, str]]:
+    """The complete rows of a sink's CSV, checked: the header must be ``columns`` and every row whole,
+    with an integer ``global_episode``; only a last line without its newline (a write cut short by a
+    crash or Ctrl-C) is dropped. Anything else is one InputError naming the file and the line."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"{path}: cannot read it ({err}); nothing was changed") from None
+    lines = text.splitlines()
+    if lines and not text.endswith("\n"):
+        lines.pop()  # cut short mid-row
+    reader = csv.reader(lines)
+    header = next(reader, None)
+    if header is not None and tuple(header) != columns:
+        raise InputError(
+            f"{path}: not written by `idas-sumo train` (its header is not the {len(columns)} columns "
+            f"{columns[0]},...,{columns[-1]}); nothing was changed: move it away or choose another --out"
+        )
+    rows = []
+    for line_no, values in enumerate(reader, 2):
+        if len(values) != len(columns) or not values[columns.index("global_episode")].isdigit():
+            raise InputError(
+                f"{path}: line {line_no} is not a row `idas-sumo train` writes ({len(values)} values, "
+                f"expected {len(columns)} with an integer global_episode); nothing was changed"
+            )
+        rows.append(dict(zip(columns, values, strict=True)))
+    return rows
 
 
 def _fmt(value: Any) -> Any:

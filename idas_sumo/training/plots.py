@@ -50,7 +50,21 @@ def is_training_run(directory: Path) -> bool:
 
 
 def _read(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
+    """``path`` with ``columns``; each of them but ``stage`` holds numbers (text in one is an InputError that
+    names the file, the column and the row, not a traceback in pandas)."""
     frame: pd.DataFrame = read_csv_columns(path, columns, "idas-sumo train")
+    for column in columns:
+        values = frame[column]
+        if column == "stage" or pd.api.types.is_numeric_dtype(values):
+            continue
+        parsed = pd.to_numeric(values, errors="coerce")
+        bad = (parsed.isna() & values.notna()).to_numpy()
+        if bad.any():
+            row = int(bad.argmax())
+            raise InputError(
+                f"{path}: column {column!r} holds {values.iloc[row]!r} in row {row + 1}, expected a number"
+            )
+        frame[column] = parsed
     return frame
 
 

@@ -29,7 +29,8 @@ from typing import Any, TypeAlias
 from idas_sumo.config import load_toml
 from idas_sumo.errors import InputError
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge
-from idas_sumo.training.config import TrainConfig, load_train_config, train_config_from_dict
+from idas_sumo.sim.processes import SEED_LIMIT
+from idas_sumo.training.config import RESUME_FIELDS, TrainConfig, load_train_config, train_config_from_dict
 
 __all__ = [
     "SWEEP_CSV",
@@ -75,6 +76,8 @@ def parse_seeds(text: str) -> list[int]:
         lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
         if hi < lo:
             raise InputError(f"--seeds: the range {part.strip()!r} runs backwards")
+        if hi >= SEED_LIMIT:  # as train --seed: checked here, not by SUMO after the folder was made
+            raise InputError(f"--seeds: seed {hi} is outside [0, {SEED_LIMIT}) (SUMO's seed range)")
         if hi - lo + len(seeds) >= MAX_RUNS:
             raise InputError(f"--seeds: more than {MAX_RUNS} seeds in {text!r}")
         seeds.extend(range(lo, hi + 1))
@@ -133,6 +136,9 @@ def plan_sweep(
     """Every run of the sweep, each config checked as the training TOML is (a bad key or value is an
     ``InputError`` naming it, with a did-you-mean for a misspelt key)."""
     load_train_config(config_path)  # the file's own mistakes are named as the file's
+    for seed in seeds:
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < SEED_LIMIT:
+            raise InputError(f"seeds: {seed!r} is not an integer in [0, {SEED_LIMIT}) (SUMO's seed range)")
     base = load_toml(config_path)
     combos = list(itertools.product(*(values for _, values in sets)))
     if len(seeds) * len(combos) > MAX_RUNS:
@@ -154,6 +160,31 @@ def plan_sweep(
             name = "_".join([f"seed-{seed}", *(f"{key}-{_slug(v)}" for key, v in values)])
             runs.append(SweepRun(name, seed, values, config))
     return runs
+
+
+def check_earlier_run(run: SweepRun, run_dir: Path) -> None:
+    """Refuse a run folder an earlier sweep left that was trained with another config than ``run``'s (the
+    sweep's TOML changed since): it would be reused, or resumed, as if it were this sweep's run. The fields
+    ``train --resume`` takes from a new config (workers, copies, episode budgets) may differ."""
+    from idas_sumo.training.checkpoint import load_checkpoint
+    from idas_sumo.training.curriculum import plan_stages
+    from idas_sumo.training.loop import CHECKPOINT_NAME
+
+    stage = plan_stages(run.config)[-1].name
+    earlier = [p for p in (run_dir / f"{stage}.pt", run_dir / CHECKPOINT_NAME) if p.is_file()]
+    if not earlier:
+        return
+    saved = load_checkpoint(earlier[0]).config
+    differ = [
+        f.name
+        for f in dataclasses.fields(TrainConfig)
+        if f.name not in RESUME_FIELDS and getattr(saved, f.name) != getattr(run.config, f.name)
+    ]
+    if differ:
+        raise InputError(
+            f"{run_dir}: trained by an earlier sweep with another config ({', '.join(differ)} differ from "
+            "this sweep's); move it away or sweep into another --out"
+        )
 
 
 def _run_one(job: tuple[SweepRun, MergeSite, Path, Evaluate | None]) -> dict[str, Any]:
@@ -212,10 +243,12 @@ def run_sweep(
     runs = plan_sweep(config_path, seeds, sets)
     if not net.is_file():
         raise InputError(f"{net}: network file not found")
-    ensure_writable_dir(out)
     # Each merge the runs train on, parsed once here; its path absolute: a Ray task may run in another
     # working directory (or on another node).
     sites = {j: choose_merge(net.resolve(), j) for j in {run.config.env.junction for run in runs}}
+    for run in runs:
+        check_earlier_run(run, out / run.name)
+    ensure_writable_dir(out)  # only once every check passed: a refused sweep leaves no folder behind
     jobs = [(run, sites[run.config.env.junction], out.resolve(), evaluate) for run in runs]
     if ray_address is None:
         rows = []
