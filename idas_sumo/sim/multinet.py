@@ -26,7 +26,9 @@ results do not depend on K).
 Built nets are cached by (source file content, K, SUMO version) in ``IDAS_SUMO_CACHE`` (else
 ``$XDG_CACHE_HOME/idas_sumo/nets``, else ``~/.cache/idas_sumo/nets``); a net is checked before it
 enters the cache and is written atomically, so concurrent workers building the same net are safe
-(the last rename wins, both files are the same).
+(the last rename wins, both files are the same). Before a process first uses a cached net it checks
+it again (``cached_file_ok``: its digest, faithful to the source, SUMO loads it in a child process):
+an edited file, even with its digest rewritten, is built again instead of crashing SUMO.
 """
 
 from __future__ import annotations
@@ -243,6 +245,8 @@ def sumo_load_problem(path: Path) -> str | None:
         )
     except subprocess.TimeoutExpired:
         return f"SUMO took over {LOAD_CHECK_TIMEOUT_S:.0f} s to load it"
+    except OSError as err:
+        return f"cannot run {binary} ({err.strerror})"
     if result.returncode < 0:
         return f"SUMO crashed loading it (signal {-result.returncode})"
     if result.returncode != 0:
@@ -273,9 +277,7 @@ def cached_file_ok(path: Path, digest: Path, check: Callable[[Path], object]) ->
 
 
 def _cached_file_problem(path: Path, check: Callable[[Path], object]) -> str | None:
-    with path.open("rb") as f:
-        head = f.read(4096)
-    if b"<!DOCTYPE" in head or b"<!ENTITY" in head:
+    if b"<!DOCTYPE" in path.read_bytes():  # entities (and their bombs) live in a DTD
         return "it declares a DTD"
     try:
         check(path)

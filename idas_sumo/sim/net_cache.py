@@ -11,7 +11,8 @@ and renames the finished net, then its digest, into place, so a reader never see
 A net is read back and checked (``read_merge_net``) before it enters the cache, and a cached net is
 used only if it still has the SHA-256 written beside it when it was built (netconvert stamps the build
 time into the file, so two racing builds can leave one's net beside the other's digest: the next call
-then builds it again).
+then builds it again) and, checked once per process, still reads as a merge and loads in a SUMO child
+process (``multinet.cached_file_ok``).
 """
 
 from __future__ import annotations
