@@ -63,7 +63,8 @@ def _smoke_config(config: TrainConfig) -> TrainConfig:
             config.env, max_episode_s=config.env.max_episode_s if config.geometry else 12.0
         ),
         validate_every=2 if config.validate_every else 0,
-        validation_scenarios=2,
+        # each validation merge of a [geometry] recipe needs a scenario of its own
+        validation_scenarios=max(2, config.geometry.validation_geometries if config.geometry else 0),
         init_from=str(POLICY_DIR / "idas_v.pt") if config.init_from else "",
     )
 
