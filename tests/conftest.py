@@ -91,6 +91,23 @@ def checkpoint_payload(learner: Any, /, **changes: Any) -> Any:
     return dataclasses.replace(checkpoint, **changes)
 
 
+# A training run of a few seconds (a TOML for --config).
+TINY_TRAIN_TOML = """\
+episodes_per_update = 1
+checkpoint_every = 1000
+max_episode_s = 12.0
+[robot_traffic]
+n_vehicles = 4
+min_vehicles_per_road = 2
+max_vehicles_per_road = 2
+max_controlled = 1
+[intelligent_traffic]
+n_vehicles = 4
+min_vehicles_per_road = 2
+max_vehicles_per_road = 2
+"""
+
+
 def interrupt_when(
     proc: Any, ready: Any, settle_s: float = 0.0, timeout_s: float = 30.0, signum: int | None = None
 ) -> str:

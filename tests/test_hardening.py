@@ -22,27 +22,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import checkpoint_payload, interrupt_when, run_cli
+from conftest import TINY_TRAIN_TOML, checkpoint_payload, interrupt_when, run_cli
 
 from idas_sumo.resources import DEFAULT_NET as NET
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
-
-TINY_TRAIN_TOML = """\
-episodes_per_update = 1
-checkpoint_every = 1000
-max_episode_s = 12.0
-[robot_traffic]
-n_vehicles = 4
-min_vehicles_per_road = 2
-max_vehicles_per_road = 2
-max_controlled = 1
-[intelligent_traffic]
-n_vehicles = 4
-min_vehicles_per_road = 2
-max_vehicles_per_road = 2
-"""
 
 
 # --- helpers ------------------------------------------------------------------------------------------

@@ -12,25 +12,11 @@ import csv
 from pathlib import Path
 
 import pytest
+from conftest import TINY_TRAIN_TOML
 
 from idas_sumo.cli import main
 from idas_sumo.io_utils import LOCK_NAME, MANIFEST_NAME, PACKAGE_DIR, OutputFolder, output_directory
 from idas_sumo.resources import DEFAULT_NET
-
-TINY_TOML = """\
-episodes_per_update = 1
-checkpoint_every = 1000
-max_episode_s = 12.0
-[robot_traffic]
-n_vehicles = 4
-min_vehicles_per_road = 2
-max_vehicles_per_road = 2
-max_controlled = 1
-[intelligent_traffic]
-n_vehicles = 4
-min_vehicles_per_road = 2
-max_vehicles_per_road = 2
-"""
 
 
 def run_main(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
@@ -59,7 +45,7 @@ def snapshot(directory: Path) -> dict[str, bytes]:
 
 def train(out: Path, tmp_path: Path, *extra: str) -> list[str]:
     config = tmp_path / "tiny.toml"
-    config.write_text(TINY_TOML)
+    config.write_text(TINY_TRAIN_TOML)
     return [
         "train", "--net", str(DEFAULT_NET), "--out", str(out), "--no-progress", "--config", str(config),
         "--stage", "robot", "--episodes", "1", *extra,
@@ -306,6 +292,6 @@ def test_no_command_writes_into_the_installed_package(
         "sweep": ["sweep", str(tmp_path / "tiny.toml"), "--seeds", "1", "--out", str(target)],
         "plot": ["plot", str(tmp_path), str(tmp_path), "--out", str(target / "x.png")],
     }[command]
-    (tmp_path / "tiny.toml").write_text("validate_every = 1\n" + TINY_TOML)
+    (tmp_path / "tiny.toml").write_text("validate_every = 1\n" + TINY_TRAIN_TOML)
     assert_refused(*run_main(capsys, *args), "installed idas_sumo package")
     assert not target.exists()
