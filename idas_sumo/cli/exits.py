@@ -11,7 +11,6 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
-from typing import Any
 
 from idas_sumo.errors import IdasError, InputError
 
@@ -58,38 +57,11 @@ def sigterm_as_interrupt() -> Iterator[None]:
         for signum in STOP_SIGNALS
         if signal.getsignal(signum) is not signal.SIG_IGN
     }
-    previous_hook = sys.unraisablehook
-    sys.unraisablehook = _stop_signals_survive_finalizers(previous_hook)
     try:
         yield
     finally:
-        sys.unraisablehook = previous_hook
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-
-
-REDELIVER_AFTER_S = 0.05
-
-
-def _stop_signals_survive_finalizers(hook: Callable[[Any], object]) -> Callable[[Any], None]:
-    """An unraisable hook that sends a stop signal again when its KeyboardInterrupt was swallowed.
-
-    Python runs a signal handler between any two bytecodes of the main thread, also inside a finalizer
-    (``__del__``, a weakref callback, the garbage collector's); an exception raised there is only reported
-    ("Exception ignored in ...") and the run would go on as if the signal had never come. So the signal is
-    sent again a moment later, when the main thread is most likely back in ordinary code."""
-
-    def unraisable(args: Any) -> None:
-        stop = args.exc_value
-        if isinstance(stop, KeyboardInterrupt):
-            signum = stop.signum if isinstance(stop, Terminated) else signal.SIGINT
-            timer = threading.Timer(REDELIVER_AFTER_S, os.kill, (os.getpid(), signum))
-            timer.daemon = True
-            timer.start()
-            return
-        hook(args)
-
-    return unraisable
 
 
 def stopped(signum: int) -> int:
