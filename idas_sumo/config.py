@@ -15,6 +15,10 @@ from typing import Any, TypeVar
 from idas_sumo.errors import InputError
 
 T = TypeVar("T")
+MAX_SCENARIOS = 100_000
+"""The most scenarios a user may ask one run for, wherever the count comes from (``--scenarios``, a
+recipe's ``validation_scenarios``, the Python API): scenarios are drawn up front, so a count is memory
+(10^9 filled it before the first episode); the paper uses 100."""
 RETIRED_ATTR = "RETIRED_KEYS"
 """A config dataclass may name keys it no longer has, with the value they had by default, in a class attribute of
 this name (``RETIRED_KEYS: ClassVar[dict[str, Any]]``). Files written before (checkpoints, recipes) still load when

@@ -9,15 +9,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
+from idas_sumo.config import MAX_SCENARIOS
 from idas_sumo.distributed import LOCAL, check_ray_address
 from idas_sumo.errors import InputError
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG, resolve_user_path
 from idas_sumo.sim.multinet import MAX_COPIES
 from idas_sumo.sim.processes import SEED_LIMIT, max_workers
 
-MAX_SCENARIOS = 100_000
-"""``--scenarios`` at most: a suite's scenarios are drawn up front (10^9 filled the memory before the
-first episode); the paper uses 100."""
 RAY_ADDRESS_HELP = (
     "run the {what} as Ray actors: auto (the cluster `ray start` runs here), HOST:PORT (a head node), "
     "or local (a Ray instance on this machine only); needs the ray extra; results do not depend on it"

@@ -7,6 +7,7 @@ not depend on ``copies``."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -16,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from idas_sumo.baselines.policies import EGO_ONLY_BASELINES
-from idas_sumo.config import from_dict, load_toml
+from idas_sumo.config import MAX_SCENARIOS, from_dict, load_toml
 from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.engine import (
     AgentBatch,
@@ -35,6 +36,7 @@ from idas_sumo.env.scenario import (
     load_scenario,
 )
 from idas_sumo.env.snapshot import ROAD_NAMES
+from idas_sumo.errors import InputError
 from idas_sumo.evaluation.metrics import TRAJECTORY_COLUMNS, EpisodeFacts, episode_row, flow_row
 from idas_sumo.evaluation.sweep import DEFAULT_SWEEP_OFFSETS, sweep_scenarios
 from idas_sumo.resources import SCENARIO_DIR
@@ -101,7 +103,10 @@ def suite_cases(
 
     ``n_scenarios``: random scenarios of the paper suite; start offsets per b_type of the driver-types
     suite (evaluation/sweep.py), which needs the net's ``road_lengths_m`` to place its cars in projection.
+    At most ``MAX_SCENARIOS``, as on the command line: the cases are drawn up front.
     """
+    if not 0 <= n_scenarios <= MAX_SCENARIOS:
+        raise InputError(f"scenarios: expected at most {MAX_SCENARIOS}, got {n_scenarios}")
     if suite == "paper":
         cases = []
         for i in range(n_scenarios):
@@ -129,8 +134,18 @@ def suite_cases(
 @dataclass
 class EpisodeResult:
     episode: dict[str, object]
+    """The episode's ``episodes.csv`` row."""
     flow: dict[str, object]
+    """Its ``flow.csv`` row."""
     trajectory: pd.DataFrame = field(repr=False)
+    """Every vehicle's row at every decision (``TRAJECTORY_COLUMNS``); ``no_trajectory()`` where it
+    was not kept (an evaluation worker without ``--trajectories``)."""
+
+
+@functools.cache
+def no_trajectory() -> pd.DataFrame:
+    """The one empty trajectory that stands for every dropped one (so a result costs its rows only)."""
+    return pd.DataFrame(columns=list(TRAJECTORY_COLUMNS))
 
 
 @dataclass(frozen=True)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import IO
 
 import pandas as pd
 
@@ -54,6 +56,8 @@ DRIVER_TYPES_NAME = "driver_types.csv"
 """The driver-types suite's merge times per method and b_type (evaluation/sweep.py)."""
 TREND_NAME = "driver_types_trend.csv"
 """Its rank correlation of merge time against b_type, per method."""
+TRAJECTORIES_NAME = "trajectories.csv"
+"""With ``--trajectories``: every vehicle's row at every decision of every episode, written as episodes end."""
 
 
 @dataclass(frozen=True)
@@ -142,20 +146,17 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
         if tripinfo_dir is not None:  # SUMO writes these itself
             for job in jobs:
                 record_output(tripinfo_path(tripinfo_dir, job))
-        episodes, flows, trajectories = [], [], []
         description = f"evaluate ({req.suite}, others: {others_name})"
-        with _progress(req.progress, len(jobs), description) as advance:
+        with (
+            _progress(req.progress, len(jobs), description) as advance,
+            _trajectory_sink(out / TRAJECTORIES_NAME, req.trajectories) as sink,
+        ):
+            results: Iterable[tuple[EvalJob, EpisodeResult]]
             if req.ray_address is not None or (req.workers > 1 and len(jobs) > 1):
                 results = _in_workers(req, site, env, jobs, others_name, tripinfo_dir, advance)
             else:
                 results = _here(req, site, env, jobs, policies, others_policy, tripinfo_dir, advance)
-            for job, result in results:
-                episodes.append(result.episode)
-                flows.append(result.flow)
-                if req.trajectories:
-                    trajectories.append(
-                        result.trajectory.assign(scenario=job.case.scenario.name, run_method=job.method)
-                    )
+            episodes, flows = _collect(results, sink)
         episode_frame = pd.DataFrame(episodes, columns=list(EPISODE_COLUMNS))
         summary = pd.DataFrame(summary_rows(episode_frame), columns=list(SUMMARY_COLUMNS))
         write_csv_atomic(episode_frame, out / "episodes.csv")
@@ -170,9 +171,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
             json.dump(_settings(req, others_name, eval_config, env), f, indent=2, default=str)
             f.write("\n")
         if req.trajectories:
-            columns = ["scenario", "run_method", *TRAJECTORY_COLUMNS]
-            write_csv_atomic(pd.concat(trajectories, ignore_index=True)[columns], out / "trajectories.csv")
-            written.append("trajectories.csv")
+            written.append(TRAJECTORIES_NAME)
         # What `idas-sumo replay` needs to run any of these episodes again (evaluation/replay.py).
         written.append(
             write_replay_data(
@@ -253,8 +252,8 @@ def _here(
     others_policy: Policy,
     tripinfo_dir: Path | None,
     advance: Callable[[], None],
-) -> list[tuple[EvalJob, EpisodeResult]]:
-    """Every job in this process, on one engine."""
+) -> Iterator[tuple[EvalJob, EpisodeResult]]:
+    """Every job in this process, on one engine; each result as its episode ends (none is kept here)."""
     engine = MergeEngine(
         site,
         copies=_copies(req),
@@ -262,14 +261,12 @@ def _here(
         config=env,
         gui=req.gui,
     )
-    results = []
     try:
         for job, result in run_jobs(engine, jobs, policies, others_policy, tripinfo_dir):
-            results.append((job, result))
             advance()
+            yield job, result
     finally:
         engine.close()
-    return results
 
 
 def _in_workers(
@@ -312,6 +309,52 @@ def _in_workers(
         for task, results in zip(tasks, per_task, strict=True)
         for job, result in zip(task.jobs, results, strict=True)
     ]
+
+
+def _collect(
+    results: Iterable[tuple[EvalJob, EpisodeResult]], sink: _TrajectorySink | None
+) -> tuple[list[dict[str, object]], list[dict[str, object]]]:
+    """Each result's episode and flow rows, in job order; its trajectory goes to ``sink`` (if any) and
+    is dropped, so that memory does not grow with the episodes' steps."""
+    episodes, flows = [], []
+    each = iter(results)
+    try:
+        for job, result in each:
+            episodes.append(result.episode)
+            flows.append(result.flow)
+            if sink is not None:
+                sink.write(result.trajectory.assign(scenario=job.case.scenario.name, run_method=job.method))
+    finally:
+        if isinstance(each, Generator):  # a failure here: close the engine now, not when collected
+            each.close()
+    return episodes, flows
+
+
+class _TrajectorySink:
+    """``trajectories.csv`` written one episode at a time: the same bytes as one frame of them all."""
+
+    COLUMNS = ("scenario", "run_method", *TRAJECTORY_COLUMNS)
+
+    def __init__(self, f: IO[str]) -> None:
+        self.f = f
+        self.header = True
+
+    def write(self, trajectory: pd.DataFrame) -> None:
+        trajectory[list(self.COLUMNS)].to_csv(
+            self.f, index=False, header=self.header, lineterminator="\n", na_rep=""
+        )
+        self.header = False
+
+
+@contextlib.contextmanager
+def _trajectory_sink(path: Path, enabled: bool) -> Iterator[_TrajectorySink | None]:
+    """A sink into a temp file beside ``path``, renamed into place when the block completes; None
+    when trajectories were not asked for."""
+    if not enabled:
+        yield None
+        return
+    with atomic_open(path) as f:
+        yield _TrajectorySink(f)
 
 
 class _progress:

@@ -17,7 +17,7 @@ from typing import Any
 
 from idas_sumo.env.config import EnvConfig
 from idas_sumo.errors import IdasError, SimulationError
-from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob
+from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob, no_trajectory
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.processes import ProcessPool, WorkerPool
 
@@ -76,11 +76,11 @@ class EvalServer:
         import traceback
 
         try:
-            results = [r for _, r in run_task(task)]
-            if not task.trajectories:
-                for r in results:
-                    r.trajectory = r.trajectory.iloc[0:0]  # not written: do not ship it back
-            return ("ok", results)
+            # Without --trajectories only the rows travel back: a trajectory is dropped as its episode ends.
+            rows = [
+                (r.episode, r.flow, r.trajectory if task.trajectories else None) for _, r in run_task(task)
+            ]
+            return ("ok", rows)
         except IdasError as err:
             return ("error", err)
         except Exception:
@@ -123,7 +123,7 @@ def run_in_workers(
             assert isinstance(value, Exception)
             raise value
         assert isinstance(value, list)
-        results.append(value)
+        results.append([EpisodeResult(e, f, no_trajectory() if t is None else t) for e, f, t in value])
     return results
 
 

@@ -26,17 +26,21 @@ results do not depend on K).
 Built nets are cached by (source file content, K, SUMO version) in ``IDAS_SUMO_CACHE`` (else
 ``$XDG_CACHE_HOME/idas_sumo/nets``, else ``~/.cache/idas_sumo/nets``); a net is checked before it
 enters the cache and is written atomically, so concurrent workers building the same net are safe
-(the last rename wins, both files are the same).
+(the last rename wins, both files are the same). Before a process first uses a cached net it checks
+it again (``cached_file_ok``: its digest, faithful to the source, SUMO loads it in a child process):
+an edited file, even with its digest rewritten, is built again instead of crashing SUMO.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 import os
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,6 +50,7 @@ from idas_sumo.io_utils import atomic_open, atomic_path, file_digest, remove_sta
 from idas_sumo.sim.merge_detect import Approach, MergeSite, RouteLane, as_site
 from idas_sumo.sim.netgen import MergeNet, sumo_binary
 
+log = logging.getLogger(__name__)
 CACHE_ENV_VAR = "IDAS_SUMO_CACHE"
 CACHE_FORMAT = 2
 """Bump when the way copies are built changes: older cached nets are then not reused."""
@@ -208,6 +213,84 @@ def check_copies(source: Path, built: Path, copies: int) -> None:
         raise UnfaithfulCopies(f"the {copies}-copy net of {source} is not faithful: {shown}")
 
 
+# -- trusting the cache -----------------------------------------------------------------------------
+
+LOAD_CHECK_TIMEOUT_S = 120.0
+"""How long SUMO may take to load a cached net in the check (a net of the cache loads in well under 1 s)."""
+_CHECKED: set[tuple[str, str]] = set()
+"""Cached nets (path, SHA-256) this process has checked: each is checked once per process."""
+
+
+def sumo_load_problem(path: Path) -> str | None:
+    """Why SUMO cannot load the net ``path``, tried in a child process; None when it loads cleanly.
+
+    libsumo reads a net inside this process, and a malformed one can crash it with no message (a net
+    whose lanes have empty shapes is a segfault), so a cached file is loaded by a child first."""
+    binary = sumo_binary("sumo")
+    cmd = [
+        str(binary),
+        "--net-file",
+        str(path),
+        "--end",
+        "0",
+        "--no-step-log",
+        "true",
+        "--no-warnings",
+        "true",
+    ]
+    env = {**os.environ, "SUMO_HOME": str(binary.parents[1])}
+    try:
+        result = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=LOAD_CHECK_TIMEOUT_S, env=env, check=False
+        )
+    except subprocess.TimeoutExpired:
+        return f"SUMO took over {LOAD_CHECK_TIMEOUT_S:.0f} s to load it"
+    except OSError as err:
+        return f"cannot run {binary} ({err.strerror})"
+    if result.returncode < 0:
+        return f"SUMO crashed loading it (signal {-result.returncode})"
+    if result.returncode != 0:
+        errors = [ln.strip() for ln in result.stderr.splitlines() if ln.startswith("Error")]
+        return errors[-1] if errors else f"SUMO exited with {result.returncode}"
+    return None
+
+
+def cached_file_ok(path: Path, digest: Path, check: Callable[[Path], object]) -> bool:
+    """Whether the cached net ``path`` may be used: it has the SHA-256 written beside it when it was
+    built (``digest``), and, once per process, it still passes the checks it passed then (``check``
+    raises on a bad net; no DTD, which no net written by SUMO has; SUMO loads it in a child process).
+    The digest alone is not enough: an edited file with its digest rewritten crashed SUMO. A file
+    that fails is logged and left for the caller to build again."""
+    if not (path.is_file() and digest.is_file()):
+        return False
+    sha = file_digest(path)
+    if digest.read_text().strip() != sha:
+        return False
+    if (str(path), sha) in _CHECKED:
+        return True
+    problem = _cached_file_problem(path, check)
+    if problem is not None:
+        log.warning("%s: the cached net fails its check (%s); building it again", path, problem)
+        return False
+    _CHECKED.add((str(path), sha))
+    return True
+
+
+def _cached_file_problem(path: Path, check: Callable[[Path], object]) -> str | None:
+    if b"<!DOCTYPE" in path.read_bytes():  # entities (and their bombs) live in a DTD
+        return "it declares a DTD"
+    try:
+        check(path)
+    except Exception as err:  # an edited file breaks the readers in any way: each is a failed check
+        return str(err) or type(err).__name__
+    return sumo_load_problem(path)
+
+
+def remember_checked(path: Path) -> None:
+    """``path`` was just built and checked here: no need to check it again in this process."""
+    _CHECKED.add((str(path), file_digest(path)))
+
+
 # -- building ---------------------------------------------------------------------------------------
 
 
@@ -326,9 +409,10 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
     remove_stale_temps(cache, older_than_s=STALE_TEMP_S)  # builds killed before their rename
     out = _cached_path(src, copies, cache)
     digest = out.with_name(out.name + ".sha256")
-    # A cached net is used only with the digest written when it was built and checked: a truncated
-    # or edited cache file was blamed on the user's net, or ran silently with other roads.
-    if out.is_file() and digest.is_file() and digest.read_text().strip() == file_digest(out):
+    # A cached net is used only with the digest written when it was built and still faithful to the
+    # source: a truncated or edited cache file was blamed on the user's net, ran with other roads, or
+    # crashed SUMO.
+    if cached_file_ok(out, digest, lambda built: check_copies(src, built, copies)):
         return out
     workdir = Path(tempfile.mkdtemp(prefix="idas_sumo_multinet_"))
     try:
@@ -339,6 +423,7 @@ def build_copies(source: str | Path, copies: int, cache_dir: str | Path | None =
                 f.write(file_digest(tmp) + "\n")
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
+    remember_checked(out)
     return out
 
 
@@ -435,6 +520,7 @@ __all__ = [
     "MultiNet",
     "build_copies",
     "cache_key",
+    "cached_file_ok",
     "check_copies",
     "copy_prefix",
     "default_cache_dir",

@@ -11,7 +11,8 @@ and renames the finished net, then its digest, into place, so a reader never see
 A net is read back and checked (``read_merge_net``) before it enters the cache, and a cached net is
 used only if it still has the SHA-256 written beside it when it was built (netconvert stamps the build
 time into the file, so two racing builds can leave one's net beside the other's digest: the next call
-then builds it again).
+then builds it again) and, checked once per process, still reads as a merge and loads in a SUMO child
+process (``multinet.cached_file_ok``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from pathlib import Path
 
 from idas_sumo.errors import SimulationError
 from idas_sumo.io_utils import file_digest, remove_stale_temps
-from idas_sumo.sim.multinet import STALE_TEMP_S, default_cache_dir
+from idas_sumo.sim.multinet import STALE_TEMP_S, cached_file_ok, default_cache_dir, remember_checked
 from idas_sumo.sim.netgen import NetParams, generate_net, read_merge_net, sumo_binary
 
 CACHE_FORMAT = 1
@@ -65,9 +66,10 @@ def cached_net(params: NetParams, cache_dir: str | Path | None = None) -> Path:
     folder = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) / GEN_SUBDIR
     path = folder / f"merge-{params_key(params)[:32]}.net.xml"
     digest = path.with_name(path.name + DIGEST_SUFFIX)
-    # Used only with the digest written when it was built: a truncated or edited cache file would
-    # otherwise fail later as if the net were bad, or run with other roads.
-    if path.is_file() and digest.is_file() and digest.read_text().strip() == file_digest(path):
+    # Used only with the digest written when it was built and if it still reads as a merge and loads
+    # in SUMO: a truncated or edited cache file would otherwise fail later as if the net were bad, run
+    # with other roads, or crash SUMO.
+    if cached_file_ok(path, digest, read_merge_net):
         return path
     folder.mkdir(parents=True, exist_ok=True)
     _remove_stale_builds(folder)
@@ -81,6 +83,7 @@ def cached_net(params: NetParams, cache_dir: str | Path | None = None) -> Path:
         os.replace(built_digest, digest)
     finally:
         shutil.rmtree(build, ignore_errors=True)
+    remember_checked(path)
     return path
 
 

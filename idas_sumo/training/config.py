@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
-from idas_sumo.config import from_dict, load_toml, to_plain
+from idas_sumo.config import MAX_SCENARIOS, from_dict, load_toml, to_plain
 from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -135,6 +135,16 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise ConfigValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.validation_scenarios > MAX_SCENARIOS:  # drawn up front: a count is memory
+            raise ConfigValueError(
+                f"validation_scenarios must be at most {MAX_SCENARIOS}, got {self.validation_scenarios}"
+            )
+        if self.geometry is not None and self.geometry.validation_geometries > self.validation_scenarios:
+            # Each validation merge is a net built up front: more merges than scenarios only costs builds.
+            raise ConfigValueError(
+                f"geometry.validation_geometries ({self.geometry.validation_geometries}) must be at most "
+                f"validation_scenarios ({self.validation_scenarios}): each validation merge needs a scenario"
+            )
         for name in ("seed", "validate_every", "validation_seed"):
             if getattr(self, name) < 0:
                 raise ConfigValueError(f"{name} must be non-negative, got {getattr(self, name)}")
