@@ -134,6 +134,18 @@ def interrupt_when(
     return str(stderr)
 
 
+def main_in_process(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    """``idas_sumo.cli.main`` in this process: (exit code, stdout, stderr)."""
+    from idas_sumo.cli import main
+
+    try:
+        code = main(list(args))
+    except SystemExit as exit_:  # argparse exits on bad usage
+        code = int(exit_.code or 0)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
 def run_cli(
     *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, timeout: float = 60.0
 ) -> subprocess.CompletedProcess[str]:

@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import main_in_process
 
-from idas_sumo.cli import main
 from idas_sumo.env.config import EnvConfig
 from idas_sumo.errors import InputError
 from idas_sumo.resources import DEFAULT_NET, SCENARIO_DIR
@@ -21,15 +21,6 @@ from idas_sumo.sim.processes import SEED_LIMIT
 
 REPLAY_BASE = Path(__file__).parent / "data" / "replay_base"
 """A stored evaluation (IDM among IDM others, two scenarios): its replay needs no policy file."""
-
-
-def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(args))
-    except SystemExit as exit_:  # argparse exits on bad usage
-        code = int(exit_.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def one_line(code: int, err: str, *needles: str) -> None:
@@ -94,7 +85,7 @@ def test_an_edited_run_record_is_one_line_naming_the_key(
     evaluated: Path, capsys: pytest.CaptureFixture[str], change: Any, needles: tuple[str, ...]
 ) -> None:
     edit_json(evaluated / "replay" / "run.json", change)
-    code, _, err = run_cli(capsys, "replay", str(evaluated), "--scenario", "0")
+    code, _, err = main_in_process(capsys, "replay", str(evaluated), "--scenario", "0")
     one_line(code, err, *needles)
     assert "scenarios.jsonl" not in err
 
@@ -119,13 +110,13 @@ def test_an_edited_scenario_line_is_one_line_naming_line_and_key(
     evaluated: Path, capsys: pytest.CaptureFixture[str], change: Any, needles: tuple[str, ...]
 ) -> None:
     edit_jsonl(evaluated / "replay" / "scenarios.jsonl", change)
-    code, _, err = run_cli(capsys, "replay", str(evaluated), "--scenario", "0")
+    code, _, err = main_in_process(capsys, "replay", str(evaluated), "--scenario", "0")
     one_line(code, err, *needles)
 
 
 def test_replay_data_that_is_not_json(evaluated: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (evaluated / "replay" / "run.json").write_text("[" * 100_000)
-    code, _, err = run_cli(capsys, "replay", str(evaluated), "--scenario", "0")
+    code, _, err = main_in_process(capsys, "replay", str(evaluated), "--scenario", "0")
     one_line(code, err, "run.json")
 
 
@@ -146,7 +137,9 @@ def test_replay_out_into_a_folder_it_cannot_write_is_refused_before_the_episode(
     monkeypatch.setattr(replay, "replay_episode", never)
     target = tmp_path / "ro" / "x.gif"
     target.parent.mkdir()
-    code, out, err = run_cli(capsys, "replay", str(evaluated), "--scenario", "0", "--out", str(target))
+    code, out, err = main_in_process(
+        capsys, "replay", str(evaluated), "--scenario", "0", "--out", str(target)
+    )
     one_line(code, err, f"--out {target}: cannot write into", "Permission denied")
     assert out == "" and list(target.parent.iterdir()) == []
 
@@ -167,7 +160,7 @@ def test_plot_on_text_in_a_numeric_column_names_file_column_and_row(
     frame = pd.read_csv(path, dtype=str, keep_default_na=False)
     frame.loc[row - 1, column] = "zz"
     frame.to_csv(path, index=False)
-    code, _, err = run_cli(capsys, "plot", str(evaluated))
+    code, _, err = main_in_process(capsys, "plot", str(evaluated))
     one_line(code, err, f"{path}: column {column!r} holds 'zz' in row {row}, expected a number")
     if name == "episodes.csv":  # read first: nothing drawn
         assert not list(evaluated.glob("*.png"))
@@ -176,7 +169,7 @@ def test_plot_on_text_in_a_numeric_column_names_file_column_and_row(
 def test_plot_still_draws_the_untouched_evaluation(
     evaluated: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    code, out, err = run_cli(capsys, "plot", str(evaluated))
+    code, out, err = main_in_process(capsys, "plot", str(evaluated))
     assert code == 0, err
     assert (evaluated / "summary.png").is_file() and "wrote" in out
 
@@ -192,7 +185,7 @@ def test_plot_on_a_training_csv_with_text_in_a_numeric_column(
     rows = [["direct", *(["1"] * (len(columns) - 1))], ["direct", *(["2"] * (len(columns) - 1))]]
     rows[1][2] = "oops"  # global_episode or return_mean: numbers the curves compute with
     (tmp_path / name).write_text("\n".join(",".join(r) for r in [list(columns), *rows]) + "\n")
-    code, _, err = run_cli(capsys, "plot", str(tmp_path))
+    code, _, err = main_in_process(capsys, "plot", str(tmp_path))
     one_line(code, err, f"{tmp_path / name}: column {columns[2]!r} holds 'oops' in row 2, expected a number")
 
 
@@ -309,7 +302,7 @@ def test_sweep_seeds_out_of_range_are_refused_before_anything_is_written(
     config = tmp_path / "tiny.toml"
     config.write_text(TINY)
     out = tmp_path / "sweep"
-    code, _, err = run_cli(capsys, "sweep", str(config), "--seeds", seeds, "--out", str(out))
+    code, _, err = main_in_process(capsys, "sweep", str(config), "--seeds", seeds, "--out", str(out))
     one_line(code, err, "--seeds: seed", "outside [0, 2147483648)")
     assert not out.exists()
 
@@ -332,14 +325,14 @@ def test_a_sweep_whose_config_changed_refuses_the_earlier_runs(
     config.write_text(TINY)
     out = tmp_path / "sweep"
     args = ("sweep", str(config), "--seeds", "0", "--out", str(out), "--net", str(DEFAULT_NET))
-    code, _, err = run_cli(capsys, *args)
+    code, _, err = main_in_process(capsys, *args)
     assert code == 0, err
     table = (out / "sweep.csv").read_bytes()
-    code, _, err = run_cli(capsys, *args)  # unchanged: the finished run is read, not trained again
+    code, _, err = main_in_process(capsys, *args)  # unchanged: the finished run is read, not trained again
     assert code == 0, err
     assert (out / "sweep.csv").read_bytes() == table
     config.write_text(TINY.replace("max_episode_s = 15.0", "max_episode_s = 14.0") + "workers = 1\n")
-    code, _, err = run_cli(capsys, *args)
+    code, _, err = main_in_process(capsys, *args)
     one_line(code, err, f"{out / 'seed-0'}: trained by an earlier sweep with another config (env differ")
     assert (out / "sweep.csv").read_bytes() == table
 
@@ -357,6 +350,6 @@ def test_a_car_departing_after_the_timeout_is_refused_and_nothing_is_left(
     scenario.write_text(text.replace("b_type = 1.0", f"b_type = 1.0\ndepart_s = {depart_s}"))
     out = tmp_path / "ev"
     args = ("evaluate", "--baseline", "idm", "--scenario", str(scenario), "--out", str(out))
-    code, _, err = run_cli(capsys, *args, "--sumo-output", "--no-progress")
+    code, _, err = main_in_process(capsys, *args, "--sumo-output", "--no-progress")
     one_line(code, err, f"{scenario}: vehicle 'merge_car' departs at", "timeout (max_episode_s)")
     assert not out.exists()

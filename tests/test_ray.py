@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import main_in_process
 
 from idas_sumo.resources import DEFAULT_NET
 
@@ -31,18 +32,6 @@ copies = 2
 validate_every = 2
 validation_scenarios = 2
 """
-
-
-def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    """``idas_sumo.cli.main`` in this process: (exit code, stdout, stderr)."""
-    from idas_sumo.cli import main
-
-    try:
-        code = main(list(args))
-    except SystemExit as exit_:  # argparse exits on bad usage
-        code = int(exit_.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def one_error_line(stderr: str, *needles: str) -> None:
@@ -113,7 +102,7 @@ def test_missing_extra_is_exit_2_naming_it(
         ["evaluate", "--baseline", "idm", "--out", str(tmp_path / "e"), "--ray-address", "auto"],
         ["sweep", str(tiny), "--seeds", "0-1", "--out", str(tmp_path / "s"), "--ray-address", "local"],
     ):
-        code, _, err = run_cli(capsys, *args)
+        code, _, err = main_in_process(capsys, *args)
         assert code == 2, (args, err)
         one_error_line(err, EXTRA)
     assert not (tmp_path / "t").exists() and not (tmp_path / "e").exists()
@@ -121,7 +110,9 @@ def test_missing_extra_is_exit_2_naming_it(
 
 def test_bad_ray_address_is_a_usage_error(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     for address in ("cluster", "host:", "host:99999", ":6379"):
-        code, _, err = run_cli(capsys, "train", "--out", str(tmp_path / "t"), "--ray-address", address)
+        code, _, err = main_in_process(
+            capsys, "train", "--out", str(tmp_path / "t"), "--ray-address", address
+        )
         assert code == 2, (address, err)
         one_error_line(err, "--ray-address", "auto, local or HOST:PORT")
 
@@ -167,10 +158,10 @@ def test_sweep_bad_arguments_are_exit_2(
         "not seeds": (["--seeds", "a"], ["--seeds"]),
     }
     for name, (args, needles) in cases.items():
-        code, _, err = run_cli(capsys, "sweep", str(tiny), "--out", str(out), *args)
+        code, _, err = main_in_process(capsys, "sweep", str(tiny), "--out", str(out), *args)
         assert code == 2, (name, err)
         one_error_line(err, *needles)
-    code, _, err = run_cli(capsys, "sweep", str(no_validation), "--seeds", "0", "--out", str(out))
+    code, _, err = main_in_process(capsys, "sweep", str(no_validation), "--seeds", "0", "--out", str(out))
     assert code == 2
     one_error_line(err, "validate_every")
     assert not out.exists()  # refused before anything was written
@@ -188,9 +179,9 @@ def test_train_on_ray_is_the_same_run_as_local_workers(
     from idas_sumo.training.checkpoint import load_checkpoint
 
     common = ["train", "--config", str(tiny), "--workers", "2", "--no-progress"]
-    assert run_cli(capsys, *common, "--out", str(tmp_path / "local"))[0] == 0
+    assert main_in_process(capsys, *common, "--out", str(tmp_path / "local"))[0] == 0
     assert ray_rounds == []
-    code, _, err = run_cli(capsys, *common, "--out", str(tmp_path / "ray"), "--ray-address", "local")
+    code, _, err = main_in_process(capsys, *common, "--out", str(tmp_path / "ray"), "--ray-address", "local")
     assert code == 0, err
     # 2 training rounds and 2 validations (a round of 2 episodes and 2 scenarios), each split over 2 actors.
     assert ray_rounds == [2, 2, 2, 2]
@@ -215,9 +206,9 @@ def test_evaluate_on_ray_writes_byte_identical_csvs(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, ray_rounds: list[int]
 ) -> None:
     common = ["evaluate", "--baseline", "idm", "--scenarios", "4", "--workers", "2", "--no-progress"]
-    assert run_cli(capsys, *common, "--out", str(tmp_path / "local"))[0] == 0
+    assert main_in_process(capsys, *common, "--out", str(tmp_path / "local"))[0] == 0
     assert ray_rounds == []
-    code, _, err = run_cli(capsys, *common, "--out", str(tmp_path / "ray"), "--ray-address", "local")
+    code, _, err = main_in_process(capsys, *common, "--out", str(tmp_path / "ray"), "--ray-address", "local")
     assert code == 0, err
     assert ray_rounds == [2]  # one task per actor
     names = sorted(p.name for p in (tmp_path / "local").glob("*.csv"))
@@ -234,7 +225,7 @@ def test_two_seed_sweep_on_ray_writes_its_table_and_resumes_locally(
     out = tmp_path / "sweep"
     args = ["sweep", str(tiny), "--seeds", "0-1", "--out", str(out), "--net", str(DEFAULT_NET)]
     args += ["--evaluate", "--eval-scenarios", "2"]
-    code, stdout, err = run_cli(capsys, *args, "--ray-address", "local")
+    code, stdout, err = main_in_process(capsys, *args, "--ray-address", "local")
     assert code == 0, err
     table = rows(out / "sweep.csv", drop=())
     assert [r["run"] for r in table] == ["seed-0", "seed-1"]
@@ -248,7 +239,7 @@ def test_two_seed_sweep_on_ray_writes_its_table_and_resumes_locally(
     # Without Ray, on the same folder: the runs are done, so only their results are read (and the
     # evaluations run again, here), and the table is the same.
     first = (out / "sweep.csv").read_bytes()
-    assert run_cli(capsys, *args)[0] == 0
+    assert main_in_process(capsys, *args)[0] == 0
     assert (out / "sweep.csv").read_bytes() == first
 
 
@@ -287,7 +278,9 @@ def test_sigterm_while_waiting_on_ray_is_143(
         "train": ["train", "--config", str(tiny), "--episodes", "100000"],
         "evaluate": ["evaluate", "--baseline", "idm", "--scenarios", "40"],
     }[command]
-    code, _, err = run_cli(capsys, *args, "--workers", "2", "--out", str(out), "--ray-address", "local")
+    code, _, err = main_in_process(
+        capsys, *args, "--workers", "2", "--out", str(out), "--ray-address", "local"
+    )
     assert code == 143, err
     assert err.strip().splitlines()[-1].startswith("idas-sumo: terminated (SIGTERM)"), err
     assert "Traceback" not in err
@@ -304,7 +297,7 @@ def test_no_cluster_at_the_address_is_exit_2(
     monkeypatch.delenv("RAY_ADDRESS", raising=False)
     out = tmp_path / "e"
     args = ["evaluate", "--baseline", "idm", "--scenarios", "2", "--out", str(out), "--ray-address", "auto"]
-    code, _, err = run_cli(capsys, *args)
+    code, _, err = main_in_process(capsys, *args)
     assert code == 2, err
     one_error_line(err, "--ray-address auto", "cannot connect to a Ray cluster")
     assert not out.exists()
@@ -332,10 +325,10 @@ def test_workers_are_bounded_by_this_machine_unless_they_run_on_a_cluster(
     for command in (["train", "--config", str(tiny)], ["evaluate", "--baseline", "idm"]):
         base = [*command, "--workers", many, "--out", str(tmp_path / "o")]
         for local in ([], ["--ray-address", "local"]):  # a local Ray instance runs on this machine's CPUs
-            code, _, err = run_cli(capsys, *base, *local)
+            code, _, err = main_in_process(capsys, *base, *local)
             assert code == 2, err
             one_error_line(err, "--workers", many, "CPUs")
         # On a cluster the cluster's CPUs count: here the refusal is that there is none to connect to.
-        code, _, err = run_cli(capsys, *base, "--ray-address", "auto")
+        code, _, err = main_in_process(capsys, *base, "--ray-address", "auto")
         assert code == 2, err
         one_error_line(err, "cannot connect to a Ray cluster")
