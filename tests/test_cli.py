@@ -373,16 +373,7 @@ def test_console_script_is_installed() -> None:
     ("signum", "code", "said"),
     [
         (signal.SIGINT, 130, "interrupted"),
-        pytest.param(
-            signal.SIGTERM,
-            143,
-            "terminated",
-            # A known bug, not fixed yet: in a few percent of tries a SIGTERM that lands about half a second
-            # after the output folder appears is swallowed and evaluate runs on (a second SIGTERM stops it).
-            marks=pytest.mark.xfail(
-                reason="known bug: an early SIGTERM is sometimes swallowed", strict=False
-            ),
-        ),
+        (signal.SIGTERM, 143, "terminated"),
     ],
 )
 def test_stopped_evaluate_exits_and_leaves_nothing(

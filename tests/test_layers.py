@@ -31,7 +31,7 @@ LAYER: dict[str, int] = {
     "evaluation": 4,
     "cli": 5,
 }
-SHARED_LEAVES = frozenset({"", "errors", "config", "io_utils", "resources"})
+SHARED_LEAVES = frozenset({"", "errors", "config", "io_utils", "resources", "stops"})
 """'' is the package root (``from idas_sumo import __version__``)."""
 SUMO_MODULES = frozenset({"libsumo", "sumolib", "traci", "sumo"})
 """Only the sim layer talks to SUMO."""

@@ -12,6 +12,7 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 
+from idas_sumo import stops
 from idas_sumo.errors import IdasError, InputError
 
 EXIT_OK = 0
@@ -44,22 +45,36 @@ def in_main_thread() -> bool:
 def sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM, and SIGHUP (the terminal closed) unless it is ignored (``nohup``), raise
     ``Terminated`` (a KeyboardInterrupt) while the command runs, so a stopped run cleans up as after
-    Ctrl-C; the previous handlers come back afterwards (main may run in a test)."""
+    Ctrl-C; the previous handlers come back afterwards (main may run in a test). Both raise through
+    ``stops.raise_stop``, so a stop that Python swallows is raised again at the loops' next step (and its
+    "Exception ignored" report is not printed)."""
     if not in_main_thread():
         yield  # signal handlers can only be set from the main thread
         return
 
     def terminate(signum: int, frame: object) -> None:
-        raise Terminated(signum)
+        stops.raise_stop(Terminated(signum))
 
+    def interrupt(signum: int, frame: object) -> None:
+        stops.raise_stop(KeyboardInterrupt())
+
+    handlers: dict[int, Callable[[int, object], None]] = dict.fromkeys(STOP_SIGNALS, terminate)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        handlers[signal.SIGINT] = interrupt
     previous = {
-        signum: signal.signal(signum, terminate)
-        for signum in STOP_SIGNALS
+        signum: signal.signal(signum, handler)
+        for signum, handler in handlers.items()
         if signal.getsignal(signum) is not signal.SIG_IGN
     }
+    report = sys.unraisablehook
+    sys.unraisablehook = lambda unraisable: (
+        None if stops.pending(unraisable.exc_value) else report(unraisable)
+    )
     try:
         yield
     finally:
+        stops.forget()
+        sys.unraisablehook = report
         for signum, handler in previous.items():
             signal.signal(signum, handler)
 
@@ -121,8 +136,10 @@ def exit_code(command: Callable[[], int], late: LateSignals | None) -> int:
             if late is not None:
                 late.install()
     except Terminated as stop:
+        stops.forget()
         return stopped(stop.signum)
     except KeyboardInterrupt:
+        stops.forget()
         return stopped(signal.SIGINT)
     except InputError as err:
         print(f"idas-sumo: error: {err}", file=sys.stderr)

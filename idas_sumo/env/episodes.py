@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from idas_sumo import stops
 from idas_sumo.env.contracts import AgentBatch, IntArray, Policy, StepResult
 from idas_sumo.env.outcome import EpisodeOutcome
 from idas_sumo.env.scenario import Scenario
@@ -69,6 +70,7 @@ def iter_episodes(
                     engine.release_slot(k)
             if len(reported) == len(jobs):
                 break
+            stops.check()
             batch = engine.observe()
             batch.job = np.asarray(jobs, dtype=np.int64)[batch.copy]
             actions = np.zeros(len(batch), dtype=np.int64)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from idas_sumo import stops
 from idas_sumo.env.config import EnvConfig
 from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.evaluation.protocol import EpisodeResult, EvalJob, no_trajectory
@@ -112,6 +113,7 @@ def run_in_workers(
     with pool:  # an error or a Ctrl-C here: leave no worker behind
         pool.submit(dict(enumerate(tasks)))
         while len(outcomes) < len(tasks):
+            stops.check()
             for i in pool.finished([i for i in range(len(tasks)) if i not in outcomes]):
                 outcomes[i] = pool.result(i)
                 if on_done is not None:

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from idas_sumo import stops
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
 from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
@@ -657,6 +658,7 @@ def _train_stage(
             validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
             stage_bar.validated(validation.best_return)
         while state.episode < plan.episodes:
+            stops.check()
             _round(run, plan, learner, state, workers, metrics, validation, stage_bar)
     except KeyboardInterrupt:
         if not (fresh and state.global_episode == 0):
