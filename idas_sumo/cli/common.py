@@ -20,6 +20,8 @@ RAY_ADDRESS_HELP = (
     "run the {what} as Ray actors: auto (the cluster `ray start` runs here), HOST:PORT (a head node), "
     "or local (a Ray instance on this machine only); needs the ray extra; results do not depend on it"
 )
+EVAL_SEED = 2019
+"""``evaluate``'s default seed (scenarios drawn and SUMO's ``--seed``); never used in training."""
 JUNCTION_HELP = (
     "the merge to run on, by junction id, in a net with several (idas-sumo nets inspect lists them; "
     "default: the net's only merge)"

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from idas_sumo.cli.common import (
+    EVAL_SEED,
     JUNCTION_HELP,
     RAY_ADDRESS_HELP,
     check_backend,
@@ -116,7 +117,7 @@ def _add_scenario_flags(ev: argparse.ArgumentParser) -> None:
     ev.add_argument(
         "--seed",
         type=seed,
-        default=2019,
+        default=EVAL_SEED,
         help="scenario seed in [0, 2^31) (default: %(default)s, not used in training)",
     )
     ev.add_argument(

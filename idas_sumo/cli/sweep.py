@@ -6,7 +6,15 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from idas_sumo.cli.common import check_backend, input_file, out_path, ray_address, scenario_count, seed
+from idas_sumo.cli.common import (
+    EVAL_SEED,
+    check_backend,
+    input_file,
+    out_path,
+    ray_address,
+    scenario_count,
+    seed,
+)
 from idas_sumo.resources import DEFAULT_NET_NAME
 
 if TYPE_CHECKING:
@@ -43,7 +51,7 @@ def add_parser(sub: Subparsers) -> None:
         "--evaluate", action="store_true", help="also evaluate each run's best checkpoint (paper suite)"
     )
     sweep.add_argument(
-        "--eval-seed", type=seed, default=2019, help="scenario seed of --evaluate (default: %(default)s)"
+        "--eval-seed", type=seed, default=EVAL_SEED, help="scenario seed of --evaluate (default: %(default)s)"
     )
     sweep.add_argument(
         "--eval-scenarios",

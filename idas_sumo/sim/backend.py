@@ -256,6 +256,33 @@ def _route_xml(scenario: RouteScenario, site: MergeSite) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_options(seed: int) -> list[str]:
+    """SUMO's options of every run, the files aside (flag, value, flag, value, ...): also what an
+    exported ``.sumocfg`` holds (sim/plain_sumo.py)."""
+    return [
+        "--step-length",
+        str(STEP_LENGTH_S),
+        "--seed",
+        str(seed),
+        "--collision.check-junctions",
+        "true",
+        "--collision.mingap-factor",
+        "0",
+        "--collision.action",
+        "remove",
+        "--time-to-teleport",
+        "-1",
+        "--no-step-log",
+        "true",
+        "--no-warnings",
+        "true",
+        "--default.speeddev",
+        "0",
+        "--begin",
+        "0",
+    ]
+
+
 @dataclass
 class StepEvents:
     """What happened in one simulation step."""
@@ -315,26 +342,7 @@ class SumoBackend:
             str(self.site.path),
             "--route-files",
             str(route_file),
-            "--step-length",
-            str(STEP_LENGTH_S),
-            "--seed",
-            str(self.seed),
-            "--collision.check-junctions",
-            "true",
-            "--collision.mingap-factor",
-            "0",
-            "--collision.action",
-            "remove",
-            "--time-to-teleport",
-            "-1",
-            "--no-step-log",
-            "true",
-            "--no-warnings",
-            "true",
-            "--default.speeddev",
-            "0",
-            "--begin",
-            "0",
+            *run_options(self.seed),
             *self.extra_args,
         ]
 
