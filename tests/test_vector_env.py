@@ -1,0 +1,115 @@
+"""make_vec's vector env: K worlds in one SUMO give MergeEnv's episodes whatever K is; masks, autoreset, info."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pytest
+
+import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
+from idas_sumo.env import MergeEnv
+from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.engine import EnvConfig
+from idas_sumo.env.layout import OBS_DIM
+from idas_sumo.env.scenario import TrafficConfig
+from idas_sumo.env.vector_env import MergeVectorEnv
+from idas_sumo.sim.backend import slot_taken
+
+pytestmark = pytest.mark.sumo
+
+SEED = 11
+EPISODES = 2
+"""Episodes per world compared: the second comes after a wave change (the autoreset path)."""
+
+
+def _kwargs(budget: Any) -> dict[str, Any]:
+    return {
+        "traffic": TrafficConfig(
+            n_vehicles=budget.n_vehicles, max_vehicles_per_road=budget.max_vehicles_per_road
+        ),
+        "config": EnvConfig(max_episode_s=budget.max_episode_s),
+    }
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_simulation() -> Iterator[None]:
+    yield
+    assert not slot_taken(), "a test left a SUMO simulation open"
+
+
+def _pick(rng: np.random.Generator, mask: np.ndarray) -> int:
+    return int(rng.choice(np.flatnonzero(mask)))
+
+
+Episode = list[tuple[bytes, float]]
+"""(observation bytes, reward) per non-idle step; the reset observation has reward 0."""
+
+
+def _vector_episodes(k_worlds: int, seed: int, budget: Any) -> list[list[Episode]]:
+    """EPISODES episodes of each world, idle rows dropped; world k's actions come from its own generator."""
+    env = gymnasium.make_vec(
+        "idas_sumo/Merge-v0", num_envs=k_worlds, vectorization_mode="vector_entry_point", **_kwargs(budget)
+    )
+    assert isinstance(env, MergeVectorEnv)
+    rngs = [np.random.default_rng(1000 + seed + k) for k in range(k_worlds)]
+    done: list[list[Episode]] = [[] for _ in range(k_worlds)]
+    current: list[Episode] = [[] for _ in range(k_worlds)]
+    try:
+        obs, info = env.reset(seed=seed)
+        assert obs.shape == (k_worlds, OBS_DIM) and env.action_masks().shape == (k_worlds, N_ACTIONS)
+        reward = np.zeros(k_worlds)
+        ended = np.zeros(k_worlds, dtype=bool)
+        while min(len(d) for d in done) < EPISODES:
+            masks = env.action_masks()
+            assert np.array_equal(masks, info["action_mask"].astype(bool))
+            actions = np.zeros(k_worlds, dtype=np.int64)
+            for k in range(k_worlds):
+                if info["idle"][k]:
+                    assert masks[k].tolist() == [True] + [False] * (N_ACTIONS - 1) and not obs[k].any()
+                    continue
+                current[k].append((obs[k].tobytes(), float(reward[k])))
+                if ended[k]:  # the next step is the reset step (it may come after idle steps): no action
+                    done[k].append(current[k])
+                    current[k] = []
+                    continue
+                actions[k] = _pick(rngs[k], masks[k])
+            obs, reward, terminated, truncated, info = env.step(actions)
+            ended = terminated | truncated
+            assert not (ended & info["idle"]).any()
+            assert (reward[info["idle"]] == 0).all()
+    finally:
+        env.close()
+    return [d[:EPISODES] for d in done]
+
+
+def _single_episodes(seed: int, world: int, budget: Any) -> list[Episode]:
+    """The same world on MergeEnv: seed + world, the same action generator."""
+    env = MergeEnv(**_kwargs(budget))
+    rng = np.random.default_rng(1000 + seed + world)
+    episodes: list[Episode] = []
+    try:
+        obs, info = env.reset(seed=seed + world)
+        for _ in range(EPISODES):
+            episode: Episode = [(obs.tobytes(), 0.0)]
+            while True:
+                obs, reward, terminated, truncated, info = env.step(_pick(rng, info["action_mask"]))
+                episode.append((obs.tobytes(), float(reward)))
+                if terminated or truncated:
+                    break
+            episodes.append(episode)
+            obs, info = env.reset()
+    finally:
+        env.close()
+    return episodes
+
+
+def test_results_do_not_depend_on_k(small_budget: Any) -> None:
+    eight = _vector_episodes(8, SEED, small_budget)
+    for k in (0, 5):
+        one = _vector_episodes(1, SEED + k, small_budget)[0]
+        assert one == eight[k], f"world {k} of 8 differs from the same world alone"
+    assert _single_episodes(SEED, 3, small_budget) == eight[3], "world 3 differs from MergeEnv"
+    assert len({tuple(e[0]) for e in eight}) == 8  # the worlds' episodes differ from each other
