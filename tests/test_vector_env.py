@@ -108,8 +108,6 @@ def _single_episodes(seed: int, world: int, budget: Any) -> list[Episode]:
 
 def test_results_do_not_depend_on_k(small_budget: Any) -> None:
     eight = _vector_episodes(8, SEED, small_budget)
-    for k in (0, 5):
-        one = _vector_episodes(1, SEED + k, small_budget)[0]
-        assert one == eight[k], f"world {k} of 8 differs from the same world alone"
+    assert _vector_episodes(1, SEED + 5, small_budget)[0] == eight[5], "world 5 of 8 differs from it alone"
     assert _single_episodes(SEED, 3, small_budget) == eight[3], "world 3 differs from MergeEnv"
     assert len({tuple(e[0]) for e in eight}) == 8  # the worlds' episodes differ from each other
