@@ -14,8 +14,8 @@ import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
 from idas_sumo.env import MergeEnv, MergeParallelEnv
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.engine import AgentBatch, EnvConfig
-from idas_sumo.env.parallel import END_REASONS, GONE, ROAD_NAMES
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
+from idas_sumo.env.parallel import END_REASONS, GONE, ROAD_NAMES
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.errors import SimulationError

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import gymnasium
@@ -111,3 +113,51 @@ def test_results_do_not_depend_on_k(small_budget: Any) -> None:
     assert _vector_episodes(1, SEED + 5, small_budget)[0] == eight[5], "world 5 of 8 differs from it alone"
     assert _single_episodes(SEED, 3, small_budget) == eight[3], "world 3 differs from MergeEnv"
     assert len({tuple(e[0]) for e in eight}) == 8  # the worlds' episodes differ from each other
+
+
+class MaskLog:
+    """Wraps ``MergeVectorEnv.step``: every action checked against the env's own masks at that moment."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.steps = 0
+        self.masked: list[tuple[int, int, int]] = []
+        self.restricted = 0
+        step = MergeVectorEnv.step
+
+        def checked(env: MergeVectorEnv, actions: Any) -> Any:
+            masks = env.action_masks()
+            acts = np.asarray(actions).reshape(-1)
+            for k in np.flatnonzero(~masks[np.arange(len(acts)), acts]).tolist():
+                self.masked.append((self.steps, k, int(acts[k])))
+            # rows of an acting ego whose safety mask forbids something (not an idle row's placeholder)
+            self.restricted += int(((masks.sum(axis=1) > 1) & ~masks.all(axis=1)).sum())
+            self.steps += 1
+            return step(env, actions)
+
+        monkeypatch.setattr(MergeVectorEnv, "step", checked)
+
+
+def _example(name: str) -> Any:
+    path = Path(__file__).resolve().parents[1] / "examples" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"example_{name}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_cleanrl_style_ppo_never_takes_a_masked_action(monkeypatch: pytest.MonkeyPatch) -> None:
+    log = MaskLog(monkeypatch)
+    args = ["--total-steps", "384", "--num-envs", "4", "--num-steps", "32", "--episode-s", "20"]
+    stats = _example("cleanrl_ppo_masked").main(args)
+    assert stats["steps"] == 384 and stats["decisions"] > 100 and stats["masked_taken"] == 0
+    assert log.steps >= 96 and log.restricted > 10  # the masks forbade something, often
+    assert log.masked == [], f"masked actions taken (step, world, action): {log.masked[:5]}"
+
+
+def test_sb3_maskable_ppo_on_make_vec_never_takes_a_masked_action(monkeypatch: pytest.MonkeyPatch) -> None:
+    log = MaskLog(monkeypatch)
+    stats = _example("sb3_maskable_ppo").main(["--timesteps", "256", "--num-envs", "4", "--episode-s", "20"])
+    assert stats["timesteps"] == 256
+    assert log.steps >= 64 and log.restricted > 10
+    assert log.masked == [], f"masked actions taken (step, world, action): {log.masked[:5]}"

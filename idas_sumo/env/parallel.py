@@ -14,6 +14,7 @@ from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
+from idas_sumo.env.outcome import END_REASONS
 from idas_sumo.env.scenario import (
     ROADS,
     Scenario,
@@ -22,14 +23,12 @@ from idas_sumo.env.scenario import (
     generate_scenario,
     start_room_m,
 )
-from idas_sumo.env.outcome import END_REASONS
 from idas_sumo.env.single import ResetFirst, SingleEpisode, StepOutcome
 from idas_sumo.env.snapshot import ROAD_NAMES
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
-
 
 GONE = -1
 """``infos[agent]["road"]`` of a car no longer on the road (else an index into ``ROAD_NAMES``)."""

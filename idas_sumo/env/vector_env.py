@@ -83,7 +83,9 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
                 "another simulation is open in it (close that environment first) or the net cannot be copied"
             )
         if scenario is not None:
-            check_against_net(scenario, self.engine.speed_limits_mps, start_room_m(self.engine.site), scenario.name)
+            check_against_net(
+                scenario, self.engine.speed_limits_mps, start_room_m(self.engine.site), scenario.name
+            )
             if ego is not None and ego not in {v.id for v in scenario.vehicles}:
                 raise ValueError(f"ego {ego!r} is not a vehicle of scenario {scenario.name!r}")
         self.num_envs = num_envs
@@ -227,7 +229,9 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             raise ResetFirst("step() before reset(): call reset() first")
         acts = np.asarray(actions)
         if acts.shape != (self.num_envs,):
-            raise ValueError(f"actions of shape {acts.shape} for {self.num_envs} worlds: expected ({self.num_envs},)")
+            raise ValueError(
+                f"actions of shape {acts.shape} for {self.num_envs} worlds: expected ({self.num_envs},)"
+            )
         acting = np.flatnonzero(self._phase == _ACTING).tolist()
         if not acting:
             return self._outputs([], self._advance(), None)
@@ -274,7 +278,10 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         self._last_obs[live] = obs[live]
         infos: dict[str, Any] = {}
         for k in range(n):
-            info: dict[str, Any] = {"action_mask": self._masks[k].copy(), "idle": k not in extras and k not in live}
+            info: dict[str, Any] = {
+                "action_mask": self._masks[k].copy(),
+                "idle": k not in extras and k not in live,
+            }
             if not info["idle"]:
                 info.update(ego=self.egos[k], **agent_info(self.engine, k, self.egos[k]), **extras.get(k, {}))
             infos = self._add_info(infos, info, k)
@@ -286,4 +293,3 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     def close_extras(self, **kwargs: Any) -> None:
         self.engine.close()
-
