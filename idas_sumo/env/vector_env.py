@@ -39,6 +39,7 @@ from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_
 from idas_sumo.env.engine import MergeEngine
 from idas_sumo.env.gym_env import _EGO_ATTEMPTS, with_controlled
 from idas_sumo.env.layout import OBS_DIM
+from idas_sumo.env.observation import build_observations
 from idas_sumo.env.scenario import Scenario, TrafficConfig, check_against_net, generate_scenario, start_room_m
 from idas_sumo.env.single import ResetFirst, _checked_action, agent_info
 from idas_sumo.errors import SimulationError
@@ -237,8 +238,11 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             return self._outputs([], self._advance(), None)
         batch = self._batch
         ego_actions = np.zeros(self.num_envs, dtype=np.int64)
-        for k in acting:
-            ego_actions[k] = _checked_action(self.egos[k], acts[k], batch.time_s)
+        if acts.dtype.kind in "iu" and ((acts >= 0) & (acts < N_ACTIONS)).all():
+            ego_actions[acting] = acts[acting]
+        else:  # an error names the world's ego (MergeEnv's message)
+            for k in acting:
+                ego_actions[k] = _checked_action(self.egos[k], acts[k], batch.time_s)
         rows = self._ego_row[acting]
         result = self._engine_step(ego_actions)
         ended = [k for k, r in zip(acting, rows.tolist(), strict=True) if result.end_reason[r]]
@@ -254,38 +258,90 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         n = self.num_envs
         obs = np.zeros((n, OBS_DIM), dtype=np.float32)
         rewards = np.zeros(n, dtype=np.float64)
-        terminated = np.zeros(n, dtype=np.bool_)
-        truncated = np.zeros(n, dtype=np.bool_)
+        reasons = np.full(n, "", dtype=object)
         self._masks[:] = placeholder_mask()
         batch = self._batch
         assert batch is not None
         live = [k for k, _ in stepped if self._phase[k] == _ACTING] + started
         if live:
             rows = self._ego_row[live]
-            obs[live] = batch.obs[rows]
+            obs[live] = self._ego_observations(batch, rows)
             self._masks[live] = batch.masks[rows]
-        extras: dict[int, dict[str, Any]] = {}
-        for k, r in stepped:
-            assert result is not None
-            rewards[k] = result.rewards[r]
-            parts = dict(zip(result.part_names, map(float, result.reward_parts[r]), strict=True))
-            extras[k] = {"reward_parts": parts}
-            reason = result.end_reason[r]
-            if reason:
-                extras[k]["end_reason"] = reason
-                terminated[k], truncated[k] = reason != "timeout", reason == "timeout"
-                obs[k] = self._last_obs[k]  # as MergeEnv: the observation the ego last acted on
+        worlds = np.array([k for k, _ in stepped], dtype=np.int64)
+        parts = np.zeros((n, len(result.part_names) if result is not None else 0))
+        if result is not None and len(worlds):
+            ego_rows = np.array([r for _, r in stepped], dtype=np.int64)
+            rewards[worlds] = result.rewards[ego_rows]
+            parts[worlds] = result.reward_parts[ego_rows]
+            reasons[worlds] = [result.end_reason[r] for r in ego_rows.tolist()]
+        ended = reasons != ""
+        obs[ended] = self._last_obs[ended]  # as MergeEnv: the observation the ego last acted on
         self._last_obs[live] = obs[live]
-        infos: dict[str, Any] = {}
-        for k in range(n):
-            info: dict[str, Any] = {
-                "action_mask": self._masks[k].copy(),
-                "idle": k not in extras and k not in live,
-            }
-            if not info["idle"]:
-                info.update(ego=self.egos[k], **agent_info(self.engine, k, self.egos[k]), **extras.get(k, {}))
-            infos = self._add_info(infos, info, k)
+        terminated = ended & (reasons != "timeout")
+        truncated = reasons == "timeout"
+        idle = np.ones(n, dtype=np.bool_)
+        idle[live] = False
+        idle[ended] = False
+        infos = self._infos(idle, worlds, parts, reasons, result)
         return obs, rewards, terminated, truncated, infos
+
+    def _infos(
+        self,
+        idle: npt.NDArray[np.bool_],
+        stepped: npt.NDArray[np.int64],
+        parts: npt.NDArray[np.float64],
+        reasons: npt.NDArray[Any],
+        result: StepResult | None,
+    ) -> dict[str, Any]:
+        """MergeEnv's info of each world, batched as Gymnasium's vector envs do (``_key``: who has ``key``)."""
+        n = self.num_envs
+        everyone = np.ones(n, dtype=np.bool_)
+        infos: dict[str, Any] = {
+            "action_mask": self._masks.copy(),
+            "_action_mask": everyone,
+            "idle": idle,
+            "_idle": everyone,
+        }
+        acting = ~idle
+        values: dict[str, npt.NDArray[Any]] = {
+            "ego": np.full(n, None, dtype=object),
+            "speed_mps": np.zeros(n),
+            "accel_mps2": np.zeros(n),
+            "dist_to_merge_m": np.zeros(n),
+            "road": np.full(n, None, dtype=object),
+        }
+        for k in np.flatnonzero(acting).tolist():
+            values["ego"][k] = self.egos[k]
+            for key, v in agent_info(self.engine, k, self.egos[k]).items():
+                values[key][k] = v
+        for key, v in values.items():
+            infos[key], infos[f"_{key}"] = v, acting
+        if result is not None and len(stepped):
+            has = np.zeros(n, dtype=np.bool_)
+            has[stepped] = True
+            named: dict[str, Any] = {}
+            for j, name in enumerate(result.part_names):
+                named[name], named[f"_{name}"] = parts[:, j].copy(), has
+            infos["reward_parts"], infos["_reward_parts"] = named, has
+            ended = reasons != ""
+            if ended.any():
+                infos["end_reason"] = np.where(ended, reasons, None)
+                infos["_end_reason"] = ended
+        return infos
+
+    def _ego_observations(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> Obs:
+        """The egos' observations: only theirs are built when other agents share the batch."""
+        if self.others is None:  # every agent is an ego: the batch's own (checked) observations
+            return batch.obs[rows]
+        obs = build_observations(
+            batch.snapshot, batch.egos[rows], batch.prev_accel[rows], batch.b_prio[rows], batch.b_type[rows]
+        )
+        if not np.isfinite(obs).all():
+            bad = batch.ids[int(rows[np.argmin(np.isfinite(obs).all(axis=1))])]
+            raise SimulationError(
+                f"non-finite observation for agent {bad!r} at t = {batch.time_s:.1f} s (a bug)"
+            )
+        return obs
 
     def action_masks(self) -> npt.NDArray[np.bool_]:
         """(K, 7): each world's action mask of the last reset/step (True = allowed)."""
