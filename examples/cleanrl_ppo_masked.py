@@ -75,6 +75,57 @@ class Agent(nn.Module):
         return action, dist.log_prob(action), dist.entropy(), self.value(obs)
 
 
+def gae(
+    rewards: torch.Tensor,
+    values: torch.Tensor,
+    decides: torch.Tensor,
+    next_value: torch.Tensor,
+    next_decides: torch.Tensor,
+    args: argparse.Namespace,
+) -> torch.Tensor:
+    """GAE over each world's decisions: a decision's next row is its next decision, or its episode's end
+    (no bootstrap there); rows that decide nothing get 0."""
+    t_len = len(rewards)
+    advantages = torch.zeros_like(rewards)
+    last_gae = torch.zeros(rewards.shape[1])
+    for t in reversed(range(t_len)):
+        later, later_value = (decides[t + 1], values[t + 1]) if t + 1 < t_len else (next_decides, next_value)
+        delta = rewards[t] + args.gamma * later_value * later - values[t]
+        last_gae = torch.where(decides[t], delta + args.gamma * args.gae_lambda * later * last_gae, 0.0)
+        advantages[t] = last_gae
+    return advantages
+
+
+def update(
+    agent: Agent,
+    optimizer: torch.optim.Optimizer,
+    batch: list[torch.Tensor],
+    logprobs: torch.Tensor,
+    advantages: torch.Tensor,
+    targets: torch.Tensor,
+    rows: torch.Tensor,
+    args: argparse.Namespace,
+) -> None:
+    """PPO's clipped update on the decision ``rows`` (flat indices) of the rollout; ``batch``: their
+    observations, masks and actions."""
+    b_obs, b_mask, b_act = batch
+    b_logp, b_target = logprobs.reshape(-1)[rows], targets.reshape(-1)[rows]
+    b_adv = advantages.reshape(-1)[rows]
+    b_adv = (b_adv - b_adv.mean()) / (b_adv.std() + 1e-8)
+    for _ in range(args.epochs):
+        for mb in torch.randperm(len(rows)).chunk(args.minibatches):
+            _, logp, entropy, value = agent.act(b_obs[mb], b_mask[mb], b_act[mb])
+            ratio = (logp - b_logp[mb]).exp()
+            adv = b_adv[mb]
+            pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip, 1 + args.clip)).mean()
+            v_loss = 0.5 * ((value - b_target[mb]) ** 2).mean()
+            loss = pg_loss + args.vf_coef * v_loss - args.ent_coef * entropy.mean()
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
+            optimizer.step()
+
+
 def main(argv: list[str] | None = None) -> dict[str, float]:
     args = parse_args(argv)
     torch.manual_seed(args.seed)
@@ -121,40 +172,15 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             episodes += int(ended.sum())
             decisions += int(decides[t].sum())
             steps += k
-        # GAE over each world's decisions: a decision's next row is its next decision, or its episode's end.
         with torch.no_grad():
             next_value = agent.value(torch.as_tensor(next_obs))
-            advantages = torch.zeros((t_len, k))
-            last_gae = torch.zeros(k)
-            for t in reversed(range(t_len)):
-                later, later_value = (
-                    (decides[t + 1], values[t + 1]) if t + 1 < t_len else (next_decides, next_value)
-                )
-                delta = rewards[t] + args.gamma * later_value * later - values[t]
-                last_gae = torch.where(
-                    decides[t], delta + args.gamma * args.gae_lambda * later * last_gae, 0.0
-                )
-                advantages[t] = last_gae
-            targets = advantages + values
+        advantages = gae(rewards, values, decides, next_value, next_decides, args)
+        targets = advantages + values
         rows = torch.nonzero(decides.reshape(-1)).squeeze(1)
         if len(rows) < 2:
             continue
-        b_obs, b_mask = obs_buf.reshape(-1, obs_dim)[rows], mask_buf.reshape(-1, n_actions)[rows]
-        b_act, b_logp = actions.reshape(-1)[rows], logprobs.reshape(-1)[rows]
-        b_adv, b_target = advantages.reshape(-1)[rows], targets.reshape(-1)[rows]
-        b_adv = (b_adv - b_adv.mean()) / (b_adv.std() + 1e-8)
-        for _ in range(args.epochs):
-            for batch in torch.randperm(len(rows)).chunk(args.minibatches):
-                _, logp, entropy, value = agent.act(b_obs[batch], b_mask[batch], b_act[batch])
-                ratio = (logp - b_logp[batch]).exp()
-                adv = b_adv[batch]
-                pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip, 1 + args.clip)).mean()
-                v_loss = 0.5 * ((value - b_target[batch]) ** 2).mean()
-                loss = pg_loss + args.vf_coef * v_loss - args.ent_coef * entropy.mean()
-                optimizer.zero_grad()
-                loss.backward()
-                nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
-                optimizer.step()
+        flat = (obs_buf.reshape(-1, obs_dim), mask_buf.reshape(-1, n_actions), actions.reshape(-1))
+        update(agent, optimizer, [x[rows] for x in flat], logprobs, advantages, targets, rows, args)
     seconds = time.perf_counter() - start
     envs.close()
     assert masked_taken == 0, f"{masked_taken} masked actions taken"

@@ -148,16 +148,17 @@ def _example(name: str) -> Any:
 
 def test_cleanrl_style_ppo_never_takes_a_masked_action(monkeypatch: pytest.MonkeyPatch) -> None:
     log = MaskLog(monkeypatch)
-    args = ["--total-steps", "384", "--num-envs", "4", "--num-steps", "32", "--episode-s", "20"]
+    args = ["--total-steps", "384", "--num-envs", "4", "--num-steps", "32", "--episode-s", "8"]
     stats = _example("cleanrl_ppo_masked").main(args)
     assert stats["steps"] == 384 and stats["decisions"] > 100 and stats["masked_taken"] == 0
+    assert stats["episodes"] >= 4  # waves ended and began again (the autoreset path)
     assert log.steps >= 96 and log.restricted > 10  # the masks forbade something, often
     assert log.masked == [], f"masked actions taken (step, world, action): {log.masked[:5]}"
 
 
 def test_sb3_maskable_ppo_on_make_vec_never_takes_a_masked_action(monkeypatch: pytest.MonkeyPatch) -> None:
     log = MaskLog(monkeypatch)
-    stats = _example("sb3_maskable_ppo").main(["--timesteps", "256", "--num-envs", "4", "--episode-s", "20"])
+    stats = _example("sb3_maskable_ppo").main(["--timesteps", "256", "--num-envs", "4", "--episode-s", "10"])
     assert stats["timesteps"] == 256
     assert log.steps >= 64 and log.restricted > 10
     assert log.masked == [], f"masked actions taken (step, world, action): {log.masked[:5]}"

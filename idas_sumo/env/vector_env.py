@@ -325,7 +325,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             infos["reward_parts"], infos["_reward_parts"] = named, has
             ended = reasons != ""
             if ended.any():
-                infos["end_reason"] = np.where(ended, reasons, None)
+                infos["end_reason"] = np.where(ended, reasons, np.full(len(reasons), None, dtype=object))
                 infos["_end_reason"] = ended
         return infos
 
