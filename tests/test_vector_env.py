@@ -50,10 +50,22 @@ Episode = list[tuple[bytes, float]]
 """(observation bytes, reward) per non-idle step; the reset observation has reward 0."""
 
 
-def _vector_episodes(k_worlds: int, seed: int, budget: Any) -> list[list[Episode]]:
+class KeepOrFirst:
+    """``others=``: keep the acceleration where allowed, else the first allowed action (row by row)."""
+
+    def act(self, batch: Any, rows: np.ndarray) -> np.ndarray:
+        masks = batch.masks[rows].astype(bool)
+        return np.where(masks[:, 2], 2, np.argmax(masks, axis=1)).astype(np.int64)
+
+
+def _vector_episodes(k_worlds: int, seed: int, budget: Any, others: Any = None) -> list[list[Episode]]:
     """EPISODES episodes of each world, idle rows dropped; world k's actions come from its own generator."""
     env = gymnasium.make_vec(
-        "idas_sumo/Merge-v0", num_envs=k_worlds, vectorization_mode="vector_entry_point", **_kwargs(budget)
+        "idas_sumo/Merge-v0",
+        num_envs=k_worlds,
+        vectorization_mode="vector_entry_point",
+        others=others,
+        **_kwargs(budget),
     )
     assert isinstance(env, MergeVectorEnv)
     rngs = [np.random.default_rng(1000 + seed + k) for k in range(k_worlds)]
@@ -87,9 +99,9 @@ def _vector_episodes(k_worlds: int, seed: int, budget: Any) -> list[list[Episode
     return [d[:EPISODES] for d in done]
 
 
-def _single_episodes(seed: int, world: int, budget: Any) -> list[Episode]:
+def _single_episodes(seed: int, world: int, budget: Any, others: Any = None) -> list[Episode]:
     """The same world on MergeEnv: seed + world, the same action generator."""
-    env = MergeEnv(**_kwargs(budget))
+    env = MergeEnv(others=others, **_kwargs(budget))
     rng = np.random.default_rng(1000 + seed + world)
     episodes: list[Episode] = []
     try:
@@ -113,6 +125,12 @@ def test_results_do_not_depend_on_k(small_budget: Any) -> None:
     assert _vector_episodes(1, SEED + 5, small_budget)[0] == eight[5], "world 5 of 8 differs from it alone"
     assert _single_episodes(SEED, 3, small_budget) == eight[3], "world 3 differs from MergeEnv"
     assert len({tuple(e[0]) for e in eight}) == 8  # the worlds' episodes differ from each other
+
+
+def test_worlds_with_other_agents_are_merge_env_episodes(small_budget: Any) -> None:
+    # Every other car an agent (others=): only the egos' observations are built, from the shared batch.
+    three = _vector_episodes(3, SEED, small_budget, KeepOrFirst())
+    assert _single_episodes(SEED, 2, small_budget, KeepOrFirst()) == three[2]
 
 
 class MaskLog:
@@ -162,3 +180,25 @@ def test_sb3_maskable_ppo_on_make_vec_never_takes_a_masked_action(monkeypatch: p
     assert stats["timesteps"] == 256
     assert log.steps >= 64 and log.restricted > 10
     assert log.masked == [], f"masked actions taken (step, world, action): {log.masked[:5]}"
+
+
+def test_make_vec_picks_the_engine_and_checks_its_input(small_budget: Any) -> None:
+    from gymnasium.error import ResetNeeded
+
+    env = gymnasium.make_vec("idas_sumo/Merge-v0", num_envs=2, **_kwargs(small_budget))  # the default mode
+    try:
+        assert isinstance(env, MergeVectorEnv) and env.metadata["autoreset_mode"].value == "NextStep"
+        assert env.observation_space.shape == (2, OBS_DIM) and env.action_space.shape == (2,)
+        with pytest.raises(ResetNeeded):
+            env.step(np.zeros(2, dtype=np.int64))
+        _, info = env.reset(seed=0)
+        assert {"action_mask", "idle", "ego", "speed_mps", "road"} <= info.keys()
+        with pytest.raises(ValueError, match=r"expected \(2,\)"):
+            env.step(np.zeros(3, dtype=np.int64))
+        acting = int(np.argmin(info["idle"]))
+        bad = np.zeros(2, dtype=np.int64)
+        bad[acting] = N_ACTIONS
+        with pytest.raises(ValueError, match=rf"invalid action 7 for agent '{info['ego'][acting]}'"):
+            env.step(bad)
+    finally:
+        env.close()

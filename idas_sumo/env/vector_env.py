@@ -242,7 +242,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             ego_actions[acting] = acts[acting]
         else:  # an error names the world's ego (MergeEnv's message)
             for k in acting:
-                ego_actions[k] = _checked_action(self.egos[k], acts[k], batch.time_s)
+                ego_actions[k] = _checked_action(self.egos[k], acts[k].item(), batch.time_s)
         rows = self._ego_row[acting]
         result = self._engine_step(ego_actions)
         ended = [k for k, r in zip(acting, rows.tolist(), strict=True) if result.end_reason[r]]
