@@ -42,6 +42,7 @@ from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.observation import build_observations
 from idas_sumo.env.scenario import Scenario, TrafficConfig, check_against_net, generate_scenario, start_room_m
 from idas_sumo.env.single import ResetFirst, _checked_action, agent_info
+from idas_sumo.env.snapshot import ROAD_NAMES
 from idas_sumo.errors import SimulationError
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.merge_detect import MergeSite
@@ -52,6 +53,7 @@ _PRE, _ACTING, _DONE = 0, 1, 2
 next wave (its ego ended, or never got to act)."""
 
 Obs = npt.NDArray[np.float32]
+_ROAD_NAMES = np.array(ROAD_NAMES, dtype=object)
 
 
 class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
@@ -157,10 +159,13 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         self._ego_row[:] = -1
         if self.others is None:  # only the egos are agents
             self._ego_row[batch.copy] = np.arange(len(batch))
-        else:
-            for i, (a, k) in enumerate(zip(batch.ids, batch.copy.tolist(), strict=True)):
-                if a == self.egos[k]:
-                    self._ego_row[k] = i
+        elif len(batch):
+            index = np.full(len(batch.snapshot), -1, dtype=np.int64)  # snapshot row -> batch row
+            index[batch.egos] = np.arange(len(batch))
+            for k in range(self.num_envs):
+                row = self.engine.row(k, self.egos[k]) if self._phase[k] != _DONE else None
+                if row is not None:
+                    self._ego_row[k] = index[row]
         started = []
         for k in np.flatnonzero(self._phase == _PRE).tolist():
             if self._ego_row[k] >= 0:
@@ -310,10 +315,22 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             "dist_to_merge_m": np.zeros(n),
             "road": np.full(n, None, dtype=object),
         }
+        live = acting & (self._phase == _ACTING)  # on the road and acting: read from the batch
+        if live.any():
+            batch = self._batch
+            assert batch is not None
+            rows = self._ego_row[live]
+            egos = batch.egos[rows]
+            snap = batch.snapshot
+            values["speed_mps"][live] = snap.speed_mps[egos]
+            values["accel_mps2"][live] = batch.prev_accel[rows]
+            values["dist_to_merge_m"][live] = snap.dist_to_merge_m[egos]
+            values["road"][live] = _ROAD_NAMES[snap.road[egos]]
         for k in np.flatnonzero(acting).tolist():
             values["ego"][k] = self.egos[k]
-            for key, v in agent_info(self.engine, k, self.egos[k]).items():
-                values[key][k] = v
+            if not live[k]:  # its episode ended in this step (agent_info: also when it left the road)
+                for key, v in agent_info(self.engine, k, self.egos[k]).items():
+                    values[key][k] = v
         for key, v in values.items():
             infos[key], infos[f"_{key}"] = v, acting
         if result is not None and len(stepped):
