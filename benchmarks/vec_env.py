@@ -12,6 +12,8 @@ Rows, at N = 8 vehicles per world (K = 16 worlds in one SUMO) and N = 32 (K = 4)
   ego, N - 1 SUMO-driven cars) and *all agents* (``others=`` a policy that keeps its acceleration: N agents,
   as in the raw row and the speed table's engine rows).
 * **MergeEnv**: the single-world env's ``step()`` (one SUMO per world), the same two worlds.
+* **engine alone**: the speed table's engine row (``speed_table.run_engine``: observe, every agent's
+  observation, masks and step, no Gymnasium API), for what the vector env adds on top of it.
 
 Every world runs ``env_throughput.make_scenario(N)`` (N/2 cars per road, equally spaced at 2.5 m/s, clear of
 the merge for the episode) with the last car on the main road as the ego, which keeps its acceleration (action
@@ -40,6 +42,7 @@ from rich.table import Table
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from env_throughput import make_scenario, run_raw
 from report import print_table
+from speed_table import run_engine
 
 from idas_sumo.env.contracts import AgentBatch, IntArray
 from idas_sumo.env.engine import EnvConfig
@@ -142,6 +145,7 @@ def measure(repeats: int, steps: int) -> dict[tuple[str, int], list[float]]:
             scenario = make_scenario(n, net, EPISODE_STEPS)
             runs = {
                 "raw": lambda: run_raw(net, scenario, steps, EPISODE_STEPS).steps_per_s,  # noqa: B023
+                "engine": lambda: run_engine(net, scenario, k, steps, seed=0).steps_per_s,  # noqa: B023
                 "vec robots": lambda: run_vec(scenario, k, steps, None).per_s,  # noqa: B023
                 "vec all": lambda: run_vec(scenario, k, steps, KeepAcceleration()).per_s,  # noqa: B023
                 "single robots": lambda: run_single(scenario, steps // 4, None).per_s,  # noqa: B023
@@ -154,6 +158,7 @@ def measure(repeats: int, steps: int) -> dict[tuple[str, int], list[float]]:
 
 ROWS = (
     ("raw", "raw libsumo (step, 4 getters, setSpeed per car)"),
+    ("engine", "episode engine alone, K worlds, all agents (speed table)"),
     ("vec robots", "make_vec, K worlds in one SUMO, robots (1 ego/world)"),
     ("vec all", "make_vec, K worlds in one SUMO, all cars agents"),
     ("single robots", "MergeEnv (one SUMO per world), robots"),

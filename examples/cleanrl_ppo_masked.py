@@ -186,7 +186,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     assert masked_taken == 0, f"{masked_taken} masked actions taken"
     mean_return = float(np.mean(returns)) if returns else float("nan")
     print(
-        f"{steps} world-steps ({decisions} decisions) in {seconds:.1f} s, {episodes} episodes, "
+        f"{steps} world-steps ({decisions} decisions) in {seconds:.1f} s ({steps / seconds:,.0f} world-steps/s "
+        f"with the updates), {episodes} episodes, "
         f"mean return {mean_return:.2f}, masked actions taken: {masked_taken}"
     )
     return {"steps": steps, "decisions": decisions, "episodes": episodes, "masked_taken": masked_taken}
