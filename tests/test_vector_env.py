@@ -18,6 +18,7 @@ from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.vector_env import MergeVectorEnv
+from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import slot_taken
 
 pytestmark = pytest.mark.sumo
@@ -202,3 +203,13 @@ def test_make_vec_picks_the_engine_and_checks_its_input(small_budget: Any) -> No
             env.step(bad)
     finally:
         env.close()
+
+
+def test_make_vec_beside_an_open_simulation_says_so(small_budget: Any) -> None:
+    single = MergeEnv(**_kwargs(small_budget))
+    try:
+        single.reset(seed=0)  # holds this process's libsumo simulation
+        with pytest.raises(SimulationError, match="another simulation is open"):
+            gymnasium.make_vec("idas_sumo/Merge-v0", num_envs=2, **_kwargs(small_budget))
+    finally:
+        single.close()
