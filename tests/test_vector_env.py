@@ -213,3 +213,33 @@ def test_make_vec_beside_an_open_simulation_says_so(small_budget: Any) -> None:
             gymnasium.make_vec("idas_sumo/Merge-v0", num_envs=2, **_kwargs(small_budget))
     finally:
         single.close()
+
+
+def test_rgb_array_frames_have_a_fixed_shape_and_show_the_ego(small_budget: Any) -> None:
+    from idas_sumo.env.drawing import vehicle_colour
+
+    single = gymnasium.make("idas_sumo/Merge-v0", render_mode="rgb_array", **_kwargs(small_budget))
+    try:
+        _, info = single.reset(seed=1)
+        first = single.render()
+        for _ in range(5):
+            _, _, _, _, info = single.step(int(np.flatnonzero(info["action_mask"])[0]))
+        later = single.render()
+        assert isinstance(first, np.ndarray) and isinstance(later, np.ndarray)
+        assert first.shape == later.shape == (320, 640, 3) and first.dtype == np.uint8
+        assert not np.array_equal(first, later)  # the cars moved
+        ego = single.unwrapped.sim.scenario.vehicles  # type: ignore[attr-defined]
+        spec = next(v for v in ego if v.id == info["ego"])
+        colour = vehicle_colour(spec.road, spec.b_type, True)
+        assert (later == colour).all(axis=2).sum() > 20  # the ego's square, in its road's colour
+    finally:
+        single.close()
+    env = gymnasium.make_vec(
+        "idas_sumo/Merge-v0", num_envs=2, render_mode="rgb_array", **_kwargs(small_budget)
+    )
+    try:
+        env.reset(seed=0)
+        frames = env.render()
+        assert frames is not None and [f.shape for f in frames] == [(320, 640, 3)] * 2
+    finally:
+        env.close()

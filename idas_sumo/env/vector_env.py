@@ -36,6 +36,7 @@ from gymnasium.vector.utils import batch_space
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
+from idas_sumo.env.drawing import TopViewFrames, slot_frame
 from idas_sumo.env.engine import MergeEngine
 from idas_sumo.env.gym_env import _EGO_ATTEMPTS, with_controlled
 from idas_sumo.env.layout import OBS_DIM
@@ -64,7 +65,11 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
     alone (deterministic, or sampling from per-row state) for K not to change the episodes.
     """
 
-    metadata: dict[str, Any] = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+    metadata: dict[str, Any] = {
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+        "render_modes": ["rgb_array"],
+        "render_fps": 5,
+    }
 
     def __init__(
         self,
@@ -93,6 +98,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
                 raise ValueError(f"ego {ego!r} is not a vehicle of scenario {scenario.name!r}")
         self.num_envs = num_envs
         self.render_mode = render_mode
+        self._frames: TopViewFrames | None = None
         self.fixed_scenario, self.fixed_ego, self.others = scenario, ego, others
         self.traffic = traffic or TrafficConfig()
         self.single_observation_space = spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32)
@@ -363,6 +369,17 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
     def action_masks(self) -> npt.NDArray[np.bool_]:
         """(K, 7): each world's action mask of the last reset/step (True = allowed)."""
         return self._masks.astype(bool)
+
+    def render(self) -> tuple[npt.NDArray[np.uint8], ...] | None:
+        """``render_mode="rgb_array"``: one frame per world (``MergeEnv.render``'s), an idle world's slot as
+        it is (empty once its episode ended)."""
+        if self.render_mode != "rgb_array":
+            return None
+        if self._batch is None:
+            raise ResetFirst("render() before reset(): call reset() first")
+        if self._frames is None:
+            self._frames = TopViewFrames(self.engine.site)
+        return tuple(slot_frame(self._frames, self.engine, k, self.egos[k]) for k in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:
         self.engine.close()
