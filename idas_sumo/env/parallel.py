@@ -51,8 +51,8 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
     Each reset draws a random scenario from the env's seed (or uses ``scenario``, or
     ``options={"scenario": ...}``). Observations are ``{"observation", "action_mask"}``; ``infos`` carry
     the raw physical values (``speed_mps``, ``accel_mps2``, ``dist_to_merge_m``, ``road``) and the named
-    ``reward_parts``; ``state()`` is the centralised critic's input. Infos hold numbers only (TorchRL's
-    ``PettingZooWrapper`` turns each into a tensor): ``road`` is an index into ``ROAD_NAMES`` (-1: the car
+    ``reward_parts``; ``state()`` is the centralised critic's input. Infos hold numbers only (wrappers
+    such as TorchRL's make a tensor of each value): ``road`` is an index into ``ROAD_NAMES`` (-1: the car
     left the road), ``end_reason`` one into ``END_REASONS``. The shared flow penalty is not in
     ``rewards`` (the paper counts it only in the joint reward): read it from ``reward_parts["flow"]``
     or ``infos[agent]["joint_reward"]``.
