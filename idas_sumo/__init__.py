@@ -22,4 +22,10 @@ from gymnasium.envs.registration import register, registry
 __version__ = "0.1.0"
 
 if "idas_sumo/Merge-v0" not in registry:
-    register(id="idas_sumo/Merge-v0", entry_point="idas_sumo.env.gym_env:MergeEnv", max_episode_steps=None)
+    # make_vec(..., vectorization_mode="vector_entry_point"): K worlds in one SUMO (env/vector_env.py).
+    register(
+        id="idas_sumo/Merge-v0",
+        entry_point="idas_sumo.env.gym_env:MergeEnv",
+        vector_entry_point="idas_sumo.env.vector_env:MergeVectorEnv",
+        max_episode_steps=None,
+    )

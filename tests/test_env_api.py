@@ -15,6 +15,7 @@ from idas_sumo.env import MergeEnv, MergeParallelEnv
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.engine import AgentBatch, EnvConfig
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
+from idas_sumo.env.parallel import END_REASONS, GONE, ROAD_NAMES
 from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.errors import SimulationError
@@ -118,6 +119,15 @@ def test_same_seed_same_trajectory(small_budget: Any) -> None:
     )
 
 
+def _assert_numeric(value: Any) -> None:
+    """Numbers all the way down: TorchRL's PettingZooWrapper makes a tensor of each (a str fails)."""
+    if isinstance(value, dict):
+        for v in value.values():
+            _assert_numeric(v)
+    else:
+        assert np.asarray(value).dtype.kind in "biuf", value
+
+
 def test_infos_and_state(small_budget: Any) -> None:
     env = MergeParallelEnv(seed=2, **_small(small_budget))
     try:
@@ -125,14 +135,16 @@ def test_infos_and_state(small_budget: Any) -> None:
         assert env.agents and set(infos) == set(env.agents)
         for a in env.agents:
             assert infos[a].keys() >= INFO_KEYS
-            assert infos[a]["road"] in ("main", "merge")
+            assert ROAD_NAMES[infos[a]["road"]] in ("main", "merge")  # numbers only (TorchRL's tensors)
             assert 0.0 < infos[a]["dist_to_merge_m"] <= 250.0
             assert obs[a]["observation"].shape == (OBS_DIM,) and obs[a]["observation"].dtype == np.float32
             assert obs[a]["action_mask"].dtype == np.int8
         state = env.state()
         assert state.shape == (STATE_DIM,) and state.dtype == np.float32
         assert env.state_space.contains(state)
+        _assert_numeric(infos)
         obs, _rewards, _, _, infos = env.step(dict.fromkeys(env.agents, 2))
+        _assert_numeric(infos)
         for info in infos.values():
             assert info.keys() >= INFO_KEYS
             assert set(info["reward_parts"]) == {"finish", "collide", "impede", "flow"}
@@ -229,10 +241,10 @@ def test_agents_come_and_go() -> None:
             for a in acting:  # every agent that acted gets its step's results
                 assert a in obs and a in infos and a in terminated and a in truncated
                 if "end_reason" in infos[a]:
-                    ended[a] = infos[a]["end_reason"]
+                    ended[a] = END_REASONS[infos[a]["end_reason"]]
             for a in env.agents:  # every agent still in the game has an observation
                 assert a in obs and obs[a]["action_mask"].any()
-                assert infos[a]["road"] != "gone"
+                assert infos[a]["road"] != GONE
         assert ["early", "late"] in seen  # both on the road at once
         assert ended["early"] == "finished"
         assert ended["late"] == "timeout"

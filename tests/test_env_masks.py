@@ -20,6 +20,7 @@ from idas_sumo.env.actions import (
     safety_bound,
     safety_mask,
 )
+from idas_sumo.env.parallel import GONE
 from idas_sumo.physics.idm import IDMParams, idm_acceleration
 
 INF = np.inf
@@ -273,7 +274,7 @@ def test_masked_actions_are_never_sampled_or_applied(small_budget) -> None:  # t
                 assert outcome.replaced_actions == {}
                 assert not any("replaced_action" in infos[a] for a in actions)
                 for a, act in actions.items():  # the acceleration driven is the sampled action's
-                    if infos[a]["road"] == "gone":  # collided and removed
+                    if infos[a]["road"] == GONE:  # collided and removed
                         continue
                     assert infos[a]["accel_mps2"] == pytest.approx(
                         float(next_acceleration([prev[a]], [act])[0])

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from conftest import TINY_TRAIN_TOML, checkpoint_payload, interrupt_when, run_cli
 
+from idas_sumo.env.outcome import END_REASONS
 from idas_sumo.resources import DEFAULT_NET as NET
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -722,7 +723,7 @@ def test_a_non_finite_relative_speed_in_a_grid_names_the_agent(speed: float) -> 
 def test_vehicle_removed_by_sumo_is_accounted_for(parallel_env: Any) -> None:
     parallel_env.sim.backend.raw_call("vehicle", "remove", "g0")
     obs, rewards, terms, _, infos = parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
-    assert terms["g0"] is True and infos["g0"]["end_reason"] == "removed"
+    assert terms["g0"] is True and END_REASONS[infos["g0"]["end_reason"]] == "removed"
     assert rewards["g0"] == 0.0
     assert parallel_env.agents == ["m0"]
     obs, *_ = parallel_env.step({"m0": 2})

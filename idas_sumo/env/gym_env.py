@@ -12,6 +12,7 @@ from gymnasium import Env, spaces
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import Policy, placeholder_mask
+from idas_sumo.env.drawing import TopViewFrames, slot_frame
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.parallel import DEFAULT_NET
 from idas_sumo.env.scenario import (
@@ -54,7 +55,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
     ``subprocess``, so no ``if __name__ == "__main__":`` guard is needed); ``close()`` ends it.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}  # sumo-gui: pass gui=True
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 5}  # sumo-gui: pass gui=True
 
     def __init__(
         self,
@@ -69,6 +70,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         safety_mask: SafetyMask | None = None,
     ) -> None:
         self.render_mode = render_mode
+        self._frames: TopViewFrames | None = None
         self.sim = SingleEpisode(net, config=with_safety_mask(config, safety_mask), gui=gui)
         if scenario is not None:
             engine = self.sim.engine
@@ -167,6 +169,17 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         obs, masks = self.sim.observe([self.ego])
         self._mask = masks[0]
         return obs[0], reward, False, False, self._info(self._mask, **extra)
+
+    def render(self) -> npt.NDArray[np.uint8] | None:
+        """``render_mode="rgb_array"``: the merge from above now (the drawing of ``idas-sumo replay``), a
+        (320, 640, 3) uint8 frame, the ego ringed; other modes draw nothing (``gui=True``: sumo-gui)."""
+        if self.render_mode != "rgb_array":
+            return None
+        if self.sim.scenario is None:
+            raise ResetFirst("render() before reset(): call reset() first")
+        if self._frames is None:
+            self._frames = TopViewFrames(self.sim.engine.site)
+        return slot_frame(self._frames, self.sim.engine, 0, self.ego)
 
     def close(self) -> None:
         self.sim.close()

@@ -14,6 +14,7 @@ from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import placeholder_mask
 from idas_sumo.env.layout import OBS_DIM
+from idas_sumo.env.outcome import END_REASONS
 from idas_sumo.env.scenario import (
     ROADS,
     Scenario,
@@ -23,10 +24,16 @@ from idas_sumo.env.scenario import (
     start_room_m,
 )
 from idas_sumo.env.single import ResetFirst, SingleEpisode, StepOutcome
+from idas_sumo.env.snapshot import ROAD_NAMES
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
+
+GONE = -1
+"""``infos[agent]["road"]`` of a car no longer on the road (else an index into ``ROAD_NAMES``)."""
+
+__all__ = ["END_REASONS", "GONE", "ROAD_NAMES", "MergeParallelEnv", "observation_space"]
 
 
 def observation_space() -> spaces.Dict:
@@ -44,7 +51,9 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
     Each reset draws a random scenario from the env's seed (or uses ``scenario``, or
     ``options={"scenario": ...}``). Observations are ``{"observation", "action_mask"}``; ``infos`` carry
     the raw physical values (``speed_mps``, ``accel_mps2``, ``dist_to_merge_m``, ``road``) and the named
-    ``reward_parts``; ``state()`` is the centralised critic's input. The shared flow penalty is not in
+    ``reward_parts``; ``state()`` is the centralised critic's input. Infos hold numbers only (wrappers
+    such as TorchRL's make a tensor of each value): ``road`` is an index into ``ROAD_NAMES`` (-1: the car
+    left the road), ``end_reason`` one into ``END_REASONS``. The shared flow penalty is not in
     ``rewards`` (the paper counts it only in the joint reward): read it from ``reward_parts["flow"]``
     or ``infos[agent]["joint_reward"]``.
 
@@ -114,11 +123,13 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
 
     def _info(self, agent: str, outcome: StepOutcome | None = None) -> dict[str, Any]:
         info: dict[str, Any] = self.sim.agent_info(agent)
+        road = info["road"]
+        info["road"] = ROAD_NAMES.index(road) if road in ROAD_NAMES else GONE
         if outcome is not None:
             info["reward_parts"] = outcome.reward_parts[agent]
             info["joint_reward"] = outcome.joint_reward
             if agent in outcome.end_reason:
-                info["end_reason"] = outcome.end_reason[agent]
+                info["end_reason"] = END_REASONS.index(outcome.end_reason[agent])
             if agent in outcome.replaced_actions:
                 info["replaced_action"] = outcome.replaced_actions[agent]
         return info

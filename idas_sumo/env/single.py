@@ -147,23 +147,7 @@ class SingleEpisode:
 
     def agent_info(self, agent_id: str) -> dict[str, object]:
         """Raw physical values of an agent now (or at its last step on the road)."""
-        snap = self.engine.snapshot
-        i = self.engine.row(0, agent_id)
-        if i is not None:
-            engine = self.engine
-            accel = engine.prev_accel(0, agent_id) if engine.admitted(0, agent_id) else snap.accel_mps2[i]
-            return {
-                "speed_mps": float(snap.speed_mps[i]),
-                "accel_mps2": float(accel),
-                "dist_to_merge_m": float(snap.dist_to_merge_m[i]),
-                "road": ROAD_NAMES[int(snap.road[i])],
-            }
-        return {
-            "speed_mps": float("nan"),
-            "accel_mps2": float("nan"),
-            "dist_to_merge_m": float("nan"),
-            "road": "gone",
-        }
+        return agent_info(self.engine, 0, agent_id)
 
     def step(self, actions: Mapping[str, object]) -> StepOutcome:
         """Apply one action per active agent, advance SUMO one step, score it and end whoever is done."""
@@ -204,6 +188,27 @@ class SingleEpisode:
 
     def close(self) -> None:
         self.engine.close()
+
+
+def agent_info(engine: MergeEngine, k: int, agent_id: str) -> dict[str, object]:
+    """Raw physical values of slot k's agent now (or at its last step on the road); ``road`` "gone" once
+    it left the road."""
+    snap = engine.snapshot
+    i = engine.row(k, agent_id)
+    if i is not None:
+        accel = engine.prev_accel(k, agent_id) if engine.admitted(k, agent_id) else snap.accel_mps2[i]
+        return {
+            "speed_mps": float(snap.speed_mps[i]),
+            "accel_mps2": float(accel),
+            "dist_to_merge_m": float(snap.dist_to_merge_m[i]),
+            "road": ROAD_NAMES[int(snap.road[i])],
+        }
+    return {
+        "speed_mps": float("nan"),
+        "accel_mps2": float("nan"),
+        "dist_to_merge_m": float("nan"),
+        "road": "gone",
+    }
 
 
 def _checked_action(agent: str, action: object, time_s: float) -> int:

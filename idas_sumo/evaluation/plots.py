@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from idas_sumo.env.drawing import ZONE_COLOUR as ZONE_COLOR
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation.metrics import (
@@ -20,9 +21,6 @@ from idas_sumo.evaluation.metrics import (
 from idas_sumo.evaluation.policies import METHOD_LABELS
 from idas_sumo.evaluation.sweep import is_sweep_scenario, spearman_test
 from idas_sumo.io_utils import OutputFolder, read_csv_columns, save_png
-
-ZONE_COLOR = "#9ecae1"
-
 
 NUMBER_COLUMNS = frozenset({*EPISODE_COLUMNS, *FLOW_COLUMNS, *TRAJECTORY_COLUMNS}) - {
     "scenario",

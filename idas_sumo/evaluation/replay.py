@@ -29,6 +29,8 @@ import numpy as np
 import pandas as pd
 
 from idas_sumo.config import from_dict
+from idas_sumo.env.drawing import ROBOT_COLOUR, ZONE_COLOUR, draw_roads, vehicle_colour
+from idas_sumo.env.drawing import view_xy as _view_xy
 from idas_sumo.env.engine import (
     AgentBatch,
     EnvConfig,
@@ -42,7 +44,6 @@ from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
 from idas_sumo.errors import IdasError, InputError
 from idas_sumo.evaluation.metrics import EPISODE_COLUMNS
-from idas_sumo.evaluation.plots import ZONE_COLOR as ZONE_COLOUR
 from idas_sumo.evaluation.policies import LEARNED_METHODS, METHOD_LABELS, check_method, resolve_policy
 from idas_sumo.evaluation.protocol import (
     EpisodeResult,
@@ -55,7 +56,6 @@ from idas_sumo.io_utils import TEMP_SUFFIX, atomic_open, file_digest, write_csv_
 from idas_sumo.resources import POLICY_DIR
 from idas_sumo.sim.backend import STEP_LENGTH_S, require_display
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge
-from idas_sumo.sim.netgen import NetParams
 from idas_sumo.sim.processes import SEED_LIMIT
 
 REPLAY_DIR = "replay"
@@ -67,14 +67,6 @@ REPLAY_FORMAT = 1
 """Bumped when the replay files change in a way an older reader would misread."""
 GUI_OPTIONS: tuple[str, ...] = ("--start", "--delay", str(int(STEP_LENGTH_S * 1000)))
 """sumo-gui runs at once (no play button to press) and in real time: one 0.2 s step per 200 ms."""
-ROBOT_COLOUR = (150, 150, 150)
-"""SUMO-driven (robot) cars: grey, as in the route file's vType."""
-ROAD_COLOURS: dict[str, tuple[tuple[int, int, int], tuple[int, int, int]]] = {
-    # (b_type = -2, least cooperative; b_type = +2, most): dark to light, blues and oranges.
-    "main": ((8, 48, 107), (158, 202, 225)),
-    "merge": ((127, 39, 4), (253, 174, 107)),
-}
-"""A controlled car's colour, by the road it starts on, shaded by its driver type."""
 FRAME_STEP_S = 0.4
 """Simulated seconds between two animation frames (every other SUMO step)."""
 FRAMES_PER_S = 10
@@ -332,19 +324,6 @@ def checked_policy(
 # -- running it again ------------------------------------------------------------------------------
 
 
-def vehicle_colour(road: str, b_type: float, controlled: bool) -> tuple[int, int, int]:
-    """RGB (0-255) of a car: grey if SUMO drives it, else its start road's hue shaded by its driver type."""
-    if not controlled:
-        return ROBOT_COLOUR
-    dark, light = ROAD_COLOURS[road]
-    w = min(max((b_type + 2.0) / 4.0, 0.0), 1.0)
-    return (
-        round(dark[0] + w * (light[0] - dark[0])),
-        round(dark[1] + w * (light[1] - dark[1])),
-        round(dark[2] + w * (light[2] - dark[2])),
-    )
-
-
 @dataclass
 class Marks:
     """What the animation marks, seen through the engine's observer hooks of a one-copy run."""
@@ -510,16 +489,6 @@ def episode_verdict(row: dict[str, object]) -> str:
     return "perfect" if bool(row["perfect"]) else "success"
 
 
-def _view_xy(road: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Positions in the view from above: the main road and the outgoing road along x, the merge road
-    joining from below at the generated net's default angle (a sketch: the net's own shape is not read)."""
-    angle = np.radians(NetParams().angle_deg)
-    on_merge = road == "merge"
-    x = np.where(on_merge, -dist * np.cos(angle), -dist)
-    y = np.where(on_merge, -dist * np.sin(angle), 0.0)
-    return x, y
-
-
 def write_animation(replay: Replay, path: Path, frame_step_s: float = FRAME_STEP_S, dpi: int = 80) -> Path:
     """The replayed episode as an animation (.gif with Pillow, .mp4 with ffmpeg): the merge from above
     and the position-time diagram, merging zone shaded, hard brakes and collisions marked."""
@@ -566,28 +535,7 @@ class _TopView:
     show the cars (moved each frame)."""
 
     def __init__(self, top: Any, site: MergeSite) -> None:
-        from matplotlib.patches import Circle
-
-        angle = np.radians(NetParams().angle_deg)
-        main_len, merge_len = site.main.length_m, site.merge.length_m
-        out_len = sum(lane.length_m for lane in site.out)
-        road_style = {"color": "0.8", "lw": 6, "solid_capstyle": "butt", "zorder": 0}
-        top.plot([-main_len, out_len], [0, 0], **road_style)
-        top.plot([-merge_len * np.cos(angle), 0], [-merge_len * np.sin(angle), 0], **road_style)
-        top.add_patch(Circle((0, 0), MERGE_ZONE_RADIUS_M, color=ZONE_COLOUR, alpha=0.35, lw=0, zorder=0))
-        top.text(-main_len, 8, "main road", fontsize=8, color="0.35")
-        top.text(
-            -merge_len * np.cos(angle),
-            -merge_len * np.sin(angle) - 18,
-            "merge road",
-            fontsize=8,
-            color="0.35",
-        )
-        top.set_xlim(-max(main_len, merge_len * np.cos(angle)) - 10, out_len + 10)
-        top.set_ylim(-merge_len * np.sin(angle) - 30, 40)
-        top.set_aspect("equal")
-        top.set_xlabel("metres from the merge point (sketch from above)")
-        top.set_yticks([])
+        draw_roads(top, site)
         ring = {"s": 150, "marker": "o", "facecolors": "none", "zorder": 4}
         self.cars = top.scatter([], [], s=46, marker="s", edgecolors="none", zorder=3)
         self.ego_ring = top.scatter([], [], edgecolors="black", lw=1.2, **ring)
