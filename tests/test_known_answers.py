@@ -15,7 +15,12 @@ everything else is ``LearnerConfig``'s default unless a test says otherwise.
   centralised critic's counterfactual advantage can carry the joint reward to the actor;
 - a 4-step chain with a delayed terminal reward and an early exit worth 0.5: walking on pays 1 after four
   steps, worth 0.9³ = 0.729 > 0.5 at γ 0.9 and 0.5³ = 0.125 < 0.5 at γ 0.5; the learned choice at the start
-  flips with γ, and V learns γ^(steps to go) through the one-step targets.
+  flips with γ, and V learns γ^(steps to go) through the one-step targets;
+- a 3-step road where waiting pays nothing and the time limit cuts a waiting agent off (done 0, bootstrapped, as
+  a rollout batches a timeout): the stall is not learned, the agent drives on.
+
+Checked against broken learners (by hand, not kept): the policy gradient's sign flipped fails all seven; COMA's
+advantage flipped fails J2 and the mix only; the configured γ ignored in the TD target fails the γ 0.5 chain.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from idas_sumo.env.layout import N_SCALARS, OBS_DIM
 from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
 
 CONTEXT_CELLS = 40  # 20 m of road: wider than the conv's 30-cell kernel
+ROAD_ROUNDS = 45
 FAST = LearnerConfig(lr_actor=3e-3, lr_value=1e-2, lr_central=1e-2, target_tau=0.1)
 """Raised rates so a task is learned in a few hundred updates; the rest of the config is the default."""
 
@@ -77,9 +83,10 @@ def mask_of(allowed: Sequence[int]) -> npt.NDArray[np.int8]:
     return mask
 
 
-def episode(agents: Sequence[Sequence[Step]]) -> EpisodeData:
+def episode(agents: Sequence[Sequence[Step]], cut_off: npt.NDArray[np.float32] | None = None) -> EpisodeData:
     """One episode's ``EpisodeData``: each agent's steps in time order, rows time-major as a rollout writes
-    them, each row linked to its agent's next one; an agent's last step ends its episode (done)."""
+    them, each row linked to its agent's next one. An agent's last step ends its episode (done), unless
+    ``cut_off`` is given: then the time limit cut a single agent off there (done 0) with o' = ``cut_off``."""
     rows: list[tuple[int, int, Step]] = sorted(
         ((t, n, step) for n, steps in enumerate(agents) for t, step in enumerate(steps)),
         key=lambda r: (r[0], r[1]),
@@ -101,13 +108,13 @@ def episode(agents: Sequence[Sequence[Step]]) -> EpisodeData:
         return out
 
     return EpisodeData(
-        obs_bank=np.stack([s.obs for *_, s in rows]),
+        obs_bank=np.stack([s.obs for *_, s in rows] + ([] if cut_off is None else [cut_off])),
         obs_index=np.arange(count, dtype=np.int64),
-        next_obs_index=next_row.copy(),
+        next_obs_index=np.where(last & (cut_off is not None), count, next_row),
         mask=np.stack([s.mask for *_, s in rows]),
         action=col,
         reward=np.array([s.reward for *_, s in rows], dtype=np.float32),
-        done=last.astype(np.float32),
+        done=(last & (cut_off is None)).astype(np.float32),
         state=state,
         others_actions=others,
         slot=slot,
@@ -126,9 +133,9 @@ def episode(agents: Sequence[Sequence[Step]]) -> EpisodeData:
             return_mean=0.0,
             reward_parts={},
             collisions=0,
-            timed_out=False,
-            success=True,
-            perfect=True,
+            timed_out=cut_off is not None,
+            success=cut_off is None,
+            perfect=cut_off is None,
         ),
     )
 
@@ -290,3 +297,45 @@ def test_chain_with_delayed_reward_answer_follows_gamma(gamma: float, answer: in
         assert values == sorted(values)
         for k in range(1, CHAIN_LENGTH):
             assert values[k] == pytest.approx(gamma ** (CHAIN_LENGTH - 1 - k) * FINISH, abs=0.1)
+
+
+# --- (d) a stall the time limit cuts off ------------------------------------------------------------------
+
+WAIT = 0
+ROAD_ACTIONS = (WAIT, WALK)
+ROAD_LENGTH = 3  # WALK at the last position pays FINISH and ends the episode
+TIME_LIMIT_STEPS = (
+    4  # an agent still on the road after this many steps is cut off: done 0, V(o') bootstrapped
+)
+
+
+def play_road(learner: Learner, generator: torch.Generator, episodes: int = 64) -> list[EpisodeData]:
+    mask = mask_of(ROAD_ACTIONS)
+    steps: list[list[Step]] = [[] for _ in range(episodes)]
+    position = [0] * episodes
+    driving = list(range(episodes))
+    for _ in range(TIME_LIMIT_STEPS):
+        if not driving:
+            break
+        obs = np.stack([seen_at(position[e]) for e in driving])
+        actions = learner.act(obs, np.repeat(mask[None], len(driving), axis=0), generator)
+        still = []
+        for row, (e, a) in enumerate(zip(driving, actions.tolist(), strict=True)):
+            finished = a == WALK and position[e] == ROAD_LENGTH - 1
+            steps[e].append(Step(obs[row], mask, a, FINISH if finished else 0.0))
+            if not finished:
+                position[e] += a == WALK
+                still.append(e)
+        driving = still
+    return [
+        episode([steps[e]], cut_off=seen_at(position[e]) if e in driving else None) for e in range(episodes)
+    ]
+
+
+def test_waiting_until_the_time_limit_is_not_learned() -> None:
+    """Waiting pays nothing and never ends an episode; the time limit cuts a waiting agent off (done 0, its o' in
+    ``bootstrap_obs``, as a rollout batches a timeout). The answer is to drive on everywhere."""
+    learner = Learner(dataclasses.replace(FAST, lr_actor=1e-3), seed=0)
+    train(learner, play_road, rounds=ROAD_ROUNDS)
+    for k in range(ROAD_LENGTH):
+        assert probability(learner, seen_at(k), ROAD_ACTIONS, WALK) > 0.8
