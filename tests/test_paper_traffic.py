@@ -76,6 +76,59 @@ def test_later_entries_keep_their_distance_and_need_no_brake() -> None:
     assert checked > 100
 
 
+def _slowest_ahead(ahead: VehicleSpec, elapsed_s: float, floor_mps: float = 3.0) -> tuple[float, float]:
+    """Where and how fast the car ahead is ``elapsed_s`` after its start had it slowed at 2 m/s² (the
+    strongest deceleration short of a hard brake) down to ``floor_mps``: worked out here, not imported."""
+    v = max(ahead.speed_mps, floor_mps)
+    slowing = (v - floor_mps) / 2.0
+    if elapsed_s <= slowing:
+        return ahead.start_pos_m + v * elapsed_s - elapsed_s**2, v - 2.0 * elapsed_s
+    return ahead.start_pos_m + (v * v - floor_mps**2) / 4.0 + floor_mps * (elapsed_s - slowing), floor_mps
+
+
+def _entry_pairs(s: Scenario) -> list[tuple[VehicleSpec, VehicleSpec]]:
+    """(car ahead, later entry) on each road, the car ahead of the first entry the rearmost one at t = 0."""
+    pairs = []
+    for road in ("main", "merge"):
+        cars = [v for v in s.vehicles if v.road == road]
+        now = sorted((v for v in cars if v.depart_s == 0.0), key=lambda v: v.start_pos_m)
+        queue = now[:1] + sorted((v for v in cars if v.depart_s > 0.0), key=lambda v: v.depart_s)
+        pairs += [(ahead, car) for ahead, car in itertools.pairwise(queue) if car.depart_s > 0.0]
+    return pairs
+
+
+def test_feasible_entries_hold_against_a_car_ahead_that_slowed() -> None:
+    """entries = "feasible": each later entry appears at least min_start_gap_m behind where the car ahead would
+    be had it slowed at 2 m/s² to 3 m/s since its start, at a speed IDM does not brake from behind it. The same
+    draw otherwise: cars, positions, types and t = 0 speeds as "as_drawn", whose entries miss this often."""
+    feasible = _draw(300, TrafficConfig(entries="feasible"), seed=2)
+    as_drawn = _draw(300, seed=2)
+    checked = missed = 0
+    for f, a in zip(feasible, as_drawn, strict=True):
+        assert [(v.id, v.start_pos_m, v.b_type) for v in f.vehicles] == [
+            (v.id, v.start_pos_m, v.b_type) for v in a.vehicles
+        ]
+        assert [v.speed_mps for v in f.vehicles if v.depart_s == 0.0] == [
+            v.speed_mps for v in a.vehicles if v.depart_s == 0.0
+        ]
+        for scenario, counts in ((f, True), (a, False)):
+            for ahead, car in _entry_pairs(scenario):
+                pos, speed = _slowest_ahead(ahead, car.depart_s - ahead.depart_s)
+                gap = pos - 5.0 - car.start_pos_m
+                holds = gap >= 15.0 - 1e-6 and safety_bound([car.speed_mps], [gap], [speed])[0] >= -0.01
+                if counts:
+                    assert holds, (scenario.name, car.id)
+                    checked += 1
+                else:
+                    missed += not holds
+    assert checked > 100 and missed > 10
+
+
+def test_entries_is_checked() -> None:
+    with pytest.raises(ValueError, match="entries"):
+        TrafficConfig(entries="sometimes")  # type: ignore[arg-type]
+
+
 def test_no_later_entries_means_everyone_at_t0() -> None:
     for s in _draw(50, TrafficConfig(p_depart_later=0.0)):
         assert all(v.depart_s == 0.0 for v in s.vehicles)

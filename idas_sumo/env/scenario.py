@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from idas_sumo.config import from_dict, load_toml
+from idas_sumo.env.actions import MIN_ACCEL_MPS2
 from idas_sumo.errors import InputError
 from idas_sumo.physics.idm import DEFAULT_IDM
 from idas_sumo.sim.backend import STEP_LENGTH_S, VEHICLE_LENGTH_M
@@ -119,6 +120,14 @@ MIN_ENTRY_SPEED_FOR_SPACING_MPS = 1.0
 """Ours: the least speed the generator assumes of a car ahead when it spaces a later entry behind it
 (a car drawn at a standstill still moves off; without a floor it would never make room)."""
 
+FEASIBLE_LEADER_FLOOR_MPS = 3.0
+"""Ours: the speed the car ahead of a "feasible" entry is assumed to slow to, no lower. Chosen on entry delays
+(1,000 scenarios of seed 777): a 1 m/s floor put 201 of 3,980 later entries past 30 s and 6 past the 60 s
+evaluation episode; 3 m/s one past 30 s and none past 60 s."""
+
+Entries = Literal["as_drawn", "feasible"]
+"""How a later entry is spaced behind the car ahead of it on its road (``TrafficConfig.entries``)."""
+
 
 @dataclass(frozen=True)
 class TrafficConfig:
@@ -156,6 +165,14 @@ class TrafficConfig:
     its leader. Otherwise a car can start inside the safety mask's braking region: with the 15 m minimum
     gap, 25 of the first 40 paper-suite scenarios forced a hard brake in their first step, whatever the
     method (docs/design-notes.md). False: speeds as drawn."""
+    entries: Entries = "as_drawn"
+    """Ours. "as_drawn": a later entry is spaced and its speed capped against the car ahead assumed at constant
+    speed since its own start; when that car slowed, the entering car can start inside its own mask's braking
+    region and meet a forced hard brake before it has chosen anything (issue 36). "feasible": the car ahead is
+    assumed to have slowed as hard as it may without a hard brake (MIN_ACCEL_MPS2, down to
+    FEASIBLE_LEADER_FLOOR_MPS) since its start; the entry waits until that car would be
+    ``min_start_gap_m`` ahead, and enters no faster than IDM allows behind it. The shipped results were drawn
+    "as_drawn"."""
     p_main_priority: float = 0.8
     """Probability of priorities (main 1, merge 0); otherwise both roads share one priority, 1 or 0 with
     equal probability (paper L64, L275: equal priority is possible)."""
@@ -185,6 +202,8 @@ class TrafficConfig:
             raise ValueError("need 0 <= min_speed_frac <= max_speed_frac <= 1")
         if not 0.0 <= self.p_main_priority <= 1.0:
             raise ValueError("p_main_priority must lie in [0, 1]")
+        if self.entries not in ("as_drawn", "feasible"):
+            raise ValueError(f"entries must be 'as_drawn' or 'feasible', got {self.entries!r}")
         if self.max_controlled < 0:
             raise ValueError("max_controlled must be >= 0")
         room = self.start_range_m - VEHICLE_LENGTH_M
@@ -302,22 +321,69 @@ def _staggered_vehicles(
             ahead = (float(positions[0]), float(speeds[0]), 0.0)
         for m in range(n_later):
             i = n_now + m
-            t = float(wanted[m])
-            if ahead is not None:
-                pos, speed, t0 = ahead
-                speed = max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS)
-                room_needed = VEHICLE_LENGTH_M + VEHICLE_LENGTH_M + traffic.min_start_gap_m - pos
-                t = max(t, t0 + room_needed / speed)
-            # SUMO inserts at step boundaries: depart on one, so the spacing holds when the car appears.
-            t = math.ceil(round(t / STEP_LENGTH_S, 9)) * STEP_LENGTH_S
-            if ahead is not None and traffic.start_without_braking:
-                pos, speed, t0 = ahead
-                gap = pos + max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS) * (t - t0) - 2 * VEHICLE_LENGTH_M
-                speeds[i] = min(speeds[i], _fastest_start(gap, speed))
+            if traffic.entries == "feasible" and ahead is not None:
+                t, speeds[i] = _feasible_entry(
+                    float(wanted[m]), float(speeds[i]), ahead, traffic.min_start_gap_m
+                )
+            else:
+                t, speeds[i] = _entry_as_drawn(float(wanted[m]), float(speeds[i]), ahead, traffic)
             departs[i] = t
             ahead = (VEHICLE_LENGTH_M, float(speeds[i]), t)
         vehicles += [_drawn_vehicle(road, i, starts[i], speeds[i], types[i], departs[i]) for i in range(n)]
     return vehicles
+
+
+def _on_step(t: float) -> float:
+    """``t`` rounded up to a step boundary: SUMO inserts on one, so the spacing holds when the car appears."""
+    return math.ceil(round(t / STEP_LENGTH_S, 9)) * STEP_LENGTH_S
+
+
+def _entry_as_drawn(
+    wanted_s: float, speed_mps: float, ahead: tuple[float, float, float] | None, traffic: TrafficConfig
+) -> tuple[float, float]:
+    """(depart s, speed m/s) of a later entry, the car ahead (position at its start m, speed m/s, start s)
+    assumed at constant speed (at least MIN_ENTRY_SPEED_FOR_SPACING_MPS) since its start."""
+    t = wanted_s
+    if ahead is not None:
+        pos, speed, t0 = ahead
+        speed = max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS)
+        room_needed = VEHICLE_LENGTH_M + VEHICLE_LENGTH_M + traffic.min_start_gap_m - pos
+        t = max(t, t0 + room_needed / speed)
+    t = _on_step(t)
+    if ahead is not None and traffic.start_without_braking:
+        pos, speed, t0 = ahead
+        gap = pos + max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS) * (t - t0) - 2 * VEHICLE_LENGTH_M
+        speed_mps = min(speed_mps, _fastest_start(gap, speed))
+    return t, speed_mps
+
+
+def _slowest_leader(pos_m: float, speed_mps: float, elapsed_s: float) -> tuple[float, float]:
+    """(position m, speed m/s) of a car ``elapsed_s`` after it was at ``pos_m`` with ``speed_mps``, had it
+    slowed at MIN_ACCEL_MPS2 (the strongest deceleration short of a hard brake) down to
+    FEASIBLE_LEADER_FLOOR_MPS and kept that speed."""
+    floor = FEASIBLE_LEADER_FLOOR_MPS
+    speed = max(speed_mps, floor)
+    decel = -MIN_ACCEL_MPS2
+    slowing_s = (speed - floor) / decel
+    if elapsed_s <= slowing_s:
+        return pos_m + speed * elapsed_s - 0.5 * decel * elapsed_s**2, speed - decel * elapsed_s
+    return pos_m + (speed * speed - floor * floor) / (2.0 * decel) + floor * (elapsed_s - slowing_s), floor
+
+
+def _feasible_entry(
+    wanted_s: float, speed_mps: float, ahead: tuple[float, float, float], min_gap_m: float
+) -> tuple[float, float]:
+    """(depart s, speed m/s) of a later entry against the slowest the car ahead may have driven
+    (``_slowest_leader``): the first step from ``wanted_s`` on where that car is ``min_gap_m`` ahead, at
+    the drawn speed or the fastest whose IDM desired gap fits (``_fastest_start``), whichever is lower."""
+    pos, speed, t0 = ahead
+    t = _on_step(wanted_s)
+    while True:
+        leader_pos, leader_speed = _slowest_leader(pos, speed, t - t0)
+        gap = leader_pos - 2 * VEHICLE_LENGTH_M
+        if gap >= min_gap_m:
+            return t, min(speed_mps, _fastest_start(gap, leader_speed))
+        t = _on_step(t + STEP_LENGTH_S)
 
 
 def _fastest_start(gap_m: float, leader_speed_mps: float) -> float:
