@@ -7,8 +7,11 @@ places it relative to the merge point as the engine does (``Routes.place``), bui
 asks the policy for all of them in one ``AgentBatch``: the same observation, masks, actions and speed
 command an agent gets in an episode. SUMO-driven cars are other cars in the snapshot like any other.
 
-An automated car drives with acceleration 0 as it departs (as an agent does when it enters) and is
-handed back to SUMO's model once it is ``FINISH_DISTANCE_PAST_MERGE_M`` past the merge point (where an
+The merge's lanes are those the engine models: each approach's lane to the merge point and the lane
+it goes on in (``MergeSite.route``). On a net with multi-lane roads the other lanes' cars are not in the
+snapshot (as in an episode, where no car drives there), and an automated car that SUMO inserted on
+another lane is driven by SUMO until it is on one of the merge's lanes. From then on it drives with
+the engine's lane-keeping mode, from acceleration 0 (as an agent does when it enters), and is handed back to SUMO's model once it is ``FINISH_DISTANCE_PAST_MERGE_M`` past the merge point (where an
 episode's agent finishes). Its driver type is ``b_type`` (0: neutral, by default); its priority is its
 road's (1 on the main road, the merging road 0, or 1 too where both roads have the same SUMO priority).
 """
@@ -61,6 +64,8 @@ class StepCounts:
 class Commands:
     """The adapter's orders for the next step."""
 
+    take: tuple[str, ...]
+    """Automated cars that come under control now (before their first speed command)."""
     ids: tuple[str, ...]
     speeds_mps: FloatArray
     release: tuple[str, ...]
@@ -70,6 +75,19 @@ class Commands:
 def _origin(ids: tuple[str, ...]) -> IntArray:
     """Each car's incoming road from its flow's name (SUMO names a flow's cars ``FLOW.N``)."""
     return np.fromiter((MERGE if v.startswith("merge.") else MAIN for v in ids), np.int64, len(ids))
+
+
+def _rows(snap: TrafficSnapshot, rows: IntArray) -> TrafficSnapshot:
+    """The snapshot of only these rows."""
+    return TrafficSnapshot(
+        ids=tuple(snap.ids[i] for i in rows.tolist()),
+        road=snap.road[rows],
+        dist_to_merge_m=snap.dist_to_merge_m[rows],
+        speed_mps=snap.speed_mps[rows],
+        accel_mps2=snap.accel_mps2[rows],
+        length_m=snap.length_m[rows],
+        speed_limit_mps=snap.speed_limit_mps[rows],
+    )
 
 
 class AutomatedDriver:
@@ -91,21 +109,23 @@ class AutomatedDriver:
         self._prio_by_road = np.array([1.0, 1.0 if equal else 0.0, 1.0])  # MAIN, MERGE, OUT
         self.accel: dict[str, float] = {}
         """The acceleration each automated car under control drives with (m/s²)."""
+        self.waiting: set[str] = set()
+        """Automated cars on the road not yet on the merge's lanes (SUMO drives them until they are)."""
+        self._lanes: dict[str, set[int]] = {}
+        for side in ("main", "merge"):
+            for lane in site.route(side):
+                self._lanes.setdefault(lane.edge_id, set()).add(lane.lane_index)
+        self._shared_lanes = bool(site.shared_lanes)
         self._braking: set[str] = set()
         self._crossed: set[str] = set()
         self.snapshot: TrafficSnapshot | None = None
 
     def take(self, vehicle_ids: list[str]) -> None:
-        """Automated cars that departed this step come under control, at acceleration 0."""
-        for vid in vehicle_ids:
-            self.accel[vid] = 0.0
+        """Automated cars that departed this step: each comes under control (at acceleration 0) from the
+        first step it is on the merge's lanes."""
+        self.waiting.update(vehicle_ids)
 
-    def drop(self, vehicle_ids: set[str]) -> None:
-        """Cars that left the road (arrived, collided, teleported away) leave the adapter's books."""
-        for vid in vehicle_ids:
-            self.accel.pop(vid, None)
-
-    def _snapshot(self, states: FlowStates, time_s: float) -> tuple[TrafficSnapshot, IntArray]:
+    def _snapshot(self, states: FlowStates) -> tuple[TrafficSnapshot, IntArray]:
         n = len(states.ids)
         batch_states = BatchStates(
             ids=states.ids,
@@ -117,7 +137,7 @@ class AutomatedDriver:
             speed_mps=states.speed_mps,
             accel_mps2=states.accel_mps2,
             bounds=np.array([0, n], dtype=np.int64),
-            lane_index=states.lane_index,
+            lane_index=states.lane_index if self._shared_lanes else None,
         )
         origin, road, dist, limit = self._routes.place(batch_states, _origin(states.ids))
         snap = TrafficSnapshot(
@@ -131,13 +151,36 @@ class AutomatedDriver:
         )
         return snap, origin
 
+    def _on_lanes(self, states: FlowStates) -> IntArray | None:
+        """The rows of the cars on the merge's lanes (None: all of them, on a merge of one-lane roads)."""
+        if states.lane_index is None:
+            return None
+        lanes = self._lanes
+        return np.array(
+            [
+                i
+                for i, (edge, lane) in enumerate(zip(states.edge, states.lane_index.tolist(), strict=True))
+                if lane in lanes.get(edge, ())
+            ],
+            dtype=np.int64,
+        )
+
     def step(self, states: FlowStates, time_s: float) -> tuple[Commands, StepCounts]:
         """Read the step's traffic; count; the speeds of the automated cars for the next step."""
-        snap, origin = self._snapshot(states, time_s)
+        snap, origin = self._snapshot(states)
+        counts = self._count(snap)  # every car, on the merge's lanes or not
+        rows = self._on_lanes(states)
+        if rows is not None:
+            snap, origin = _rows(snap, rows), origin[rows]
         self.snapshot = snap
-        counts = self._count(snap)
-        if len(self.accel) > len(snap):  # cars SUMO took off the road (arrived, collided)
-            self.accel = {v: a for v, a in self.accel.items() if v in snap}
+        on_road = set(states.ids)
+        self.waiting &= on_road
+        if len(self.accel) > len(on_road) or self.waiting:
+            self.accel = {v: a for v, a in self.accel.items() if v in on_road}
+        new = tuple(v for v in snap.ids if v in self.waiting)
+        for vid in new:
+            self.waiting.discard(vid)
+            self.accel[vid] = 0.0
         controlled = np.fromiter((v in self.accel for v in snap.ids), np.bool_, len(snap))
         remove = self._overlaps(snap, origin, controlled)
         counts.geometric_collisions = len(remove) // 2
@@ -152,7 +195,7 @@ class AutomatedDriver:
         )
         ids = tuple(snap.ids[i] for i in egos.tolist())
         speeds = self._act(snap, egos, ids, controlled, time_s) if len(egos) else np.zeros(0)
-        return Commands(ids, speeds, release, tuple(remove)), counts
+        return Commands(new, ids, speeds, release, tuple(remove)), counts
 
     def _count(self, snap: TrafficSnapshot) -> StepCounts:
         hard = {snap.ids[i] for i in np.flatnonzero(snap.accel_mps2 <= HARD_BRAKE_DETECT_MPS2).tolist()}

@@ -63,6 +63,8 @@ def simulate(
             counts.hard_brakes[b] += step.hard_brakes
             counts.crossed[b] += step.crossed
             counts.geometric_collisions[b] += step.geometric_collisions
+            for vid in commands.take:
+                sim.take(vid)
             for vid in commands.remove:
                 sim.remove(vid)
             for vid in commands.release:

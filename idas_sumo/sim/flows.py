@@ -221,22 +221,20 @@ class FlowStates:
     speed_mps: np.ndarray
     accel_mps2: np.ndarray
     lane_index: np.ndarray | None
-    """Read only where the approaches share edges (a lane drop: ``MergeSite.shared_lanes``)."""
+    """Read only on a merge with multi-lane edges (None elsewhere: every car is on the merge's lanes)."""
 
 
 class FlowSimulation:
-    """The one libsumo simulation of a co-simulation run: SUMO inserts and drives; automated cars (their
-    vType) are taken over as they depart: every SUMO check of their speed off (the engine's speed mode),
-    and on a multi-lane merge the engine's lane-keeping mode. Nothing else is commanded."""
+    """The one libsumo simulation of a co-simulation run: SUMO inserts and drives every car; the run's
+    loop takes automated cars (their vType) over (``take``) and commands their speeds. Nothing else is
+    commanded."""
 
     def __init__(self, site: MergeSite, config: Path) -> None:
         self.site = site
         self.config = config
         self._running = False
         self._lane_keeping = has_lane_changes(site)
-        self._read_lanes = bool(site.shared_lanes)
-        self.automated: set[str] = set()
-        """Automated cars that departed (driven by the co-simulation until released)."""
+        self._read_lanes = self._lane_keeping or bool(site.shared_lanes)
 
     def start(self) -> None:
         claim_slot(self, "close the other environment first (a co-simulation runs SUMO in this process)")
@@ -255,15 +253,18 @@ class FlowSimulation:
         step.collision_pairs = [(c.collider, c.victim) for c in libsumo.simulation.getCollisions()]
         step.teleported = list(libsumo.simulation.getStartingTeleportIDList())
         step.departed = list(libsumo.simulation.getDepartedIDList())
-        vehicle = libsumo.vehicle
-        for vid in step.departed:
-            if vehicle.getTypeID(vid) == AUTOMATED_TYPE:
-                vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
-                if self._lane_keeping:
-                    vehicle.setLaneChangeMode(vid, LANE_KEEPING_MODE)
-                self.automated.add(vid)
-                step.automated_departed.append(vid)
+        get_type = libsumo.vehicle.getTypeID
+        step.automated_departed = [v for v in step.departed if get_type(v) == AUTOMATED_TYPE]
         return step
+
+    def take(self, vehicle_id: str) -> None:
+        """An automated car comes under the co-simulation's control: every SUMO check of its speed off
+        (the engine's speed mode), and on a multi-lane merge the engine's lane-keeping mode."""
+        import libsumo
+
+        libsumo.vehicle.setSpeedMode(vehicle_id, CONTROLLED_SPEED_MODE)
+        if self._lane_keeping:
+            libsumo.vehicle.setLaneChangeMode(vehicle_id, LANE_KEEPING_MODE)
 
     def states(self) -> FlowStates:
         import libsumo
