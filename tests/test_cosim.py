@@ -14,6 +14,7 @@ from idas_sumo.cosim import study
 from idas_sumo.cosim.demand import parse_demand, parse_penetrations
 from idas_sumo.cosim.run import run_once
 from idas_sumo.errors import InputError
+from idas_sumo.io_utils import is_matplotlib_png
 from idas_sumo.sim.flows import (
     ADDITIONAL_NAME,
     AUTOMATED_TYPE,
@@ -163,3 +164,4 @@ def test_resume_skips_finished_runs(
         "teleports",
     ):
         assert column in rows[0]
+    assert is_matplotlib_png(out / "flows.png")

@@ -28,7 +28,8 @@ def add_parser(sub: Subparsers) -> None:
             "SUMO inserts the demand (vehicles per hour per incoming road) and drives the cars with its own "
             "models; each car is automated with probability --penetration and then driven by --policy with "
             "the engine's observation and masks. Runs the grid demand x penetration x seed and writes "
-            "OUT/flows.csv (one row per run) and OUT/bins.csv (one row per run and time bin). Run again "
+            "OUT/flows.csv (one row per run), OUT/bins.csv (one row per run and time bin) and OUT/flows.png "
+            "(throughput, delay and hard brakes against demand, per penetration). Run again "
             "in the same OUT, it skips the runs flows.csv already holds."
         ),
     )
@@ -137,5 +138,5 @@ def run(args: argparse.Namespace) -> int:
         force=args.force,
         on_run=_report,
     )
-    print(f"wrote {flows}, {bins}")
+    print(f"wrote {flows}, {bins}, {flows.with_name('flows.png')}")
     return 0

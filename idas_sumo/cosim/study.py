@@ -1,7 +1,7 @@
 """The grid of co-simulation runs behind ``idas-sumo cosim``: demand x penetration x seed, resumable.
 
 Each finished run adds one row to ``flows.csv`` and one row per time bin to ``bins.csv`` (both rewritten
-whole, atomically, after every run). A run is known by its key columns (``KEY_COLUMNS``): started again
+whole, atomically, after every run); ``flows.png`` (cosim/plots.py) is drawn from ``flows.csv`` at the end. A run is known by its key columns (``KEY_COLUMNS``): started again
 in the same folder, the study skips every run whose key ``flows.csv`` already holds, so an interrupted
 study resumes where it stopped, and a larger grid only runs what is new. SUMO's own output files of a
 run live in a temporary folder while it runs.
@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from idas_sumo.cosim.demand import demand_label
+from idas_sumo.cosim.plots import plot_flows
 from idas_sumo.cosim.run import RunResult, run_once
 from idas_sumo.cosim.stats import Row
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SafetyMask
@@ -29,6 +30,7 @@ from idas_sumo.sim.merge_detect import MergeSite, Side
 
 FLOWS_NAME = "flows.csv"
 BINS_NAME = "bins.csv"
+PLOT_NAME = "flows.png"
 KEY_COLUMNS = (
     "net",
     "junction",
@@ -131,7 +133,7 @@ def run_study(
     policy (called once, only when a run has automated cars). ``on_run(key, row)`` after each run
     (``row`` None: skipped, finished before). Returns the two CSVs' paths."""
     resume = not force and (out / FLOWS_NAME).is_file()
-    with output_directory(out, force, keep=resume, writes=(FLOWS_NAME, BINS_NAME)) as where:
+    with output_directory(out, force, keep=resume, writes=(FLOWS_NAME, BINS_NAME, PLOT_NAME)) as where:
         flows_path, bins_path = where / FLOWS_NAME, where / BINS_NAME
         flows: list[dict[str, Any]] = []
         bins: list[dict[str, Any]] = []
@@ -163,7 +165,9 @@ def run_study(
         if not flows_path.exists():
             _write(flows_path, flows)
             _write(bins_path, bins)
+        if flows:
+            plot_flows(flows_path, where / PLOT_NAME)
     return flows_path, bins_path
 
 
-__all__ = ["BINS_NAME", "FLOWS_NAME", "KEY_COLUMNS", "StudyPlan", "run_study"]
+__all__ = ["BINS_NAME", "FLOWS_NAME", "KEY_COLUMNS", "PLOT_NAME", "StudyPlan", "run_study"]
