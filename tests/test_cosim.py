@@ -88,6 +88,20 @@ def test_every_car_automated_moderate_demand(site: MergeSite, tmp_path: Path, me
     assert row["mean_travel_time_s"] != plain["mean_travel_time_s"]  # the policy, not SUMO, drove
 
 
+@pytest.mark.sumo
+def test_collisions_are_counted_as_sumo_counts_them(site: MergeSite, tmp_path: Path) -> None:
+    """IDM never sees the other road's cars (the paper's IDM collides too): at this demand automated
+    merge cars run into main-road cars. The loop's per-step count is SUMO's own total, and a warm-up
+    leaves out the first bin's."""
+    demand = FlowDemand({"main": 1200.0, "merge": 400.0}, 1.0, 120.0, 0, 60.0)
+    result = run_once(site, demand, RuleBasedPolicy("idm"), tmp_path, warmup_s=60.0)
+    row, bins = result.row, result.bins
+    assert bins[0]["collisions"] > 0 and bins[1]["collisions"] > 0
+    assert bins[0]["collisions"] + bins[1]["collisions"] == row["sumo_collisions_total"]
+    assert row["collisions"] == bins[1]["collisions"] and row["geometric_collisions"] == 0
+    assert row["throughput_veh_per_h"] == bins[1]["throughput_veh_per_h"]
+
+
 def test_bad_demand_and_penetration(site: MergeSite) -> None:
     assert parse_demand("main=1200, merge=0", site) == {"main": 1200.0, "merge": 0.0}
     for text in ("main=-1", "main=1e9", "main=nan", "main", "lane=100", "main=1,main=2", "main=0"):
@@ -108,6 +122,8 @@ def test_bad_demand_and_penetration(site: MergeSite) -> None:
         (["--demand", "ramp=100"], "no road 'ramp'"),
         (["--demand", "main=100", "--penetration", "1.5"], "outside [0, 1]"),
         (["--demand", "main=100", "--duration-s", "0"], "--duration-s"),
+        (["--demand", "main=100", "--duration-s", "300", "--bin-s", "70"], "--bin-s"),
+        (["--demand", "main=100", "--duration-s", "300", "--warmup-s", "300"], "--warmup-s"),
         (["--demand", "main=100", "--policy", "idsa"], "--policy"),
         (["--demand", "main=100", "--net", "STRAIGHT"], "no merge"),
     ],
@@ -136,12 +152,12 @@ def test_resume_skips_finished_runs(
     ran: list[int] = []
     real = study.run_once
 
-    def counting(site, flow, policy, folder, mask):  # type: ignore[no-untyped-def]
+    def counting(site, flow, policy, folder, mask, warmup_s):  # type: ignore[no-untyped-def]
         if flow.seed == 1 and not ran.count(1):
             ran.append(1)
             raise KeyboardInterrupt  # the study is stopped during its second run
         ran.append(flow.seed)
-        return real(site, flow, policy, folder, mask)
+        return real(site, flow, policy, folder, mask, warmup_s)
 
     monkeypatch.setattr(study, "run_once", counting)
     code, _, _ = main_in_process(capsys, *base, "--seeds", "0-2", "--out", str(out))

@@ -76,6 +76,13 @@ def add_parser(sub: Subparsers) -> None:
         help=f"the statistics' time bin, s (default: {DEFAULT_BIN_S:g}, or the whole run if that does not divide it)",
     )
     co.add_argument(
+        "--warmup-s",
+        type=float,
+        default=0.0,
+        help="leave this start out of the run statistics (whole bins; the road fills up from empty) "
+        "(default: %(default)s)",
+    )
+    co.add_argument(
         "--seeds", default="0", help="SUMO seeds of the runs: 0-4, 0,3,7 or a mix (default: %(default)s)"
     )
     co.add_argument(
@@ -113,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     from idas_sumo.training.sweep import parse_seeds
 
     bin_s = _bin_s(args)
-    check_duration(float(args.duration_s), bin_s)
+    check_duration(float(args.duration_s), bin_s, float(args.warmup_s))
     penetrations = parse_penetrations(args.penetration)
     seeds = parse_seeds(args.seeds)
     policy = check_method(args.policy, "--policy")
@@ -127,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
         duration_s=float(args.duration_s),
         bin_s=bin_s,
         safety_mask=args.safety_mask,
+        warmup_s=float(args.warmup_s),
     )
     policy_file = Path(args.policy_file) if args.policy_file is not None else None
     if policy_file is not None and policy not in LEARNED_METHODS:

@@ -100,8 +100,9 @@ def parse_penetrations(text: str, flag: str = "--penetration") -> list[float]:
     return rates
 
 
-def check_duration(duration_s: float, bin_s: float) -> None:
-    """A run of at least one step and at most ``MAX_DURATION_S``; a bin that divides it into whole steps."""
+def check_duration(duration_s: float, bin_s: float, warmup_s: float = 0.0) -> None:
+    """A run of at least one step and at most ``MAX_DURATION_S``, of whole steps; a bin of whole steps
+    that divides it; a warm-up of whole bins that leaves at least one."""
     if not math.isfinite(duration_s) or not 0 < duration_s <= MAX_DURATION_S:
         raise InputError(
             f"--duration-s: expected a duration in (0, {MAX_DURATION_S:g}] s, got {duration_s:g}"
@@ -111,7 +112,17 @@ def check_duration(duration_s: float, bin_s: float) -> None:
     for name, value in (("--duration-s", duration_s), ("--bin-s", bin_s)):
         steps = value / STEP_LENGTH_S
         if abs(steps - round(steps)) > 1e-6:
-            raise InputError(f"{name}: {value:g} s is not a whole number of 0.2 s steps")
+            raise InputError(f"{name}: {value:g} s is not a whole number of {STEP_LENGTH_S:g} s steps")
+    bins = duration_s / bin_s
+    if abs(bins - round(bins)) > 1e-9:
+        raise InputError(
+            f"--bin-s: {bin_s:g} s does not divide --duration-s {duration_s:g} s into whole bins"
+        )
+    warm = warmup_s / bin_s
+    if not math.isfinite(warm) or warm < 0 or abs(warm - round(warm)) > 1e-9 or warmup_s >= duration_s:
+        raise InputError(
+            f"--warmup-s: expected whole bins of {bin_s:g} s shorter than --duration-s, got {warmup_s:g}"
+        )
 
 
 __all__ = [

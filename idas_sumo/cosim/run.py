@@ -82,12 +82,14 @@ def run_once(
     policy: Policy | None,
     folder: Path,
     safety_mask: SafetyMask = DEFAULT_SAFETY_MASK,
+    warmup_s: float = 0.0,
 ) -> RunResult:
-    """``simulate``, then the run's statistics; ``row`` adds its wall time and real-time factor."""
+    """``simulate``, then the run's statistics after ``warmup_s`` (``stats.run_row``); ``row`` adds its
+    wall time and real-time factor."""
     start = time.perf_counter()
     counts = simulate(site, demand, policy, folder, safety_mask)
     wall_s = time.perf_counter() - start
-    row = run_row(folder, counts, demand.duration_s)
+    row = run_row(folder, counts, demand.duration_s, warmup_s)
     row["wall_s"] = wall_s
     row["real_time_factor"] = demand.duration_s / wall_s if wall_s > 0 else float("inf")
     return RunResult(row=row, bins=bin_rows(folder, counts, demand.bin_s))

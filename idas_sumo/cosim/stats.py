@@ -47,6 +47,7 @@ class EngineCounts:
 class Trip:
     road: str
     automated: bool
+    depart_s: float
     depart_delay_s: float
     arrival_s: float
     """-1: still on the road when the run ended, or removed (collided)."""
@@ -69,6 +70,7 @@ def read_trips(folder: Path) -> list[Trip]:
             Trip(
                 road=str(e.get("id", "")).partition(".")[0],
                 automated=e.get("vType") == AUTOMATED_TYPE,
+                depart_s=float(e.get("depart", "-1")),
                 depart_delay_s=float(e.get("departDelay", "0")),
                 arrival_s=float(e.get("arrival", "-1")) if done else -1.0,
                 travel_time_s=float(e.get("duration", "nan")),
@@ -188,34 +190,42 @@ def bin_rows(folder: Path, counts: EngineCounts, bin_s: float) -> list[Row]:
     return rows
 
 
-def run_row(folder: Path, counts: EngineCounts, duration_s: float) -> Row:
-    """The run's flow statistics (``flows.csv``'s statistics columns)."""
+def run_row(folder: Path, counts: EngineCounts, duration_s: float, warmup_s: float = 0.0) -> Row:
+    """The run's flow statistics (``flows.csv``'s statistics columns), measured after ``warmup_s`` (a
+    whole number of bins: the road filling up from empty is left out): cars past the merge point, metres
+    driven, hard brakes, collisions and teleports in the bins after it, trips that arrived after it, the
+    depart delay of cars due after it. ``sumo_collisions_total`` and ``sumo_teleports_total`` are SUMO's
+    own totals over the whole run (its statistics output), a cross-check of the loop's per-step count."""
     bin_s = duration_s / counts.bins
-    loops = read_loops(folder, bin_s, counts.bins)
-    dist, time = read_edgedata(folder, bin_s, counts.bins)
+    w = round(warmup_s / bin_s)
+    window_s = duration_s - w * bin_s
+    loops = read_loops(folder, bin_s, counts.bins)[w:]
+    dist, time = (part[w:] for part in read_edgedata(folder, bin_s, counts.bins))
     stats = read_statistics(folder)
     trips = read_trips(folder)
-    metres, brakes = sum(dist), sum(counts.hard_brakes)
-    geometric = sum(counts.geometric_collisions)
+    measured = [t for t in trips if t.arrival_s >= warmup_s]
+    metres, brakes = sum(dist), sum(counts.hard_brakes[w:])
+    geometric = sum(counts.geometric_collisions[w:])
     return {
+        "warmup_s": warmup_s,
         "inserted": stats["inserted"],
         "automated": sum(t.automated for t in trips),
         "arrived": sum(t.arrival_s >= 0 for t in trips),
-        "throughput_veh_per_h": sum(loops) * 3600.0 / duration_s,
-        "engine_throughput_veh_per_h": sum(counts.crossed) * 3600.0 / duration_s,
-        **trip_columns(trips),
-        "mean_depart_delay_s": _mean([t.depart_delay_s for t in trips]),
+        "throughput_veh_per_h": sum(loops) * 3600.0 / window_s,
+        "engine_throughput_veh_per_h": sum(counts.crossed[w:]) * 3600.0 / window_s,
+        **trip_columns(measured),
+        "mean_depart_delay_s": _mean([t.depart_delay_s for t in trips if t.depart_s >= warmup_s]),
         "mean_speed_mps": sum(dist) / sum(time) if sum(time) > 0 else math.nan,
         "vehicle_km": metres / 1000.0,
         "hard_brakes": brakes,
         "hard_brakes_per_1000_veh_km": _per_1000_km(brakes, metres),
-        "collisions": stats["collisions"] + geometric,
-        "sumo_collisions": stats["collisions"],
+        "collisions": sum(counts.sumo_collisions[w:]) + geometric,
         "geometric_collisions": geometric,
-        "engine_sumo_collisions": sum(counts.sumo_collisions),
-        "teleports": stats["teleports"],
+        "teleports": sum(counts.teleports[w:]),
+        "sumo_collisions_total": stats["collisions"],
+        "sumo_teleports_total": stats["teleports"],
         "insertion_backlog": stats["waiting"],
-        "max_insertion_backlog": max(read_backlog(folder, bin_s, counts.bins)),
+        "max_insertion_backlog": max(read_backlog(folder, bin_s, counts.bins)[w:]),
     }
 
 

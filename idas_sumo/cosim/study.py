@@ -43,6 +43,7 @@ KEY_COLUMNS = (
     "seed",
     "duration_s",
     "bin_s",
+    "warmup_s",
 )
 """What names a run; a row of ``flows.csv`` with the same values is a finished run."""
 
@@ -60,6 +61,8 @@ class StudyPlan:
     duration_s: float
     bin_s: float
     safety_mask: SafetyMask = DEFAULT_SAFETY_MASK
+    warmup_s: float = 0.0
+    """The run statistics leave out this start (whole bins: the road filling up from empty)."""
 
     def runs(self) -> Iterator[tuple[dict[str, str], FlowDemand]]:
         """(key, demand) of every run, demand by demand, then penetration, then seed."""
@@ -82,6 +85,7 @@ class StudyPlan:
             "seed": flow.seed,
             "duration_s": flow.duration_s,
             "bin_s": flow.bin_s,
+            "warmup_s": self.warmup_s,
         }
         return {k: _cell(v) for k, v in values.items()}
 
@@ -153,9 +157,9 @@ def run_study(
                 made.append(policy())
             with tempfile.TemporaryDirectory(prefix="idas_sumo_cosim_") as tmp:
                 result: RunResult = run_once(
-                    plan.site, flow, made[0] if made else None, Path(tmp), plan.safety_mask
+                    plan.site, flow, made[0] if made else None, Path(tmp), plan.safety_mask, plan.warmup_s
                 )
-            flows.append({**key, **result.row})
+            flows.append({**key, **{k: v for k, v in result.row.items() if k not in key}})
             bins.extend({**key, **b} for b in result.bins)
             done.add(_key_of(key))
             _write(bins_path, bins)  # bins first: a row in flows.csv promises its bins are there
