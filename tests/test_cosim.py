@@ -100,6 +100,8 @@ def test_collisions_are_counted_as_sumo_counts_them(site: MergeSite, tmp_path: P
     assert bins[0]["collisions"] + bins[1]["collisions"] == row["sumo_collisions_total"]
     assert row["collisions"] == bins[1]["collisions"] and row["geometric_collisions"] == 0
     assert row["throughput_veh_per_h"] == bins[1]["throughput_veh_per_h"]
+    assert row["collisions_between_automated"] == row["collisions"]  # SUMO's collision output: who hit whom
+    assert row["collisions_automated_human"] == row["collisions_between_human"] == 0
 
 
 def test_bad_demand_and_penetration(site: MergeSite) -> None:

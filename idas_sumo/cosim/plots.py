@@ -38,9 +38,8 @@ def plot_flows(flows_csv: Path, out: Path) -> Path:
             stats = group.groupby("total_demand")[column].agg(["mean", "min", "max"]).sort_index()
             x = stats.index.to_numpy(dtype=float)
             mean = stats["mean"].to_numpy(dtype=float)
-            err = np.vstack(
-                [mean - stats["min"].to_numpy(dtype=float), stats["max"].to_numpy(dtype=float) - mean]
-            )
+            spread = [mean - stats["min"].to_numpy(dtype=float), stats["max"].to_numpy(dtype=float) - mean]
+            err = np.clip(np.nan_to_num(np.vstack(spread)), 0.0, None)  # rounding can leave -1e-16
             ax.errorbar(x, mean, yerr=err, marker="o", capsize=3, label=label)
     for ax, (_, title) in zip(axes, PANELS, strict=True):
         ax.set_xlabel("demand, both roads (veh/h)")

@@ -136,6 +136,17 @@ def read_statistics(folder: Path) -> dict[str, int]:
     return out
 
 
+def read_collisions(folder: Path) -> list[tuple[float, int]]:
+    """Each collision SUMO saw: (time s, how many of its two cars were automated)."""
+    return [
+        (
+            float(e.get("time", "0")),
+            (e.get("colliderType") == AUTOMATED_TYPE) + (e.get("victimType") == AUTOMATED_TYPE),
+        )
+        for e in _elements(folder / OUTPUT_NAMES["collisions"], "collision")
+    ]
+
+
 def _mean(values: list[float]) -> float:
     return float(np.mean(values)) if values else math.nan
 
@@ -194,7 +205,8 @@ def run_row(folder: Path, counts: EngineCounts, duration_s: float, warmup_s: flo
     """The run's flow statistics (``flows.csv``'s statistics columns), measured after ``warmup_s`` (a
     whole number of bins: the road filling up from empty is left out): cars past the merge point, metres
     driven, hard brakes, collisions and teleports in the bins after it, trips that arrived after it, the
-    depart delay of cars due after it. ``sumo_collisions_total`` and ``sumo_teleports_total`` are SUMO's
+    depart delay of cars due after it. The collisions SUMO saw are split by how many of the two cars were
+    automated (``geometric_collisions``, those only the loop found, always involve one). ``sumo_collisions_total`` and ``sumo_teleports_total`` are SUMO's
     own totals over the whole run (its statistics output), a cross-check of the loop's per-step count."""
     bin_s = duration_s / counts.bins
     w = round(warmup_s / bin_s)
@@ -203,6 +215,7 @@ def run_row(folder: Path, counts: EngineCounts, duration_s: float, warmup_s: flo
     dist, time = (part[w:] for part in read_edgedata(folder, bin_s, counts.bins))
     stats = read_statistics(folder)
     trips = read_trips(folder)
+    collisions = read_collisions(folder)
     measured = [t for t in trips if t.arrival_s >= warmup_s]
     metres, brakes = sum(dist), sum(counts.hard_brakes[w:])
     geometric = sum(counts.geometric_collisions[w:])
@@ -220,6 +233,10 @@ def run_row(folder: Path, counts: EngineCounts, duration_s: float, warmup_s: flo
         "hard_brakes": brakes,
         "hard_brakes_per_1000_veh_km": _per_1000_km(brakes, metres),
         "collisions": sum(counts.sumo_collisions[w:]) + geometric,
+        **{
+            f"collisions_{name}": sum(1 for t, k in collisions if t >= warmup_s and k == n)
+            for n, name in enumerate(("between_human", "automated_human", "between_automated"))
+        },
         "geometric_collisions": geometric,
         "teleports": sum(counts.teleports[w:]),
         "sumo_collisions_total": stats["collisions"],

@@ -11,7 +11,7 @@ Every input and output of one run is named in one ``.sumocfg`` (``write_run_file
 can be started through libsumo (``FlowSimulation``) or the ``sumo`` binary (``run_plain_sumo``). SUMO
 measures the flow statistics itself: tripinfo (travel time, time loss, depart delay per car), induction
 loops on every lane just past the merge point (throughput), edge data per time bin (speed, distance)
-and its summary (the insertion backlog) and statistics (collisions, teleports).
+its summary (the insertion backlog), statistics (collisions, teleports) and collision output (who hit whom).
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ OUTPUT_NAMES = {
     "summary": "summary.xml",
     "loops": "loops.xml",
     "edgedata": "edgedata.xml",
+    "collisions": "collisions.xml",
 }
 """What SUMO writes in a run's folder (the additional file's outputs are relative to it, as are the config's)."""
 LOOP_POS_M = 1.0
@@ -167,6 +168,7 @@ def config_xml(site: MergeSite, demand: FlowDemand) -> str:
         "tripinfo-output": OUTPUT_NAMES["tripinfo"],
         "tripinfo-output.write-unfinished": "true",
         "statistic-output": OUTPUT_NAMES["statistic"],
+        "collision-output": OUTPUT_NAMES["collisions"],
         "summary-output": OUTPUT_NAMES["summary"],
         "summary-output.period": f"{demand.bin_s:g}",
         "no-step-log": "true",
