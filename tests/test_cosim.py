@@ -183,3 +183,34 @@ def test_resume_skips_finished_runs(
     ):
         assert column in rows[0]
     assert is_matplotlib_png(out / "flows.png")
+
+
+def test_output_folder_policy(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """A folder holding other files is reused only with --force; nothing is written into the package."""
+    from idas_sumo.io_utils import PACKAGE_DIR
+
+    base = ["cosim", "--demand", "main=600", "--penetration", "0", "--duration-s", "10"]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    code, _, err = main_in_process(capsys, *base, "--out", str(mine))
+    assert code == 2 and "--force" in err and not (mine / "flows.csv").exists()
+    target = PACKAGE_DIR / "policies" / "written-by-a-test"
+    code, _, err = main_in_process(capsys, *base, "--out", str(target))
+    assert code == 2 and "installed idas_sumo package" in err and not target.exists()
+
+
+@pytest.mark.sumo
+def test_onramp_automated_cars_keep_to_the_merge_lanes(tmp_path: Path) -> None:
+    """On a two-lane highway only the merge's lanes are the automated cars' world: cars side by side on
+    the two lanes are no collision (before, the geometric check removed them: dozens per 300 s)."""
+    from idas_sumo.sim.sample_nets import build_sample_net
+
+    site = as_site(build_sample_net("onramp", tmp_path / "onramp.net.xml"))
+    demand = FlowDemand({"main": 2400.0, "merge": 600.0}, 1.0, 90.0, 0, 90.0)
+    row = run_once(site, demand, RuleBasedPolicy("idm"), tmp_path / "run").row
+    assert row["automated"] == row["inserted"] > 60
+    assert row["collisions"] == 0 and row["geometric_collisions"] == 0
+    assert row["throughput_veh_per_h"] > 0
+    # the roads can be named by their edges too
+    assert parse_demand("hw_in=2400,ramp=600", site) == {"main": 2400.0, "merge": 600.0}
