@@ -29,6 +29,7 @@ LAYER: dict[str, int] = {
     "baselines": 3,
     "training": 4,
     "evaluation": 4,
+    "cosim": 4,
     "cli": 5,
 }
 SHARED_LEAVES = frozenset({"", "errors", "config", "io_utils", "resources", "stops"})

@@ -1,5 +1,5 @@
-"""``idas-sumo``: netgen | nets | train | evaluate | sweep | plot | replay | export, one module each; exit codes and
-signals in ``exits``, what the subcommands share in ``common``."""
+"""``idas-sumo``: netgen | nets | train | evaluate | sweep | cosim | plot | replay | export, one module each;
+exit codes and signals in ``exits``, what the subcommands share in ``common``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import logging
 from collections.abc import Sequence
 from types import ModuleType
 
-from idas_sumo.cli import evaluate, export, netgen, nets, plot, replay, sweep, train
+from idas_sumo.cli import cosim, evaluate, export, netgen, nets, plot, replay, sweep, train
 from idas_sumo.cli.common import Parser, VersionAction
 from idas_sumo.cli.exits import LateSignals, exit_code, in_main_thread, sigterm_as_interrupt
 
@@ -24,6 +24,7 @@ COMMANDS: dict[str, ModuleType] = {
     "train": train,
     "evaluate": evaluate,
     "sweep": sweep,
+    "cosim": cosim,
     "plot": plot,
     "replay": replay,
     "export": export,
