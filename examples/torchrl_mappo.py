@@ -43,7 +43,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--frames", type=int, default=20_000, help="world-steps in all (default: 20000)")
     parser.add_argument("--frames-per-batch", type=int, default=512, help="world-steps per rollout")
     parser.add_argument("--worlds", type=int, default=8, help="worlds in the one SUMO (default: 8)")
-    parser.add_argument("--cars", type=int, default=4, help="cars per scenario, = agent slots (default: 4)")
+    parser.add_argument("--cars", type=int, default=8, help="cars per scenario, = agent slots (default: 8)")
     parser.add_argument("--episode-s", type=float, default=30.0, help="episode timeout, s (default: 30)")
     parser.add_argument("--lr", type=float, default=3e-4)
     parser.add_argument("--epochs", type=int, default=2, help="passes over each rollout (default: 2)")

@@ -137,7 +137,7 @@ def test_torchrl_mappo_example_never_takes_a_masked_action(small_budget: Any) ->
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
     stats = example.main(
-        ["--frames", "256", "--worlds", "4", "--frames-per-batch", "128", "--episode-s", "20"]
+        ["--frames", "256", "--worlds", "4", "--frames-per-batch", "128", "--episode-s", "20", "--cars", "4"]
     )
     # main asserts at every step that each sampled action is allowed by its slot's mask
     assert stats["masked_actions"] == 0
