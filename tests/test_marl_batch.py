@@ -70,6 +70,8 @@ def _run_batch(
         acted += int(before.sum())
         state = env.step(actions)
         done = state.terminated | state.truncated
+        # a car the timeout cut off hands back where it was (still on the road: never all zeros)
+        assert np.array_equal(state.final_obs.any(axis=-1), state.truncated)
         assert not (done & ~before).any() and not state.reward[~before].any()
         for k, s in zip(*np.nonzero(before), strict=True):
             j, vid = jobs[k], ids[k][s]

@@ -9,7 +9,8 @@ A slot is *active* while its car is on the road and acts: it has the car's obser
 Otherwise (its car has not entered yet, has ended, or the scenario has fewer cars) the slot is inactive:
 zero observation, a mask that allows only action 0, reward 0, and its action is ignored. In the step a
 car ends, its slot reports ``terminated`` (collided, finished, removed) or ``truncated`` (timeout) with
-the reward of that step; from the next step on it is inactive.
+the reward of that step, and is already inactive in the returned state (a truncated car's observation
+after that step, to bootstrap from, is in ``final_obs``).
 
 Waves, as the vector env (env/vector_env.py): the K worlds start their episodes together (one SUMO
 load), and the next K episodes start once every world's episode is over; a world whose episode ended
@@ -61,6 +62,9 @@ class MarlStep:
     """(K, S): the car ended in this step by collision, finishing or leaving the road."""
     truncated: BoolArray
     """(K, S): the car was cut off by the episode's timeout in this step."""
+    final_obs: npt.NDArray[np.float32]
+    """(K, S, OBS_DIM): a truncated car's observation after the step it was cut off in (to bootstrap
+    its value from: it is still on the road); zeros elsewhere."""
     joint_reward: FloatArray
     """(K,): each world's joint reward of the step (its cars' rewards plus the shared flow penalty)."""
     world_over: BoolArray
@@ -212,9 +216,19 @@ class MergeMarlBatch:
         truncated[k, s] = reasons == "timeout"
         terminated[k, s] = (reasons != "") & (reasons != "timeout")
         joint[: len(result.joint_reward)] = result.joint_reward
+        final = self._final_observations(truncated)
         self._observe()
         self._run_idle()
-        return self._output(out)
+        return self._output(out, final)
+
+    def _final_observations(self, truncated: BoolArray) -> npt.NDArray[np.float32]:
+        """The truncated cars' observations now (before their worlds leave SUMO)."""
+        final = np.zeros((*self.shape, OBS_DIM), dtype=np.float32)
+        for k in np.flatnonzero(truncated.any(axis=1)).tolist():
+            slots = np.flatnonzero(truncated[k])
+            ids = self.engine.slots[k].scenario.controlled_ids
+            final[k, slots] = self.engine.observe_agents(k, [ids[s] for s in slots.tolist()])
+        return final
 
     def _empty_rewards(self) -> tuple[FloatArray, BoolArray, BoolArray, FloatArray]:
         shape = self.shape
@@ -225,7 +239,11 @@ class MergeMarlBatch:
             np.zeros(self.num_worlds),
         )
 
-    def _output(self, step: tuple[FloatArray, BoolArray, BoolArray, FloatArray]) -> MarlStep:
+    def _output(
+        self,
+        step: tuple[FloatArray, BoolArray, BoolArray, FloatArray],
+        final: npt.NDArray[np.float32] | None = None,
+    ) -> MarlStep:
         batch = self._batch
         assert batch is not None
         obs = np.zeros((*self.shape, OBS_DIM), dtype=np.float32)
@@ -245,6 +263,7 @@ class MergeMarlBatch:
             reward=reward,
             terminated=terminated,
             truncated=truncated,
+            final_obs=final if final is not None else np.zeros_like(obs),
             joint_reward=joint,
             world_over=self._reported.copy(),
             wave=self.wave,

@@ -7,7 +7,8 @@ as TorchRL's multi-agent envs (VMAS, PettingZoo) lay them out:
 - ``("agents", "observation")`` (K, S, OBS_DIM), ``("agents", "action_mask")`` (K, S, 7) bool (read by
   ``MaskedCategorical``), ``("agents", "active")`` (K, S, 1) bool, ``("agents", "action")`` (K, S);
 - ``("agents", "reward")`` and ``("agents", "done" | "terminated" | "truncated")`` (K, S, 1) per slot:
-  a slot is done in the step its car ends. TorchRL then "resets" that slot: nothing happens in SUMO (the
+  a slot is done in the step its car ends (a car cut off by the timeout shows the observation it was cut
+  off in, to bootstrap from). TorchRL then "resets" that slot: nothing happens in SUMO (the
   slot stays inactive until a car of a later wave fills it), only its done flag is cleared;
 - the root ``done`` (K, 1) is never set: a world is an endless stream of episodes in waves, so a
   collector runs it without resets. ``reset()`` with no ``_reset`` entry (the first one) starts a wave.
@@ -107,8 +108,14 @@ class MergeTorchRLEnv(EnvBase):
             "truncated": state.truncated if with_step else np.zeros((k, s), dtype=np.bool_),
         }
         slot_done["done"] = slot_done["terminated"] | slot_done["truncated"]
+        # the next observation of a car the timeout cut off is where it was cut off (its value bootstraps)
+        obs = (
+            np.where(slot_done["truncated"][..., None], state.final_obs, state.obs)
+            if with_step
+            else state.obs
+        )
         agents = {
-            "observation": torch.from_numpy(state.obs),
+            "observation": torch.from_numpy(obs),
             "action_mask": torch.from_numpy(state.action_mask),
             "active": torch.from_numpy(state.active)[..., None],
             **{name: torch.from_numpy(v)[..., None] for name, v in slot_done.items()},
