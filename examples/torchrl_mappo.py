@@ -8,8 +8,9 @@ each (group ``"agents"``, shape (K, S)); a slot without a car on the road is ina
 only action 0 allowed). The rest follows TorchRL's multi-agent PPO tutorial: a shared-parameter actor
 (``MultiAgentMLP``, decentralised) whose logits are masked by ``MaskedCategorical`` with the env's
 ``action_mask``, a centralised critic over every slot of a world (MAPPO), GAE per slot (a slot's
-``done`` cuts its returns where its car ended), and ``ClipPPOLoss``. Every collected action is checked
-against its mask (asserted).
+``done`` cuts its returns where its car ended), and ``ClipPPOLoss`` with ``loss_mask_key`` = the slots'
+``active`` flag, so inactive slots are left out of every loss term (objective, critic, entropy). Every
+collected action is checked against its mask (asserted).
 
 A few hundred steps only show that the pieces fit; a useful policy takes far more.
 """
@@ -111,6 +112,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         done=(GROUP, "done"),
         terminated=(GROUP, "terminated"),
     )
+    loss.loss_mask_key = (GROUP, "active")  # an inactive slot decides nothing
     loss.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.95)
     optimizer = torch.optim.Adam(loss.parameters(), args.lr)
     collector = Collector(

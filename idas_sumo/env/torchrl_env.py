@@ -14,8 +14,8 @@ as TorchRL's multi-agent envs (VMAS, PettingZoo) lay them out:
   collector runs it without resets. ``reset()`` with no ``_reset`` entry (the first one) starts a wave.
 
 Inactive slots carry zeros and allow only action 0: a masked policy takes no other action there, with
-log-probability 0, so they add nothing to a policy gradient (their values still enter the critic's loss
-unless the learner weights by ``active``).
+log-probability 0. A TorchRL loss leaves them out with ``loss.loss_mask_key = ("agents", "active")``
+(examples/torchrl_mappo.py).
 """
 
 from __future__ import annotations
