@@ -128,6 +128,48 @@ def test_slot_count_and_bad_actions(small_budget: Any) -> None:
 
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "torchrl_mappo.py"
+needs_torchrl = pytest.mark.skipif(
+    importlib.util.find_spec("torchrl") is None, reason="torchrl not installed (the torchrl extra)"
+)
+
+
+@needs_torchrl
+def test_torchrl_env_steps_as_the_numpy_batch(small_budget: Any) -> None:
+    """The TorchRL env's per-slot rewards, ends and observations are the numpy batch's, step for step: a
+    slot's "reset" after its car ended does not move SUMO."""
+    import torch
+    from torchrl.envs.utils import check_env_specs
+
+    from idas_sumo.env.torchrl_env import GROUP, MergeTorchRLEnv
+
+    steps = 120  # past the 20 s timeout: cars end, the wave changes
+    scenarios = _scenarios(small_budget, WORLDS * WAVES)
+    config = EnvConfig(max_episode_s=small_budget.max_episode_s)
+
+    def policy(td: Any) -> Any:
+        return td.set(
+            (GROUP, "action"), torch.from_numpy(_keep_or_first(td.get((GROUP, "action_mask")).numpy()))
+        )
+
+    env = MergeTorchRLEnv(WORLDS, scenarios=scenarios, config=config)
+    try:
+        check_env_specs(env)
+        data = env.rollout(steps, policy, break_when_any_done=False)
+    finally:
+        env.close()
+    marl = MergeMarlBatch(WORLDS, scenarios=scenarios, config=config)
+    try:
+        state = marl.reset()
+        for t in range(steps):  # the slots a step ended show zeros again at the next (their "reset")
+            assert np.array_equal(data[GROUP, "observation"][:, t].numpy(), state.obs), f"step {t}"
+            state = marl.step(_keep_or_first(state.action_mask))
+            nxt = data["next", GROUP]
+            assert np.array_equal(nxt["reward"][:, t, :, 0].numpy(), state.reward.astype(np.float32))
+            assert np.array_equal(nxt["truncated"][:, t, :, 0].numpy(), state.truncated)
+            assert np.array_equal(nxt["terminated"][:, t, :, 0].numpy(), state.terminated)
+        assert data["next", GROUP, "done"].any() and marl.wave == 2
+    finally:
+        marl.close()
 
 
 @pytest.mark.skipif(

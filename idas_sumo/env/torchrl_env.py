@@ -10,8 +10,10 @@ as TorchRL's multi-agent envs (VMAS, PettingZoo) lay them out:
   a slot is done in the step its car ends (a car cut off by the timeout shows the observation it was cut
   off in, to bootstrap from). TorchRL then "resets" that slot: nothing happens in SUMO (the
   slot stays inactive until a car of a later wave fills it), only its done flag is cleared;
-- the root ``done`` (K, 1) is never set: a world is an endless stream of episodes in waves, so a
-  collector runs it without resets. ``reset()`` with no ``_reset`` entry (the first one) starts a wave.
+- no root ``done``: a world is an endless stream of episodes in waves, so the only done flags are the
+  slots' (a root done, never set, would make TorchRL skip the slots' resets: it updates the nested
+  entries only where no root ``_reset`` exists). ``reset()`` with no ``_reset`` entry (the first one)
+  starts a wave.
 
 Inactive slots carry zeros and allow only action 0: a masked policy takes no other action there, with
 log-probability 0. A TorchRL loss leaves them out with ``loss.loss_mask_key = ("agents", "active")``
@@ -78,9 +80,11 @@ class MergeTorchRLEnv(EnvBase):
         self.reward_spec = Composite(
             {GROUP: Composite(reward=Unbounded(shape=(*slot, 1)), shape=slot)}, shape=(k,)
         )
-        flags = {name: Categorical(n=2, shape=(*slot, 1), dtype=torch.bool) for name in _DONE_KEYS}
-        root = {name: Categorical(n=2, shape=(k, 1), dtype=torch.bool) for name in _DONE_KEYS}
-        self.done_spec = Composite({GROUP: Composite(flags, shape=slot), **root}, shape=(k,))
+        flags = {
+            name: Categorical(n=2, shape=(*slot, 1), dtype=torch.bool)
+            for name in ("done", "terminated", "truncated")
+        }
+        self.done_spec = Composite({GROUP: Composite(flags, shape=slot)}, shape=(k,))
 
     def _set_seed(self, seed: int | None) -> None:
         self._seed_value = seed
@@ -122,13 +126,8 @@ class MergeTorchRLEnv(EnvBase):
         }
         if with_step:
             agents["reward"] = torch.from_numpy(state.reward.astype(np.float32))[..., None]
-        never = torch.zeros((k, 1), dtype=torch.bool)
-        out = {GROUP: TensorDict(agents, batch_size=[k, s]), **{name: never for name in _DONE_KEYS}}
-        return TensorDict(out, batch_size=[k])
+        return TensorDict({GROUP: TensorDict(agents, batch_size=[k, s])}, batch_size=[k])
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         self.marl.close()
         super().close(raise_if_closed=raise_if_closed)
-
-
-_DONE_KEYS = ("done", "terminated", "truncated")
