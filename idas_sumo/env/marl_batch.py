@@ -118,7 +118,7 @@ class MergeMarlBatch:
         self._next_job = 0
         self.jobs: list[int] = []
         """Each world's episode of this wave: its index in ``scenarios`` (counting on when cycled), or
-        the wave number with drawn scenarios."""
+        the wave's index (from 0) with drawn scenarios."""
         self.wave = 0
         self._slot_of: list[dict[str, int]] = []
         self._batch: AgentBatch | None = None

@@ -129,5 +129,7 @@ class MergeTorchRLEnv(EnvBase):
         return TensorDict({GROUP: TensorDict(agents, batch_size=[k, s])}, batch_size=[k])
 
     def close(self, *, raise_if_closed: bool = True) -> None:
-        self.marl.close()
+        marl = getattr(self, "marl", None)  # None: __init__ failed before it (EnvBase.__del__ closes too)
+        if marl is not None:
+            marl.close()
         super().close(raise_if_closed=raise_if_closed)
