@@ -13,6 +13,7 @@ from typing import IO
 import pandas as pd
 
 from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy
+from idas_sumo.env.scenario import start_room_m
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.evaluation.metrics import (
@@ -203,7 +204,15 @@ def _cases(req: EvalRequest, site: MergeSite, eval_config: EvalConfig) -> list[E
     if req.scenario_files:
         return file_cases(list(req.scenario_files), req.seed, speed_limits)
     lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
-    return suite_cases(req.suite, req.scenarios or 0, req.seed, speed_limits, eval_config.traffic, lengths)
+    return suite_cases(
+        req.suite,
+        req.scenarios or 0,
+        req.seed,
+        speed_limits,
+        eval_config.traffic,
+        lengths,
+        start_room_m(site),
+    )
 
 
 def _write_driver_types(
