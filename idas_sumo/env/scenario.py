@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 
-from idas_sumo.config import from_dict, load_toml
+from idas_sumo.config import MAX_VEHICLES, from_dict, load_toml
 from idas_sumo.errors import InputError
 from idas_sumo.physics.idm import DEFAULT_IDM
 from idas_sumo.sim.backend import STEP_LENGTH_S, VEHICLE_LENGTH_M
@@ -98,6 +98,8 @@ class Scenario:
             raise ValueError("vehicle ids must be unique")
         if not self.vehicles:
             raise ValueError("a scenario needs at least one vehicle")
+        if len(self.vehicles) > MAX_VEHICLES:
+            raise ValueError(f"a scenario holds at most {MAX_VEHICLES} vehicles, got {len(self.vehicles)}")
         for road in ROADS:
             on_road = sorted(
                 (v for v in self.vehicles if v.road == road and v.depart_s == 0.0),
@@ -165,6 +167,12 @@ class TrafficConfig:
     def __post_init__(self) -> None:
         if not 1 <= self.min_vehicles_per_road <= self.max_vehicles_per_road:
             raise ValueError("need 1 <= min_vehicles_per_road <= max_vehicles_per_road")
+        if self.n_vehicles > MAX_VEHICLES or 2 * self.max_vehicles_per_road > MAX_VEHICLES:
+            what = "n_vehicles" if self.n_vehicles > MAX_VEHICLES else "2 * max_vehicles_per_road"
+            raise ValueError(
+                f"{what} must be at most {MAX_VEHICLES} (the cars of one scenario), got "
+                f"{self.n_vehicles if what == 'n_vehicles' else 2 * self.max_vehicles_per_road}"
+            )
         if self.n_vehicles < 0:
             raise ValueError(f"n_vehicles must be >= 0, got {self.n_vehicles}")
         if self.n_vehicles and not (
