@@ -1,12 +1,13 @@
 """What the scenarios need of a merge net's road lengths, and the check that refuses a net without it.
 
-Merge detection (``sim/merge_detect.py``) finds where two roads join. A merge can still be useless: with 1 m roads every car starts past the merge and every scenario
-collides; with 100 km roads no car reaches the merge before the timeout. Either run would end with exit
+Merge detection (``sim/merge_detect.py``) finds where two roads join. A merge can still be useless: with
+a 1 m road after the merge no car reaches the finish line before it leaves the net; with 100 km roads no
+car reaches the merge before the timeout. Either run would end with exit
 0 and a table of 0 % that means nothing, so ``train`` and ``evaluate`` refuse such a net up front.
 
 The bounds come from what an episode uses:
 
-- an incoming road may be of any length: the random starts lie on what it has (``[car length,
+- an incoming road may be as short as it is: the random starts lie on what it has (``[car length,
   start_range_m]`` from its start, counted along its edges, a car to spare before the merge point;
   on a shorter road the cars that do not fit enter later at its start, ``generate_scenario``), and on
   one shorter than the sensor range (``VISIBILITY_M``) the grid cells beyond its start stay empty,
