@@ -58,6 +58,7 @@ def _user_files(tmp: Path) -> dict[str, Path]:
         "eval_crowd": user / "eval_crowd.toml",
         "train_crowd": user / "train_crowd.toml",
         "sweep": user / "sweep.toml",
+        "many_merges": user / "many_merges.toml",
     }
     made["notes"].write_text('{"keep": "me"}\n')
     shutil.copy(DEFAULT_NET, made["net"])
@@ -71,6 +72,7 @@ def _user_files(tmp: Path) -> dict[str, Path]:
     made["eval_crowd"].write_text("[traffic]\nmin_speed_frac = 1.5\n")
     made["train_crowd"].write_text("[robot_traffic]\nmax_vehicles_per_road = 600\nmax_controlled = 1\n")
     made["sweep"].write_text(TINY_TRAIN_TOML + "validate_every = 2\n")
+    made["many_merges"].write_text("validation_scenarios = 4000\n[geometry]\nvalidation_geometries = 3500\n")
     return made
 
 
@@ -102,6 +104,10 @@ CASES: dict[str, tuple[Callable[[dict[str, Path], Path], list[str]], tuple[str, 
     "train 1200 cars a scenario": (
         lambda f, out: ["train", "--config", str(f["train_crowd"]), "--out", str(out / "run")],
         ("train_crowd.toml", "max_vehicles_per_road", "at most 1000"),
+    ),
+    "train 3500 validation merges": (
+        lambda f, out: ["train", "--config", str(f["many_merges"]), "--out", str(out / "run")],
+        ("many_merges.toml", "validation_geometries must be in [0, 1000]"),
     ),
     "train --episodes above the bound": (
         lambda f, out: ["train", "--episodes", "123456789012", "--out", str(out / "run")],
