@@ -19,6 +19,15 @@ MAX_SCENARIOS = 100_000
 """The most scenarios a user may ask one run for, wherever the count comes from (``--scenarios``, a
 recipe's ``validation_scenarios``, the Python API): scenarios are drawn up front, so a count is memory
 (10^9 filled it before the first episode); the paper uses 100."""
+MAX_VEHICLES = 1_000
+"""The most cars one scenario may hold, wherever they come from (a scenario file's vehicles, a
+``[traffic]`` table's ``n_vehicles`` or twice its ``max_vehicles_per_road``): each is a SUMO vehicle
+and a row at every step (``max_vehicles_per_road = 10**9`` drew a billion cars before the first
+step); the paper has 8."""
+MAX_EPISODES = 100_000_000
+"""The most episodes a training stage (or ``--episodes``, ``checkpoint_every``, ``validate_every``)
+may name: 1,400 times the paper's 70,000. ``episodes_per_update``'s episodes are drawn up front, so it
+is bounded by ``MAX_SCENARIOS`` instead."""
 RETIRED_ATTR = "RETIRED_KEYS"
 """A config dataclass may name keys it no longer has, with the value they had by default, in a class attribute of
 this name (``RETIRED_KEYS: ClassVar[dict[str, Any]]``). Files written before (checkpoints, recipes) still load when

@@ -165,7 +165,7 @@ def test_equal_approaches_make_the_merging_road_as_long_as_the_main_road_at_that
         ("equal_approaches_probability = -0.1", "must be in [0, 1]"),
         ("out_speed_mps = 'fast'", "expected a list"),
         ("angle = [20, 30]", "did you mean"),
-        ("main_length_m = [100, 300]", "[geometry]: ranges draw a net the scenarios cannot use"),
+        ("main_length_m = [230, 3000]", "[geometry]: ranges draw a net the scenarios cannot use"),
     ],
 )
 def test_bad_ranges_are_one_line_exit_2(

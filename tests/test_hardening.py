@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import TINY_TRAIN_TOML, checkpoint_payload, interrupt_when, run_cli
+from conftest import TINY_TRAIN_TOML, checkpoint_payload, interrupt_when, main_in_process, run_cli
 
 from idas_sumo.env.outcome import END_REASONS
 from idas_sumo.resources import DEFAULT_NET as NET
@@ -60,7 +60,7 @@ def check_cli_cases(
             if name in results:
                 assert_usage_error(results[name], *needles)
             else:
-                code, err = run_main(capsys, *args)
+                code, _, err = main_in_process(capsys, *args)
                 assert_one_line(err, 2, code, *needles)
         except AssertionError as err:
             raise AssertionError(f"case {name}: {err}") from None
@@ -76,17 +76,6 @@ def run_many(
 
 def assert_usage_error(result: subprocess.CompletedProcess[str], *needles: str) -> str:
     return assert_one_line(result.stderr, 2, result.returncode, *needles)
-
-
-def run_main(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
-    """``idas_sumo.cli.main`` in this process: (exit code, stderr)."""
-    from idas_sumo.cli import main
-
-    try:
-        code = main(list(args))
-    except SystemExit as exit_:  # argparse exits on bad usage
-        code = int(exit_.code or 0)
-    return code, capsys.readouterr().err
 
 
 def snapshot(directory: Path) -> dict[str, bytes]:
@@ -463,7 +452,7 @@ def test_unreadable_net(
     monkeypatch.setattr(
         os, "access", lambda p, mode, **kw: False if Path(p) == net else real_access(p, mode, **kw)
     )
-    code, err = run_main(capsys, *eval_args(out, "--scenarios", "2", net=net))
+    code, _, err = main_in_process(capsys, *eval_args(out, "--scenarios", "2", net=net))
     assert_one_line(err, 2, code, str(net), "not readable")
     assert not out.exists()
 
@@ -527,14 +516,14 @@ def test_output_directory_not_writable(
     monkeypatch.setattr(os, "access", no_write)
     monkeypatch.setattr(os, "mkdir", no_mkdir)
     for args in (eval_args(locked), train_args(locked, "--episodes", "1")):
-        code, err = run_main(capsys, *args)
+        code, _, err = main_in_process(capsys, *args)
         assert_one_line(err, 2, code, str(locked), "not writable")
     for args in (eval_args(locked / "out"), train_args(locked / "run", "--episodes", "1")):
-        code, err = run_main(capsys, *args)
+        code, _, err = main_in_process(capsys, *args)
         assert_one_line(
             err, 2, code, str(locked / ("out" if args[0] == "evaluate" else "run")), "Permission denied"
         )
-    code, err = run_main(capsys, "netgen", "--out", str(locked / "x.net.xml"))
+    code, _, err = main_in_process(capsys, "netgen", "--out", str(locked / "x.net.xml"))
     assert_one_line(err, 2, code, str(locked), "not writable")
     assert list(locked.iterdir()) == []
 
@@ -563,7 +552,7 @@ def test_disk_full_while_writing_csvs_keeps_the_previous_files(
     import pandas as pd
 
     out = tmp_path / "out"
-    code, _ = run_main(capsys, *eval_args(out, "--scenarios", "2"))
+    code, _, _ = main_in_process(capsys, *eval_args(out, "--scenarios", "2"))
     assert code == 0
     before = snapshot(out)
     real_to_csv = pd.DataFrame.to_csv
@@ -573,7 +562,7 @@ def test_disk_full_while_writing_csvs_keeps_the_previous_files(
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(pd.DataFrame, "to_csv", half_then_full)
-    code, err = run_main(capsys, *eval_args(out, "--scenarios", "2", "--seed", "7", "--force"))
+    code, _, err = main_in_process(capsys, *eval_args(out, "--scenarios", "2", "--seed", "7", "--force"))
     assert_one_line(err, 1, code, "No space left on device")
     assert snapshot(out) == before  # the previous good CSVs are all there, byte for byte
     assert temp_files(out) == []

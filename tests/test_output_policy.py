@@ -12,23 +12,21 @@ import csv
 from pathlib import Path
 
 import pytest
-from conftest import TINY_TRAIN_TOML
+from conftest import TINY_TRAIN_TOML, main_in_process
 
 from idas_sumo.cli import main
 from idas_sumo.io_utils import LOCK_NAME, MANIFEST_NAME, PACKAGE_DIR, OutputFolder, output_directory
 from idas_sumo.resources import DEFAULT_NET
 
 
-def run_main(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
-    """``idas_sumo.cli.main``: (exit code, stderr)."""
-    try:
-        code = main(list(args))
-    except SystemExit as exit_:
-        code = int(exit_.code or 0)
-    return code, capsys.readouterr().err
+def code_and_err(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    """``main_in_process``'s exit code and stderr, as ``assert_refused`` takes them."""
+    code, _, err = main_in_process(capsys, *args)
+    return code, err
 
 
 def assert_refused(code: int, err: str, *needles: str) -> None:
+    """Exit 2, one line on stderr naming each of ``needles``."""
     assert code == 2, err
     assert "Traceback" not in err
     lines = err.splitlines()
@@ -70,17 +68,17 @@ def test_net_commands_never_replace_a_file_they_did_not_write(
     """``netgen --out notes.py`` replaced the user's file (exit 0) and wrote notes.py.nod.xml beside it."""
     notes = tmp_path / "notes.py"
     notes.write_text("print('mine')\n")
-    assert_refused(*run_main(capsys, *command, "--out", str(notes)), str(notes), ".net.xml")
+    assert_refused(*code_and_err(capsys, *command, "--out", str(notes)), str(notes), ".net.xml")
     user_net = tmp_path / "mine.net.xml"
     user_net.write_text("<net>hand-written</net>\n")
-    assert_refused(*run_main(capsys, *command, "--out", str(user_net)), str(user_net), "--force")
+    assert_refused(*code_and_err(capsys, *command, "--out", str(user_net)), str(user_net), "--force")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.net.xml", "notes.py"]
     assert notes.read_text() == "print('mine')\n" and user_net.read_text() == "<net>hand-written</net>\n"
     # A net the tool wrote is replaced as before; one the user owns only with --force.
     ours = tmp_path / "ours.net.xml"
-    assert run_main(capsys, *command, "--out", str(ours))[0] == 0
-    assert run_main(capsys, *command, "--out", str(ours))[0] == 0
-    assert run_main(capsys, *command, "--out", str(user_net), "--force")[0] == 0
+    assert main_in_process(capsys, *command, "--out", str(ours))[0] == 0
+    assert main_in_process(capsys, *command, "--out", str(ours))[0] == 0
+    assert main_in_process(capsys, *command, "--out", str(user_net), "--force")[0] == 0
     assert "hand-written" not in user_net.read_text()
 
 
@@ -90,7 +88,9 @@ def test_net_commands_never_replace_plain_xml_they_did_not_write(
 ) -> None:
     nodes = tmp_path / "x.nod.xml"
     nodes.write_text("<nodes/>\n")  # the user's own plain XML, beside the name asked for
-    assert_refused(*run_main(capsys, "netgen", "--out", str(tmp_path / "x.net.xml")), str(nodes), "--force")
+    assert_refused(
+        *code_and_err(capsys, "netgen", "--out", str(tmp_path / "x.net.xml")), str(nodes), "--force"
+    )
     assert nodes.read_text() == "<nodes/>\n" and not (tmp_path / "x.net.xml").exists()
 
 
@@ -101,7 +101,9 @@ def test_netgen_never_writes_into_the_installed_package(
     """``netgen --out`` at the shipped default replaced it (a warning only); every default run then failed."""
     shipped = PACKAGE_DIR / "sumo_nets" / "tjunction.net.xml"
     before = snapshot(shipped.parent)
-    assert_refused(*run_main(capsys, "netgen", "--out", str(shipped), *force), "installed idas_sumo package")
+    assert_refused(
+        *code_and_err(capsys, "netgen", "--out", str(shipped), *force), "installed idas_sumo package"
+    )
     assert snapshot(shipped.parent) == before
 
 
@@ -112,7 +114,7 @@ def test_netgen_never_writes_into_the_installed_package(
 def test_train_force_keeps_files_it_did_not_write(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``train --force`` removed the whole tensorboard/ folder and any ``.*.tmp`` dotfile."""
     run = tmp_path / "run"
-    assert run_main(capsys, *train(run, tmp_path))[0] == 0
+    assert main_in_process(capsys, *train(run, tmp_path))[0] == 0
     recorded = set((run / MANIFEST_NAME).read_text().splitlines())
     assert {"checkpoint.pt", "metrics.csv", "robot.pt"} <= recorded
     (run / "tensorboard").mkdir(exist_ok=True)
@@ -121,7 +123,7 @@ def test_train_force_keeps_files_it_did_not_write(tmp_path: Path, capsys: pytest
         path.write_text(text)
     stale = run / ".checkpoint.pt.k1l2l3ed.tmp"  # a write killed before its rename
     stale.write_bytes(b"\0")
-    assert run_main(capsys, *train(run, tmp_path, "--force"))[0] == 0
+    assert main_in_process(capsys, *train(run, tmp_path, "--force"))[0] == 0
     assert all(path.read_text() == text for path, text in mine.items())
     assert not stale.exists() and not (run / LOCK_NAME).exists()
 
@@ -139,7 +141,7 @@ def test_train_force_checks_before_it_deletes(tmp_path: Path, capsys: pytest.Cap
     (run / MANIFEST_NAME).write_text("checkpoint.pt\nmetrics.csv\ntensorboard/events.out.tfevents.1\n")
     args = train(run, tmp_path, "--force")
     before = snapshot(tmp_path)
-    assert_refused(*run_main(capsys, *args), "symlink", "nothing was removed")
+    assert_refused(*code_and_err(capsys, *args), "symlink", "nothing was removed")
     assert snapshot(tmp_path) == before
 
 
@@ -148,15 +150,15 @@ def test_evaluate_force_removes_only_what_it_wrote(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "out"
-    assert run_main(capsys, *evaluate(out, "--trajectories"))[0] == 0
+    assert main_in_process(capsys, *evaluate(out, "--trajectories"))[0] == 0
     assert "trajectories.csv" in (out / MANIFEST_NAME).read_text()
     (out / "notes.txt").write_text("mine")
-    assert run_main(capsys, *evaluate(out, "--force"))[0] == 0
+    assert main_in_process(capsys, *evaluate(out, "--force"))[0] == 0
     assert (out / "notes.txt").read_text() == "mine"
     assert not (out / "trajectories.csv").exists()  # the earlier run's, which this one did not write
     (out / "sumo").symlink_to(tmp_path)
     before = snapshot(out)
-    assert_refused(*run_main(capsys, *evaluate(out, "--force", "--sumo-output")), "symlink")
+    assert_refused(*code_and_err(capsys, *evaluate(out, "--force", "--sumo-output")), "symlink")
     assert snapshot(out) == before
 
 
@@ -185,7 +187,7 @@ def test_a_second_command_into_a_locked_folder_is_refused(
     args = evaluate(out, "--force") if command == "evaluate" else train(out, tmp_path, "--force")
     with OutputFolder.open(out):  # the first command, still writing
         (out / "checkpoint.pt").write_text("the first run's")
-        code, err = run_main(capsys, *args)
+        code, _, err = main_in_process(capsys, *args)
         assert_refused(code, err, str(out), "another idas-sumo command is writing")
         assert (out / "checkpoint.pt").read_text() == "the first run's"
     assert not (out / LOCK_NAME).exists()
@@ -221,7 +223,7 @@ def test_resume_refuses_a_metrics_file_it_cannot_trust(
     }[damage]
     metrics.write_text(edited)
     before = snapshot(run)
-    code, err = run_main(capsys, *train(run, tmp_path, "--resume", "--episodes", "2"))
+    code, _, err = main_in_process(capsys, *train(run, tmp_path, "--resume", "--episodes", "2"))
     assert_refused(code, err, str(metrics), "nothing was changed")
     assert snapshot(run) == before
 
@@ -251,7 +253,7 @@ def test_a_scenario_name_that_is_a_path_is_refused(
         '[[vehicles]]\nid = "ego"\nroad = "main"\nstart_pos_m = 50.0\nspeed_mps = 10.0\n'
     )
     out = tmp_path / "out"
-    code, err = run_main(capsys, *evaluate(out, "--scenario", str(scenario), "--sumo-output"))
+    code, _, err = main_in_process(capsys, *evaluate(out, "--scenario", str(scenario), "--sumo-output"))
     assert_refused(code, err, str(scenario), "scenario name")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.toml"]
 
@@ -269,15 +271,15 @@ def test_plot_and_replay_never_replace_a_file_they_did_not_write(
     for run in runs:
         run.mkdir()
     plot = ["plot", *map(str, runs), "--out", str(mine)]
-    assert_refused(*run_main(capsys, *plot), str(mine), "--force")
+    assert_refused(*code_and_err(capsys, *plot), str(mine), "--force")
     gif = tmp_path / "mine.gif"
     gif.write_bytes(b"GIF89a mine")
     assert_refused(
-        *run_main(capsys, "replay", str(tmp_path), "--scenario", "0", "--out", str(gif)), "--force"
+        *code_and_err(capsys, "replay", str(tmp_path), "--scenario", "0", "--out", str(gif)), "--force"
     )
     assert mine.read_bytes() == b"my own picture" and gif.read_bytes() == b"GIF89a mine"
     # With --force the command goes on (and here fails on the empty run folders, not on the file).
-    code, err = run_main(capsys, *plot, "--force")
+    code, _, err = main_in_process(capsys, *plot, "--force")
     assert code == 2 and "not a training run" in err
 
 
@@ -293,5 +295,5 @@ def test_no_command_writes_into_the_installed_package(
         "plot": ["plot", str(tmp_path), str(tmp_path), "--out", str(target / "x.png")],
     }[command]
     (tmp_path / "tiny.toml").write_text("validate_every = 1\n" + TINY_TRAIN_TOML)
-    assert_refused(*run_main(capsys, *args), "installed idas_sumo package")
+    assert_refused(*code_and_err(capsys, *args), "installed idas_sumo package")
     assert not target.exists()

@@ -5,7 +5,11 @@ generator drew starts on junction-internal lanes between two edges (``gneJ7``, `
 and the cars' 40 m/s top speed was below a 44.44 m/s limit (``2024041878``); ``A10KW``'s lane drops
 also started cars above their first edge's limit. Starts now count along an approach's edges
 (``Approach.edge_point``), the controlled cars' top speed follows the net and a start speed is capped
-by its departure lane's limit.
+by its departure lane's limit. Three more were refused for approaches shorter than the 100 m sensor
+range (``A10KW`` ``32500260``, 11 m of road of which 4.6 m on edges, and ``32500287``; ``bs3d``
+``62004677``, 26 m): starts are now drawn on what a road has, the cars that do not fit entering later
+at its start, and a road that splits just past the merge (``32500287``, 14 m on) goes on along its
+straightest branch (``merge_detect.FOLLOW_SPLIT_M``).
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import pandas as pd
 import pytest
 
 from idas_sumo.cli import main
-from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, generate_scenario
+from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec, generate_scenario, start_room_m
 from idas_sumo.errors import InputError
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.backend import (
@@ -43,8 +47,7 @@ RUNS = {  # every merge detected in tools/game that the scenarios can use
     # faithful; its episodes run one at a time on the file itself (multinet.copies_run).
     ("A10KW/osm.net.xml", "2314229789"),
     ("A10KW/osm.net.xml", "2699976598"),
-}
-TOO_SHORT = {  # approaches shorter than the 100 m sensor range: refused up front, one line
+    # Approaches shorter than the 100 m sensor range (and than the 200 m start range).
     ("A10KW/osm.net.xml", "32500260"),
     ("A10KW/osm.net.xml", "32500287"),
     ("bs3d/bs.net.xml", "62004677"),
@@ -61,7 +64,7 @@ def test_the_merges_in_sumos_examples_are_the_ones_listed_here() -> None:
         for p in sorted(GAME.glob("*/*.net.xml"))
         for site in detect_merges(p)
     }
-    assert found == RUNS | TOO_SHORT
+    assert found == RUNS
 
 
 def test_edge_point_counts_along_the_edges_hand_worked() -> None:
@@ -93,8 +96,9 @@ def test_drawn_starts_land_on_edges_no_closer_than_drawn(net: str, junction: str
     site = _site(net, junction)
     limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
     rng = np.random.default_rng(34)
+    room = start_room_m(site)
     for _ in range(200):
-        scenario = generate_scenario(rng, TrafficConfig(), limits)
+        scenario = generate_scenario(rng, TrafficConfig(), limits, start_room_m=room)
         for side in ("main", "merge"):
             approach = site.approach(side)
             cars = sorted((v for v in scenario.vehicles if v.road == side), key=lambda v: v.start_pos_m)
@@ -169,16 +173,6 @@ def test_every_merge_in_sumos_examples_evaluates(
     assert (ended >= 1).all()
 
 
-@pytest.mark.parametrize(("net", "junction"), sorted(TOO_SHORT))
-def test_merges_with_roads_shorter_than_the_sensor_range_are_one_line(
-    net: str, junction: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    args = ["evaluate", "--baseline", "idm", "--net", str(GAME / net), "--junction", junction]
-    assert main([*args, "--scenarios", "2", "--out", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "m long" in err and "the scenarios need" in err and "sensor range" in err
-
-
 def test_a_scenario_file_start_past_the_edges_room_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -193,3 +187,58 @@ def test_a_scenario_file_start_past_the_edges_room_is_one_line(
     assert main([*args, "--scenario", str(scenario), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and str(scenario) in err and "'merge0'" in err and "230.7" in err
+
+
+@pytest.mark.parametrize("n_vehicles", [8, 0])
+def test_a_road_shorter_than_the_start_range_takes_later_entries(n_vehicles: int) -> None:
+    """``32500260``'s main road has 4.6 m of edges, less than a car: no car fits on it at t = 0, so
+    every one enters later, half way along them, one after another; ``62004677``'s merging road (26.2 m)
+    holds one car at t = 0. Both generators (the paper's staggered traffic, and every car at t = 0)."""
+    traffic = TrafficConfig(n_vehicles=n_vehicles)
+    for net, junction, road, fits in (
+        ("A10KW/osm.net.xml", "32500260", "main", 0),
+        ("bs3d/bs.net.xml", "62004677", "merge", 1),
+    ):
+        site = _site(net, junction)
+        room = start_room_m(site)
+        limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
+        rng = np.random.default_rng(34)
+        for _ in range(100):
+            cars = [
+                v
+                for v in generate_scenario(rng, traffic, limits, start_room_m=room).vehicles
+                if v.road == road
+            ]
+            at_start = [v for v in cars if v.depart_s == 0.0 and v.start_pos_m >= 5.0]
+            entries = [v for v in cars if v not in at_start]
+            assert len(at_start) <= fits and all(0.0 < v.start_pos_m < room[road] for v in cars)
+            assert {v.start_pos_m for v in entries} <= {min(5.0, room[road] // 0.002 / 1000)}
+            departs = [v.depart_s for v in entries]
+            assert departs == sorted(departs) and len(set(departs)) == len(departs)
+
+
+def test_a_road_that_holds_the_start_range_draws_as_before() -> None:
+    """The room changes nothing where the start range fits (the shipped net: 250 m roads)."""
+    site = choose_merge(DEFAULT_NET)
+    limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
+    for seed in range(30):
+        for traffic in (TrafficConfig(), TrafficConfig(n_vehicles=0)):
+            plain = generate_scenario(np.random.default_rng(seed), traffic, limits)
+            roomy = generate_scenario(
+                np.random.default_rng(seed), traffic, limits, start_room_m=start_room_m(site)
+            )
+            assert plain == roomy
+
+
+def test_a_split_just_past_the_merge_is_followed_along_its_straightest_branch() -> None:
+    """``32500287``'s road after the merge splits 1.9 m on (253109040 into 4935289, back into the
+    roundabout-like ring it sits on, or 4935300#0, away from it): the route goes on along the
+    straighter one and never onto an approach's edge again."""
+    site = _site("A10KW/osm.net.xml", "32500287")
+    out = [lane.edge_id for lane in site.out if not lane.internal]
+    assert out[:2] == ["253109040", "4935300#0"]
+    for side in ("main", "merge"):
+        edges = site.route_edge_ids(side)
+        assert len(edges) == len(set(edges))
+        past = site.route(side)[-1]
+        assert past.length_m - past.start_to_merge_m >= 100.0

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
-from idas_sumo.config import MAX_SCENARIOS
+from idas_sumo.config import MAX_EPISODES, MAX_SCENARIOS
 from idas_sumo.distributed import LOCAL, check_ray_address
 from idas_sumo.errors import InputError
 from idas_sumo.resources import DEFAULT_TRAIN_CONFIG, resolve_user_path
@@ -66,6 +66,13 @@ def copies(text: str) -> int:
     value = positive_int(text)
     if value > MAX_COPIES:
         raise argparse.ArgumentTypeError(f"expected at most {MAX_COPIES}, got {value}")
+    return value
+
+
+def episode_count(text: str) -> int:
+    value = positive_int(text)
+    if value > MAX_EPISODES:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_EPISODES}, got {value}")
     return value
 
 
@@ -138,6 +145,31 @@ def train_defaults() -> dict[str, Any]:
             return tomllib.load(f)
     except (OSError, tomllib.TOMLDecodeError):
         return {}
+
+
+def add_worker_flags(
+    parser: argparse.ArgumentParser,
+    what: str,
+    processes: str,
+    default: str,
+    workers_default: int | None = None,
+) -> None:
+    """``--workers`` and ``--ray-address``, which ``train`` and ``evaluate`` share (``check_backend``
+    checks both): ``what`` the workers are and the ``processes`` they run, for the help, and where
+    the ``default`` comes from."""
+    parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=workers_default,
+        help=f"{processes}, one SUMO each, at most the CPU count (with --ray-address: Ray actors, at most "
+        f"the cluster's CPUs); results do not depend on it ({default})",
+    )
+    parser.add_argument(
+        "--ray-address",
+        type=ray_address,
+        metavar="ADDRESS",
+        help=RAY_ADDRESS_HELP.format(what=f"--workers {what}"),
+    )
 
 
 def _check_workers(args: argparse.Namespace) -> None:

@@ -13,13 +13,11 @@ from typing import TYPE_CHECKING, Any
 from idas_sumo.cli.common import (
     EVAL_SEED,
     JUNCTION_HELP,
-    RAY_ADDRESS_HELP,
+    add_worker_flags,
     check_backend,
     copies,
     input_file,
     out_path,
-    positive_int,
-    ray_address,
     scenario_count,
     seed,
 )
@@ -54,25 +52,14 @@ def add_parser(sub: Subparsers) -> None:
     ev.add_argument("--baseline", required=True, help=baseline_help())
     _add_scenario_flags(ev)
     _add_output_flags(ev)
-    ev.add_argument(
-        "--workers",
-        type=positive_int,
-        default=1,
-        help="processes sharing the episodes, one SUMO each, at most the CPU count (2 keeps both cores busy; "
-        "with --ray-address: Ray actors, at most the cluster's CPUs); results do not depend on it "
-        "(default: %(default)s)",
+    add_worker_flags(
+        ev, "evaluation workers", "processes sharing the episodes", "default: %(default)s", workers_default=1
     )
     ev.add_argument(
         "--copies",
         type=copies,
         default=DEFAULT_EVAL_COPIES,
         help="episodes run side by side in one SUMO run; results do not depend on it (default: %(default)s)",
-    )
-    ev.add_argument(
-        "--ray-address",
-        type=ray_address,
-        metavar="ADDRESS",
-        help=RAY_ADDRESS_HELP.format(what="--workers evaluation workers"),
     )
 
 

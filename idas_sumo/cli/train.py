@@ -7,13 +7,12 @@ from typing import TYPE_CHECKING
 
 from idas_sumo.cli.common import (
     JUNCTION_HELP,
-    RAY_ADDRESS_HELP,
+    add_worker_flags,
     check_backend,
     copies,
+    episode_count,
     input_file,
     out_path,
-    positive_int,
-    ray_address,
     seed,
     train_defaults,
 )
@@ -51,12 +50,6 @@ def add_parser(sub: Subparsers) -> None:
     train.add_argument(
         "--gui", action="store_true", help="show the rollouts in sumo-gui (slow; needs a display)"
     )
-    train.add_argument(
-        "--ray-address",
-        type=ray_address,
-        metavar="ADDRESS",
-        help=RAY_ADDRESS_HELP.format(what="--workers rollout workers"),
-    )
 
 
 def _add_config_flags(train: argparse.ArgumentParser) -> None:
@@ -74,17 +67,12 @@ def _add_config_flags(train: argparse.ArgumentParser) -> None:
     )
     train.add_argument(
         "--episodes",
-        type=positive_int,
+        type=episode_count,
         help="episodes of every stage the run trains; with --resume, a larger N extends a finished run "
         f"({from_config('robot_episodes', 'intelligent_episodes', 'direct_episodes')} for robot / "
         "intelligent / direct)",
     )
-    train.add_argument(
-        "--workers",
-        type=positive_int,
-        help="rollout processes, one SUMO each, at most the CPU count (with --ray-address: Ray actors, at "
-        f"most the cluster's CPUs) ({from_config('workers')})",
-    )
+    add_worker_flags(train, "rollout workers", "rollout processes", from_config("workers"))
     train.add_argument(
         "--copies",
         type=copies,

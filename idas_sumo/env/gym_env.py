@@ -96,7 +96,12 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         for _ in range(_EGO_ATTEMPTS):
             scenario = given
             if scenario is None:
-                scenario = generate_scenario(self.np_random, self.traffic, self.sim.engine.speed_limits_mps)
+                scenario = generate_scenario(
+                    self.np_random,
+                    self.traffic,
+                    self.sim.engine.speed_limits_mps,
+                    start_room_m=start_room_m(self.sim.engine.site),
+                )
             ego = self.fixed_ego or str(self.np_random.choice([v.id for v in scenario.vehicles]))
             controlled = {v.id for v in scenario.vehicles} if self.others is not None else {ego}
             self.ego = ego

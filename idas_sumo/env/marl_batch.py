@@ -153,7 +153,10 @@ class MergeMarlBatch:
             return picked
         limits = self.engine.speed_limits_mps
         self.jobs = [self.wave] * self.num_worlds
-        return [generate_scenario(rng, self.traffic, limits) for rng in self._rngs]
+        return [
+            generate_scenario(rng, self.traffic, limits, start_room_m=start_room_m(self.engine.site))
+            for rng in self._rngs
+        ]
 
     def _new_wave(self) -> None:
         scenarios = self._draw()

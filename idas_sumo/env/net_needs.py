@@ -1,15 +1,17 @@
 """What the scenarios need of a merge net's road lengths, and the check that refuses a net without it.
 
-Merge detection (``sim/merge_detect.py``) finds where two roads join. A merge can still be useless: with 1 m roads every car starts past the merge and every scenario
-collides; with 100 km roads no car reaches the merge before the timeout. Either run would end with exit
+Merge detection (``sim/merge_detect.py``) finds where two roads join. A merge can still be useless: with
+a 1 m road after the merge no car reaches the finish line before it leaves the net; with 100 km roads no
+car reaches the merge before the timeout. Either run would end with exit
 0 and a table of 0 % that means nothing, so ``train`` and ``evaluate`` refuse such a net up front.
 
 The bounds come from what an episode uses:
 
-- an incoming road holds the random start positions (``[car length, start_range_m]`` from its start,
-  counted along its edges: no car starts on a junction-internal lane, ``Approach.edge_point``) with a
-  whole car to spare before the merge point, and at least the sensor range behind the merge point
-  (``VISIBILITY_M``), which is what a merging car looks back along;
+- an incoming road may be as short as it is: the random starts lie on what it has (``[car length,
+  start_range_m]`` from its start, counted along its edges, a car to spare before the merge point;
+  on a shorter road the cars that do not fit enter later at its start, ``generate_scenario``), and on
+  one shorter than the sensor range (``VISIBILITY_M``) the grid cells beyond its start stay empty,
+  as no car can be there (SUMO's own example nets have 11 m and 26 m approaches);
 - the outgoing road holds the finish line (``FINISH_DISTANCE_PAST_MERGE_M`` past the merge point, the
   merging zone's far edge) plus a car length, and the sensor range ahead of the merge point: a car
   must not leave the net before it counts as finished;
@@ -59,15 +61,6 @@ class RoadNeeds:
         return max(self.run_episode_s, DEFAULT_MAX_EPISODE_S)
 
     @property
-    def min_start_room_m(self) -> float:
-        """The edges an incoming road's starts need (junction-internal lanes excluded)."""
-        return 0.0 if self.start_range_m is None else self.start_range_m + VEHICLE_LENGTH_M
-
-    @property
-    def min_incoming_m(self) -> float:
-        return max(self.min_start_room_m, VISIBILITY_M)
-
-    @property
     def min_out_m(self) -> float:
         return max(FINISH_DISTANCE_PAST_MERGE_M + VEHICLE_LENGTH_M, VISIBILITY_M)
 
@@ -87,17 +80,11 @@ def road_needs(start_range_m: float | None, max_episode_s: float, source: str = 
 @dataclass(frozen=True)
 class _Road:
     """What the check needs of a road: its edges (for messages), length to the merge point (from it,
-    for the outgoing road), speed limit and the length of its edges alone (where cars start)."""
+    for the outgoing road) and speed limit."""
 
     edges: str
     length_m: float
     speed_limit_mps: float
-    start_room_m: float | None = None
-    """Its edges' summed length (None: ``length_m``, a road of one edge)."""
-
-    @property
-    def room_m(self) -> float:
-        return self.length_m if self.start_room_m is None else self.start_room_m
 
 
 @dataclass(frozen=True)
@@ -120,7 +107,7 @@ def _roads(net: MergeSite | MergeNet) -> _Roads:
 
     def approach(side: Literal["main", "merge"]) -> _Road:
         a = net.approach(side)
-        return _Road("+".join(a.edge_ids), a.length_m, a.road.speed_limit_mps, a.edges_length_m)
+        return _Road("+".join(a.edge_ids), a.length_m, a.road.speed_limit_mps)
 
     past = min(
         net.route(side)[-1].length_m - net.route(side)[-1].start_to_merge_m for side in ("main", "merge")
@@ -143,27 +130,13 @@ def check_road_lengths(site: MergeSite | MergeNet, needs: RoadNeeds) -> None:
                 f"{net.path}: the {what} road {road.edges!r} has a speed limit of {road.speed_limit_mps:g} m/s; "
                 f"the cars need one above 0 and at most {ROBOT_MAX_SPEED_MPS:.2f} m/s (their top speed)"
             )
-    starts = (
-        ""
-        if needs.start_range_m is None
-        else f"starts up to {needs.start_range_m:g} m in plus a {VEHICLE_LENGTH_M:g} m car, "
-    )
     for what, road in (("main", net.main), ("merge", net.merge)):
-        lo, hi = needs.min_incoming_m, needs.max_incoming_m(road, net.out)
-        if lo > hi:  # no road fits: the starts lie farther out than a car can drive in an episode
+        hi = needs.max_incoming_m(road, net.out)
+        if road.length_m > hi:
             raise InputError(
-                f"{net.path}: no {what} road fits these scenarios: starts up to {needs.start_range_m:g} m in "
-                f"need a road of at least {lo:g} m, but from its start a car at {road.speed_limit_mps:g} m/s "
-                f"reaches the finish within {needs.episode_s:g} s only on a road of at most {hi:.0f} m "
-                "(lower start_range_m or raise max_episode_s)"
-            )
-        if not (needs.min_start_room_m <= road.room_m and lo <= road.length_m <= hi):
-            on_edges = f" ({road.room_m:g} m of it on edges)" if road.room_m < road.length_m else ""
-            raise InputError(
-                f"{net.path}: the {what} road {road.edges!r} is {road.length_m:g} m long{on_edges}; the scenarios "
-                f"need {lo:g} to {hi:.0f} m ({starts}the {VISIBILITY_M:g} m sensor range; "
-                f"from its start a car must reach the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m past the "
-                f"merge within {needs.episode_s:g} s at the speed limits)"
+                f"{net.path}: the {what} road {road.edges!r} is {road.length_m:g} m long; the scenarios need "
+                f"at most {hi:.0f} m (from its start a car must reach the finish {FINISH_DISTANCE_PAST_MERGE_M:g} m "
+                f"past the merge within {needs.episode_s:g} s at the speed limits)"
             )
     if net.out.length_m < needs.min_out_m:
         raise InputError(

@@ -110,7 +110,10 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
             self._rng = np.random.default_rng(seed)
         scenario = (options or {}).get("scenario") or self.fixed_scenario
         if scenario is None:
-            scenario = generate_scenario(self._rng, self.traffic, self.sim.engine.speed_limits_mps)
+            engine = self.sim.engine
+            scenario = generate_scenario(
+                self._rng, self.traffic, engine.speed_limits_mps, start_room_m=start_room_m(engine.site)
+            )
         self.sim.reset(scenario)
         self.agents = self.sim.active_agents
         observations = self._observations()

@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from idas_sumo.config import from_dict, load_toml
+from idas_sumo.config import MAX_VEHICLES, from_dict, load_toml
 from idas_sumo.env.actions import MIN_ACCEL_MPS2
 from idas_sumo.errors import InputError
 from idas_sumo.physics.idm import DEFAULT_IDM
@@ -48,7 +49,9 @@ class VehicleSpec:
     id: str
     road: Road
     start_pos_m: float
-    """Front bumper position, metres from the start of its road."""
+    """Front bumper position, metres from the start of its road (along its edges). Under a car length
+    the body reaches back past the road's start, as SUMO inserts it: how a car enters a road whose
+    edges hold less than a car."""
     speed_mps: float
     b_type: float = 0.0
     """Driver type in [-2, 2]: -2 least cooperative, 2 most."""
@@ -68,11 +71,8 @@ class VehicleSpec:
             raise ValueError(f"vehicle {self.id!r}: b_type {self.b_type} outside [{lo}, {hi}]")
         if self.speed_mps < 0:
             raise ValueError(f"vehicle {self.id!r}: negative speed_mps {self.speed_mps}")
-        if self.start_pos_m < VEHICLE_LENGTH_M:
-            raise ValueError(
-                f"vehicle {self.id!r}: start_pos_m {self.start_pos_m} must be at least the "
-                f"vehicle length ({VEHICLE_LENGTH_M} m)"
-            )
+        if self.start_pos_m <= 0.0:
+            raise ValueError(f"vehicle {self.id!r}: start_pos_m {self.start_pos_m} must be positive")
         if self.depart_s < 0:
             raise ValueError(f"vehicle {self.id!r}: negative depart_s {self.depart_s}")
         for name in ("start_pos_m", "speed_mps", "b_type", "depart_s"):
@@ -99,6 +99,8 @@ class Scenario:
             raise ValueError("vehicle ids must be unique")
         if not self.vehicles:
             raise ValueError("a scenario needs at least one vehicle")
+        if len(self.vehicles) > MAX_VEHICLES:
+            raise ValueError(f"a scenario holds at most {MAX_VEHICLES} vehicles, got {len(self.vehicles)}")
         for road in ROADS:
             on_road = sorted(
                 (v for v in self.vehicles if v.road == road and v.depart_s == 0.0),
@@ -182,6 +184,12 @@ class TrafficConfig:
     def __post_init__(self) -> None:
         if not 1 <= self.min_vehicles_per_road <= self.max_vehicles_per_road:
             raise ValueError("need 1 <= min_vehicles_per_road <= max_vehicles_per_road")
+        if self.n_vehicles > MAX_VEHICLES or 2 * self.max_vehicles_per_road > MAX_VEHICLES:
+            what = "n_vehicles" if self.n_vehicles > MAX_VEHICLES else "2 * max_vehicles_per_road"
+            raise ValueError(
+                f"{what} must be at most {MAX_VEHICLES} (the cars of one scenario), got "
+                f"{self.n_vehicles if what == 'n_vehicles' else 2 * self.max_vehicles_per_road}"
+            )
         if self.n_vehicles < 0:
             raise ValueError(f"n_vehicles must be >= 0, got {self.n_vehicles}")
         if self.n_vehicles and not (
@@ -223,21 +231,50 @@ class TrafficConfig:
         return self.n_vehicles or 2 * self.max_vehicles_per_road
 
 
+@dataclass(frozen=True)
+class _RoadRoom:
+    """Where one road's cars start: at t = 0 front bumpers in [car length, ``reach_m``], at most
+    ``fits`` of them; later entries at ``entry_m``."""
+
+    reach_m: float
+    fits: int
+    entry_m: float = VEHICLE_LENGTH_M
+
+
+def _road_room(traffic: TrafficConfig, room_m: float | None) -> _RoadRoom | None:
+    """None where the road holds the whole start range with a car to spare (every shipped and
+    generated net): the draw is the one it always was. On a shorter road the starts at t = 0 reach a car
+    short of its edges' end, and a road whose edges hold less than two cars takes its entries half way
+    along them (the body reaching back past its start)."""
+    if room_m is None or room_m - VEHICLE_LENGTH_M >= traffic.start_range_m:
+        return None
+    reach = room_m - VEHICLE_LENGTH_M
+    pitch = VEHICLE_LENGTH_M + traffic.min_start_gap_m
+    fits = 0 if reach < VEHICLE_LENGTH_M else int((reach - VEHICLE_LENGTH_M) // pitch) + 1
+    return _RoadRoom(reach, fits, min(VEHICLE_LENGTH_M, math.floor(room_m * 500.0) / 1000.0))
+
+
 def generate_scenario(
     rng: np.random.Generator,
     traffic: TrafficConfig,
     speed_limits_mps: dict[Road, float],
     name: str = "random",
+    start_room_m: Mapping[Road, float] | None = None,
 ) -> Scenario:
-    """Draw one random scenario; all randomness comes from ``rng``."""
+    """Draw one random scenario; all randomness comes from ``rng``. ``start_room_m``: each road's room
+    along its edges (``start_room_m(site)``); a road shorter than the start range takes the cars that do
+    not fit on it as later entries at its start (None: every road holds the start range)."""
+    rooms = {
+        road: _road_room(traffic, None if start_room_m is None else start_room_m[road]) for road in ROADS
+    }
     if rng.random() < traffic.p_main_priority:
         main_prio, merge_prio = 1, 0
     else:
         main_prio = merge_prio = int(rng.integers(0, 2))
     if traffic.n_vehicles:
-        vehicles = _staggered_vehicles(rng, traffic, speed_limits_mps)
+        vehicles = _staggered_vehicles(rng, traffic, speed_limits_mps, rooms)
     else:
-        vehicles = _vehicles_at_start(rng, traffic, speed_limits_mps)
+        vehicles = _vehicles_at_start(rng, traffic, speed_limits_mps, rooms)
     if traffic.max_controlled > 0 and len(vehicles) > traffic.max_controlled:
         chosen = set(rng.choice(len(vehicles), size=traffic.max_controlled, replace=False).tolist())
         vehicles = [
@@ -247,24 +284,35 @@ def generate_scenario(
     return Scenario(name=name, vehicles=tuple(vehicles), main_prio=main_prio, merge_prio=merge_prio)
 
 
-def _start_positions(rng: np.random.Generator, traffic: TrafficConfig, n: int) -> np.ndarray:
-    """n front-bumper positions in [vehicle length, start_range_m], ascending, at least the minimum gap
+def _start_positions(rng: np.random.Generator, traffic: TrafficConfig, n: int, reach_m: float) -> np.ndarray:
+    """n front-bumper positions in [vehicle length, reach_m], ascending, at least the minimum gap
     apart: placed with the gaps removed, then the gaps added back (uniform over all valid arrangements,
     no rejection loop)."""
     pitch = VEHICLE_LENGTH_M + traffic.min_start_gap_m
-    slack = traffic.start_range_m - VEHICLE_LENGTH_M - (n - 1) * pitch
+    slack = reach_m - VEHICLE_LENGTH_M - (n - 1) * pitch
     offsets = np.sort(rng.uniform(0.0, slack, size=n))
     return np.asarray(VEHICLE_LENGTH_M + offsets + np.arange(n) * pitch)
 
 
 def _vehicles_at_start(
-    rng: np.random.Generator, traffic: TrafficConfig, speed_limits_mps: dict[Road, float]
+    rng: np.random.Generator,
+    traffic: TrafficConfig,
+    speed_limits_mps: dict[Road, float],
+    rooms: Mapping[Road, _RoadRoom | None],
 ) -> list[VehicleSpec]:
-    """The first generator: per road a random count, every car on the road at t = 0."""
+    """The first generator: per road a random count, every car on the road at t = 0 (on a short road
+    those that do not fit enter at its start as soon as the car ahead leaves room)."""
     vehicles: list[VehicleSpec] = []
     for road in ROADS:
         n = int(rng.integers(traffic.min_vehicles_per_road, traffic.max_vehicles_per_road + 1))
-        positions = _start_positions(rng, traffic, n)
+        room = rooms[road]
+        if room is not None and n > room.fits:
+            later = n - room.fits
+            vehicles += _road_vehicles(
+                rng, traffic, road, speed_limits_mps[road], n, later, room, draw_times=False
+            )
+            continue
+        positions = _start_positions(rng, traffic, n, traffic.start_range_m if room is None else room.reach_m)
         limit = speed_limits_mps[road]
         speeds = rng.uniform(traffic.min_speed_frac, traffic.max_speed_frac, size=n) * limit
         if traffic.start_without_braking:
@@ -289,10 +337,14 @@ def _drawn_vehicle(
 
 
 def _staggered_vehicles(
-    rng: np.random.Generator, traffic: TrafficConfig, speed_limits_mps: dict[Road, float]
+    rng: np.random.Generator,
+    traffic: TrafficConfig,
+    speed_limits_mps: dict[Road, float],
+    rooms: Mapping[Road, _RoadRoom | None],
 ) -> list[VehicleSpec]:
     """The paper's traffic: ``n_vehicles`` split over the roads; each car on the road at t = 0 or, with
-    probability ``p_depart_later``, entering at its road's start at a random time (see TrafficConfig).
+    probability ``p_depart_later``, entering at its road's start at a random time (see TrafficConfig;
+    on a short road also every car that does not fit on it at t = 0).
 
     Ids: per road, the cars at t = 0 from the back (``main0`` …), then the later ones in entry order.
     """
@@ -303,34 +355,52 @@ def _staggered_vehicles(
     vehicles: list[VehicleSpec] = []
     counts: dict[Road, int] = {"main": n_main, "merge": total - n_main}
     for road, n in counts.items():
-        limit = speed_limits_mps[road]
         n_later = int(np.count_nonzero(rng.random(n) < traffic.p_depart_later))
-        n_now = n - n_later
-        positions = _start_positions(rng, traffic, n_now)
-        speeds = rng.uniform(traffic.min_speed_frac, traffic.max_speed_frac, size=n) * limit
-        if traffic.start_without_braking:
-            speeds[:n_now] = _speeds_without_braking(positions, speeds[:n_now])
-        types = rng.uniform(*B_TYPE_RANGE, size=n)
-        # (0, max]: a draw of exactly 0 would put a later car on the road at t = 0 at the road's start.
-        wanted = np.sort(traffic.max_depart_s * (1.0 - rng.random(n_later)))
-        departs = np.zeros(n)
-        starts = np.concatenate([positions, np.full(n_later, VEHICLE_LENGTH_M)])
-        # The car ahead of the next entry: the rearmost car on the road at t = 0, then each entry in turn.
-        ahead: tuple[float, float, float] | None = None  # (position at its start m, speed m/s, start s)
-        if n_now:
-            ahead = (float(positions[0]), float(speeds[0]), 0.0)
-        for m in range(n_later):
-            i = n_now + m
-            if traffic.entries == "feasible" and ahead is not None:
-                t, speeds[i] = _feasible_entry(
-                    float(wanted[m]), float(speeds[i]), ahead, traffic.min_start_gap_m
-                )
-            else:
-                t, speeds[i] = _entry_as_drawn(float(wanted[m]), float(speeds[i]), ahead, traffic)
-            departs[i] = t
-            ahead = (VEHICLE_LENGTH_M, float(speeds[i]), t)
-        vehicles += [_drawn_vehicle(road, i, starts[i], speeds[i], types[i], departs[i]) for i in range(n)]
+        room = rooms[road]
+        if room is not None:
+            n_later = max(n_later, n - room.fits)
+        vehicles += _road_vehicles(rng, traffic, road, speed_limits_mps[road], n, n_later, room)
     return vehicles
+
+
+def _road_vehicles(
+    rng: np.random.Generator,
+    traffic: TrafficConfig,
+    road: Road,
+    limit: float,
+    n: int,
+    n_later: int,
+    room: _RoadRoom | None,
+    draw_times: bool = True,
+) -> list[VehicleSpec]:
+    """One road's ``n`` cars, ``n_later`` of them entering later at its start: at times drawn uniform in
+    (0, max_depart_s] (``draw_times``; else at once), each delayed to enter behind the car ahead."""
+    reach, entry = (traffic.start_range_m, VEHICLE_LENGTH_M) if room is None else (room.reach_m, room.entry_m)
+    n_now = n - n_later
+    positions = _start_positions(rng, traffic, n_now, reach)
+    speeds = rng.uniform(traffic.min_speed_frac, traffic.max_speed_frac, size=n) * limit
+    if traffic.start_without_braking:
+        speeds[:n_now] = _speeds_without_braking(positions, speeds[:n_now])
+    types = rng.uniform(*B_TYPE_RANGE, size=n)
+    # (0, max]: a draw of exactly 0 would put a later car on the road at t = 0 at the road's start.
+    wanted = np.sort(traffic.max_depart_s * (1.0 - rng.random(n_later))) if draw_times else np.zeros(n_later)
+    departs = np.zeros(n)
+    starts = np.concatenate([positions, np.full(n_later, entry)])
+    # The car ahead of the next entry: the rearmost car on the road at t = 0, then each entry in turn.
+    ahead: tuple[float, float, float] | None = None  # (position at its start m, speed m/s, start s)
+    if n_now:
+        ahead = (float(positions[0]), float(speeds[0]), 0.0)
+    for m in range(n_later):
+        i = n_now + m
+        if traffic.entries == "feasible" and ahead is not None:
+            t, speeds[i] = _feasible_entry(
+                float(wanted[m]), float(speeds[i]), ahead, traffic.min_start_gap_m, entry
+            )
+        else:
+            t, speeds[i] = _entry_as_drawn(float(wanted[m]), float(speeds[i]), ahead, traffic, entry)
+        departs[i] = t
+        ahead = (entry, float(speeds[i]), t)
+    return [_drawn_vehicle(road, i, starts[i], speeds[i], types[i], departs[i]) for i in range(n)]
 
 
 def _on_step(t: float) -> float:
@@ -339,20 +409,24 @@ def _on_step(t: float) -> float:
 
 
 def _entry_as_drawn(
-    wanted_s: float, speed_mps: float, ahead: tuple[float, float, float] | None, traffic: TrafficConfig
+    wanted_s: float,
+    speed_mps: float,
+    ahead: tuple[float, float, float] | None,
+    traffic: TrafficConfig,
+    entry_m: float,
 ) -> tuple[float, float]:
-    """(depart s, speed m/s) of a later entry, the car ahead (position at its start m, speed m/s, start s)
-    assumed at constant speed (at least MIN_ENTRY_SPEED_FOR_SPACING_MPS) since its start."""
+    """(depart s, speed m/s) of a later entry at ``entry_m``, the car ahead (position at its start m, speed
+    m/s, start s) assumed at constant speed (at least MIN_ENTRY_SPEED_FOR_SPACING_MPS) since its start."""
     t = wanted_s
     if ahead is not None:
         pos, speed, t0 = ahead
         speed = max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS)
-        room_needed = VEHICLE_LENGTH_M + VEHICLE_LENGTH_M + traffic.min_start_gap_m - pos
+        room_needed = entry_m + VEHICLE_LENGTH_M + traffic.min_start_gap_m - pos
         t = max(t, t0 + room_needed / speed)
     t = _on_step(t)
     if ahead is not None and traffic.start_without_braking:
         pos, speed, t0 = ahead
-        gap = pos + max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS) * (t - t0) - 2 * VEHICLE_LENGTH_M
+        gap = pos + max(speed, MIN_ENTRY_SPEED_FOR_SPACING_MPS) * (t - t0) - (VEHICLE_LENGTH_M + entry_m)
         speed_mps = min(speed_mps, _fastest_start(gap, speed))
     return t, speed_mps
 
@@ -371,16 +445,16 @@ def _slowest_leader(pos_m: float, speed_mps: float, elapsed_s: float) -> tuple[f
 
 
 def _feasible_entry(
-    wanted_s: float, speed_mps: float, ahead: tuple[float, float, float], min_gap_m: float
+    wanted_s: float, speed_mps: float, ahead: tuple[float, float, float], min_gap_m: float, entry_m: float
 ) -> tuple[float, float]:
-    """(depart s, speed m/s) of a later entry against the slowest the car ahead may have driven
+    """(depart s, speed m/s) of a later entry at ``entry_m`` against the slowest the car ahead may have driven
     (``_slowest_leader``): the first step from ``wanted_s`` on where that car is ``min_gap_m`` ahead, at
     the drawn speed or the fastest whose IDM desired gap fits (``_fastest_start``), whichever is lower."""
     pos, speed, t0 = ahead
     t = _on_step(wanted_s)
     while True:
         leader_pos, leader_speed = _slowest_leader(pos, speed, t - t0)
-        gap = leader_pos - 2 * VEHICLE_LENGTH_M
+        gap = leader_pos - (VEHICLE_LENGTH_M + entry_m)
         if gap >= min_gap_m:
             return t, min(speed_mps, _fastest_start(gap, leader_speed))
         t = _on_step(t + STEP_LENGTH_S)

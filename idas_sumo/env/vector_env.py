@@ -147,7 +147,9 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         assert rng is not None
         scenario = self.fixed_scenario
         if scenario is None:
-            scenario = generate_scenario(rng, self.traffic, self.engine.speed_limits_mps)
+            scenario = generate_scenario(
+                rng, self.traffic, self.engine.speed_limits_mps, start_room_m=start_room_m(self.engine.site)
+            )
         ego = self.fixed_ego or str(rng.choice([v.id for v in scenario.vehicles]))
         controlled = {v.id for v in scenario.vehicles} if self.others is not None else {ego}
         return with_controlled(scenario, controlled), ego

@@ -81,21 +81,27 @@ def plot_directory(directory: Path) -> list[Path]:
 
 
 def _plot_evaluation(directory: Path) -> list[Path]:
+    """Every CSV the plots use is read and checked before the first PNG is written: a bad flow.csv
+    leaves no summary.png behind (nor replaces an earlier one)."""
     # The columns of every episodes.csv ever written: older directories plot too.
     episodes = _read(directory / "episodes.csv", BASE_EPISODE_COLUMNS)
-    written = [summary_bars(episodes, directory / "summary.png")]
-    if (directory / "flow.csv").exists():
-        flow = _read(directory / "flow.csv", FLOW_COLUMNS)
-        written.append(flow_plots(flow, episodes, directory / "flow.png"))
+    flow_path, traj_path = directory / "flow.csv", directory / "trajectories.csv"
+    flow = _read(flow_path, FLOW_COLUMNS) if flow_path.exists() else None
     names = episodes["scenario"].astype(str)
-    if names.isin(["s1", "s2", "s3", "s4"]).any():
-        written.append(representative_bars(episodes, directory / "representative.png"))
-    traj_path = directory / "trajectories.csv"
-    if traj_path.exists():
+    representative = bool(names.isin(["s1", "s2", "s3", "s4"]).any())
+    sweep = bool(names.map(is_sweep_scenario).any())
+    traj = None
+    if traj_path.exists() and (representative or sweep):
         traj = _read(traj_path, ("scenario", "run_method", *TRAJECTORY_COLUMNS))
-        if names.isin(["s1", "s2", "s3", "s4"]).any():
+    written = [summary_bars(episodes, directory / "summary.png")]
+    if flow is not None:
+        written.append(flow_plots(flow, episodes, directory / "flow.png"))
+    if representative:
+        written.append(representative_bars(episodes, directory / "representative.png"))
+    if traj is not None:
+        if representative:
             written.append(profiles(traj, directory / "profiles.png"))
-        if names.map(is_sweep_scenario).any():
+        if sweep:
             written.append(driver_type_sweep(episodes, traj, directory / "driver_types.png"))
     return written
 

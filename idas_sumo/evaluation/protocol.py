@@ -29,6 +29,7 @@ from idas_sumo.env.engine import (
 from idas_sumo.env.episodes import EpisodeObserver, iter_episodes
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M, RewardConfig
 from idas_sumo.env.scenario import (
+    Road,
     Scenario,
     TrafficConfig,
     VehicleSpec,
@@ -98,11 +99,13 @@ def suite_cases(
     speed_limits: dict,
     traffic: TrafficConfig,
     road_lengths_m: Mapping[str, float] | None = None,
+    start_room_m: Mapping[Road, float] | None = None,
 ) -> list[EvalCase]:
     """The cases of a suite; the same cases (same scenarios, same egos) for every method.
 
     ``n_scenarios``: random scenarios of the paper suite; start offsets per b_type of the driver-types
     suite (evaluation/sweep.py), which needs the net's ``road_lengths_m`` to place its cars in projection.
+    ``start_room_m``: each road's room for the paper suite's starts (``generate_scenario``).
     At most ``MAX_SCENARIOS``, as on the command line: the cases are drawn up front.
     """
     if not 0 <= n_scenarios <= MAX_SCENARIOS:
@@ -111,7 +114,9 @@ def suite_cases(
         cases = []
         for i in range(n_scenarios):
             rng = np.random.default_rng([seed, i])
-            scenario = generate_scenario(rng, traffic, speed_limits, name=f"paper-{i:03d}")
+            scenario = generate_scenario(
+                rng, traffic, speed_limits, name=f"paper-{i:03d}", start_room_m=start_room_m
+            )
             ego = str(rng.choice([v.id for v in scenario.vehicles]))
             cases.append(EvalCase(scenario, ego, seed, (ego,)))
         return cases

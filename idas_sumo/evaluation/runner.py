@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-from collections.abc import Callable, Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import IO
@@ -13,6 +13,7 @@ from typing import IO
 import pandas as pd
 
 from idas_sumo.env.engine import EnvConfig, MergeEngine, Policy
+from idas_sumo.env.scenario import start_room_m
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
 from idas_sumo.evaluation.metrics import (
@@ -136,18 +137,12 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
     others_policy = resolve_policy(others_name, None, req.seed)
     _check_gui(req)
     with output_directory(req.out, req.force, fresh=req.fresh_out, writes=("sumo", "replay")) as out:
-        tripinfo_dir = None
-        if req.sumo_output:
-            tripinfo_dir = out / "sumo"
-            tripinfo_dir.mkdir(exist_ok=True)
         cases = _cases(req, site, eval_config)
         log.info("others run %s; %d cases x %d methods", others_name, len(cases), len(policies))
         jobs = eval_jobs(cases, list(policies))
-        if tripinfo_dir is not None:  # SUMO writes these itself
-            for job in jobs:
-                record_output(tripinfo_path(tripinfo_dir, job))
         description = f"evaluate ({req.suite}, others: {others_name})"
         with (
+            _sumo_output(out, req.sumo_output, jobs) as tripinfo_dir,
             _progress(req.progress, len(jobs), description) as advance,
             _trajectory_sink(out / TRAJECTORIES_NAME, req.trajectories) as sink,
         ):
@@ -203,7 +198,15 @@ def _cases(req: EvalRequest, site: MergeSite, eval_config: EvalConfig) -> list[E
     if req.scenario_files:
         return file_cases(list(req.scenario_files), req.seed, speed_limits)
     lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
-    return suite_cases(req.suite, req.scenarios or 0, req.seed, speed_limits, eval_config.traffic, lengths)
+    return suite_cases(
+        req.suite,
+        req.scenarios or 0,
+        req.seed,
+        speed_limits,
+        eval_config.traffic,
+        lengths,
+        start_room_m(site),
+    )
 
 
 def _write_driver_types(
@@ -344,6 +347,44 @@ class _TrajectorySink:
             self.f, index=False, header=self.header, lineterminator="\n", na_rep=""
         )
         self.header = False
+
+
+@contextlib.contextmanager
+def _sumo_output(out: Path, enabled: bool, jobs: Sequence[EvalJob]) -> Iterator[Path | None]:
+    """``--sumo-output``: the folder SUMO writes each job's tripinfo into (itself, in place, so each
+    file is recorded as the tool's up front); None without it. A run that fails removes the tripinfo
+    files SUMO wrote during it (a half-written one made the rerun refused: the folder held files) and
+    the folder if it made it; files of an earlier run that it did not touch stay."""
+    if not enabled:
+        yield None
+        return
+    folder = out / "sumo"
+    made = not folder.exists()
+    folder.mkdir(exist_ok=True)
+    paths = [tripinfo_path(folder, job) for job in jobs]
+    for path in paths:
+        record_output(path)
+    before = {path: _stamp(path) for path in paths}
+    try:
+        yield folder
+    except BaseException:
+        for path in paths:
+            if _stamp(path) not in (None, before[path]):  # written during this run
+                with contextlib.suppress(OSError):
+                    path.unlink()
+        if made:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+
+
+def _stamp(path: Path) -> tuple[int, int] | None:
+    """A file's modification time and size (None: none there)."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size
 
 
 @contextlib.contextmanager

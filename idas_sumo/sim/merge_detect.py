@@ -36,6 +36,10 @@ DEFAULT_UPSTREAM_M = 500.0
 plus the 100 m sensor range behind the merge point, with room to spare)."""
 DEFAULT_DOWNSTREAM_M = 300.0
 """Follow the outgoing lanes at least this far past the merge point (finish line and sensor range)."""
+FOLLOW_SPLIT_M = 100.0
+"""A road that splits into several straight roads closer than this past the merge point goes on along
+its straightest one (then the highest priority): the finish line (50 m past the merge point) and the
+sensor range ahead need that much road. A split farther on ends the outgoing road, as it always did."""
 MAX_TRACE_M = 10_000.0
 """How far back a lane drop's two lanes are followed to find the two roads they come from."""
 MAX_LISTED = 12
@@ -282,9 +286,11 @@ def _trace_upstream(net: Any, lane: Any, limit_m: float) -> list[Any]:
     return chain
 
 
-def _trace_downstream(net: Any, lane: Any, limit_m: float) -> list[Any]:
+def _trace_downstream(net: Any, lane: Any, limit_m: float, avoid: frozenset[str] = frozenset()) -> list[Any]:
     """``lane`` and the lanes after it, followed through single (or single straight) successors
-    until they reach ``limit_m``."""
+    until they reach ``limit_m``; within ``FOLLOW_SPLIT_M`` through a split too, along the straightest
+    branch. Never onto an edge of ``avoid`` (the approaches': a ring road leads back into them, and an
+    edge twice on a route has no single distance to the merge point)."""
     chain = [lane]
     total = float(lane.getLength())
     seen = {lane.getID()}
@@ -292,7 +298,13 @@ def _trace_downstream(net: Any, lane: Any, limit_m: float) -> list[Any]:
         onward = _normal_outgoing(chain[-1])
         if len(onward) > 1:
             onward = [c for c in onward if c.getDirection() == _STRAIGHT]
-        if len(onward) != 1 or onward[0].getToLane().getID() in seen:
+        if len(onward) > 1 and total < FOLLOW_SPLIT_M:
+            onward = _straightest(chain[-1], [c for c in onward if str(c.getTo().getID()) not in avoid])
+        if (
+            len(onward) != 1
+            or onward[0].getToLane().getID() in seen
+            or str(onward[0].getTo().getID()) in avoid
+        ):
             break
         vias = _via_lanes(net, onward[0])
         following = onward[0].getToLane()
@@ -300,6 +312,23 @@ def _trace_downstream(net: Any, lane: Any, limit_m: float) -> list[Any]:
         chain += [*vias, following]
         total += float(following.getLength()) + sum(float(v.getLength()) for v in vias)
     return chain
+
+
+def _straightest(lane: Any, onward: list[Any]) -> list[Any]:
+    """The connection among ``onward`` that turns least from ``lane`` (then the highest priority, then
+    the lowest lane id), alone; none of none."""
+    if not onward:
+        return []
+    return [
+        min(
+            onward,
+            key=lambda c: (
+                turn_deg(lane, c.getToLane()),
+                -int(c.getTo().getPriority()),
+                str(c.getToLane().getID()),
+            ),
+        )
+    ]
 
 
 def _route_lanes(lanes: list[Any], end_at_m: float, downstream: bool = False) -> tuple[RouteLane, ...]:
@@ -456,7 +485,8 @@ def _site(
         main, merge = approach_b, approach_a
     else:
         main, merge = approach_a, approach_b
-    out = _route_lanes(_trace_downstream(net, into, downstream_m), 0.0, downstream=True)
+    approach_edges = frozenset(str(x.getEdge().getID()) for x in (*chain_a, *chain_b))
+    out = _route_lanes(_trace_downstream(net, into, downstream_m, approach_edges), 0.0, downstream=True)
     return MergeSite(path, str(node.getID()), kind, main, merge, out)
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 from idas_sumo.agents.learner import LearnerConfig
-from idas_sumo.config import MAX_SCENARIOS, from_dict, load_toml, to_plain
+from idas_sumo.config import MAX_EPISODES, MAX_SCENARIOS, from_dict, load_toml, to_plain
 from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -135,10 +135,18 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise ConfigValueError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if self.validation_scenarios > MAX_SCENARIOS:  # drawn up front: a count is memory
-            raise ConfigValueError(
-                f"validation_scenarios must be at most {MAX_SCENARIOS}, got {self.validation_scenarios}"
-            )
+        for name in ("validation_scenarios", "episodes_per_update"):  # drawn up front: a count is memory
+            if getattr(self, name) > MAX_SCENARIOS:
+                raise ConfigValueError(f"{name} must be at most {MAX_SCENARIOS}, got {getattr(self, name)}")
+        for name in (
+            "robot_episodes",
+            "intelligent_episodes",
+            "direct_episodes",
+            "checkpoint_every",
+            "validate_every",
+        ):
+            if getattr(self, name) > MAX_EPISODES:
+                raise ConfigValueError(f"{name} must be at most {MAX_EPISODES}, got {getattr(self, name)}")
         if self.geometry is not None and self.geometry.validation_geometries > self.validation_scenarios:
             # Each validation merge is a net built up front: more merges than scenarios only costs builds.
             raise ConfigValueError(

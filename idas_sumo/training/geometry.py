@@ -26,6 +26,10 @@ import numpy as np
 from idas_sumo.errors import InputError
 from idas_sumo.sim.netgen import ANGLE_BOUNDS_DEG, LENGTH_BOUNDS_M, SPEED_BOUNDS_MPS, NetParams
 
+MAX_VALIDATION_GEOMETRIES = 1_000
+"""The most validation merges a run may draw: each is a net built up front (about 0.3 s and 45 KB with its
+multi-copy net) and a net switch of every worker at each validation; the shipped recipes use 8."""
+
 __all__ = [
     "GEOMETRY_COLUMNS",
     "GRID",
@@ -102,7 +106,8 @@ class GeometryConfig:
     validation_geometries: int = 0
     """Ours: > 0 spreads the validation scenarios over this many merges drawn from these ranges by the
     validation seed (the same merges at every validation), so that the kept weights are the ones that
-    drive the trained distribution best; 0: validation on the run's own net."""
+    drive the trained distribution best; 0: validation on the run's own net. At most
+    ``MAX_VALIDATION_GEOMETRIES``."""
 
     def __post_init__(self) -> None:
         for name, step in GRID.items():
@@ -122,9 +127,9 @@ class GeometryConfig:
                     raise GeometryRangeError(
                         f"{name}: {end:g} is not on the {step:g} {unit} grid the draws lie on"
                     )
-        if self.validation_geometries < 0:
+        if not 0 <= self.validation_geometries <= MAX_VALIDATION_GEOMETRIES:
             raise GeometryRangeError(
-                f"validation_geometries must be non-negative, got {self.validation_geometries}"
+                f"validation_geometries must be in [0, {MAX_VALIDATION_GEOMETRIES}], got {self.validation_geometries}"
             )
         if not 0.0 <= self.equal_approaches_probability <= 1.0:
             raise GeometryRangeError(

@@ -22,7 +22,7 @@ from idas_sumo.agents.returns import gae_advantages
 from idas_sumo.agents.rollout import EpisodeData, record_episodes
 from idas_sumo.baselines.policies import RuleBasedPolicy
 from idas_sumo.env.engine import MergeEngine
-from idas_sumo.env.scenario import TrafficConfig, generate_scenario
+from idas_sumo.env.scenario import TrafficConfig, generate_scenario, start_room_m
 
 __all__ = ["EpochStats", "collect_demonstrations", "imitate"]
 
@@ -36,8 +36,11 @@ def collect_demonstrations(
 ) -> list[EpisodeData]:
     """``episodes`` episodes driven by ``teacher`` ('idm' or 'fsm_idm'), cycling through the ``traffic``
     configs, ``engine.copies`` side by side."""
+    room = start_room_m(engine.site)
     scenarios = [
-        generate_scenario(rng, traffic[k % len(traffic)], engine.speed_limits_mps, name=f"demo-{k}")
+        generate_scenario(
+            rng, traffic[k % len(traffic)], engine.speed_limits_mps, name=f"demo-{k}", start_room_m=room
+        )
         for k in range(episodes)
     ]
     return record_episodes(engine, RuleBasedPolicy(teacher), scenarios)

@@ -30,7 +30,7 @@ from idas_sumo import stops
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
 from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
-from idas_sumo.env.scenario import Road, generate_scenario
+from idas_sumo.env.scenario import Road, generate_scenario, start_room_m
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import holds_files, output_directory
 from idas_sumo.sim.backend import require_display
@@ -119,7 +119,7 @@ def _train_in(
     geometry_needs = _check_geometry(config) if config.geometry is not None else None
     state = _starting_state(config, plans, out_dir, resumed)
 
-    run = _Run(config, out_dir, _site_limits(site))
+    run = _Run(config, out_dir, _site_limits(site), start_room=start_room_m(site))
     # On resume, the metrics rows past the checkpoint go (they are written again).
     keep_below = state.global_episode if resumed is not None else None
     with (
@@ -407,6 +407,8 @@ class _Run:
     started: float = dataclasses.field(default_factory=time.perf_counter)
     geometry: _GeometryDraws | None = None
     """``[geometry]``: each round draws its own net."""
+    start_room: dict[Road, float] | None = None
+    """The run's net's room for starts on each road (``start_room_m``)."""
 
     @property
     def latest(self) -> Path:
@@ -611,7 +613,11 @@ def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[MergeSite | Non
     count = 0 if run.geometry is None else run.geometry.ranges.validation_geometries
     if run.geometry is None or count == 0:
         tasks = validation_tasks(
-            plan.traffic, run.speed_limits, config.validation_scenarios, config.validation_seed
+            plan.traffic,
+            run.speed_limits,
+            config.validation_scenarios,
+            config.validation_seed,
+            run.start_room,
         )
         return [(None, tasks)]
     rng = np.random.default_rng(config.validation_seed)
@@ -624,7 +630,7 @@ def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[MergeSite | Non
             groups.append(
                 (
                     site,
-                    validation_tasks(plan.traffic, _site_limits(site), scenarios, seed),
+                    validation_tasks(plan.traffic, _site_limits(site), scenarios, seed, start_room_m(site)),
                 )
             )
     return groups
@@ -683,12 +689,12 @@ def _round(
     ``validate_every`` episodes."""
     config = run.config
     if run.geometry is None:
-        net, speed_limits, drawn = None, run.speed_limits, None
+        net, speed_limits, room, drawn = None, run.speed_limits, run.start_room, None
     else:
         # Drawn before the round's scenarios, from the same generator: a resumed run draws it again.
         drawn, site = run.geometry.draw(state.np_rng)
-        net, speed_limits = site, _site_limits(site)
-    tasks = _episode_tasks(run, plan, state, speed_limits)
+        net, speed_limits, room = site, _site_limits(site), start_room_m(site)
+    tasks = _episode_tasks(run, plan, state, speed_limits, room)
     if run.geometry is not None:
         run.geometry.prefetch(state.np_rng)
     episodes = workers.run(learner, tasks, net)
@@ -732,7 +738,11 @@ def _site_limits(site: MergeSite) -> dict[Road, float]:
 
 
 def _episode_tasks(
-    run: _Run, plan: StagePlan, state: _RunState, speed_limits: dict[Road, float]
+    run: _Run,
+    plan: StagePlan,
+    state: _RunState,
+    speed_limits: dict[Road, float],
+    start_room: dict[Road, float] | None = None,
 ) -> list[EpisodeTask]:
     """The round's episodes (``episodes_per_update``, fewer at the stage's end): each a scenario on
     a net of ``speed_limits`` (the start speeds; the starts count from each road's start, so a
@@ -742,7 +752,11 @@ def _episode_tasks(
     return [
         EpisodeTask(
             scenario=generate_scenario(
-                state.np_rng, plan.traffic, speed_limits, name=f"{plan.name}-{state.episode + i}"
+                state.np_rng,
+                plan.traffic,
+                speed_limits,
+                name=f"{plan.name}-{state.episode + i}",
+                start_room_m=start_room,
             ),
             action_seed=int(torch.randint(0, 2**62, (1,), generator=state.torch_rng).item()),
         )

@@ -57,13 +57,20 @@ class ValidationScore:
 
 
 def validation_tasks(
-    traffic: TrafficConfig, speed_limits: dict[Road, float], scenarios: int, seed: int
+    traffic: TrafficConfig,
+    speed_limits: dict[Road, float],
+    scenarios: int,
+    seed: int,
+    start_room_m: dict[Road, float] | None = None,
 ) -> list[EpisodeTask]:
-    """The held-out scenarios as greedy episode tasks (the action seed is unused when greedy)."""
+    """The held-out scenarios as greedy episode tasks (the action seed is unused when greedy), on roads
+    with ``start_room_m`` (``generate_scenario``)."""
     rng = np.random.default_rng(seed)
     return [
         EpisodeTask(
-            scenario=generate_scenario(rng, traffic, speed_limits, name=f"validation-{i}"),
+            scenario=generate_scenario(
+                rng, traffic, speed_limits, name=f"validation-{i}", start_room_m=start_room_m
+            ),
             action_seed=0,
             deterministic=True,
         )
