@@ -142,7 +142,8 @@ class RunPieces:
     def of(cls, grids: torch.Tensor, rows_in: int, piece: int) -> RunPieces:
         """The pieces of a (B · rows_in, cells) float32 tensor's runs, at most ``piece`` cells long."""
         cells = np.ascontiguousarray(grids.detach().cpu().numpy(), dtype=np.float32)
-        return cls(*_runs_kernel(cells, rows_in, piece))
+        table_row, value, grid_row, start = _runs_kernel(cells, rows_in, piece)
+        return cls(table_row=table_row, value=value, grid_row=grid_row, start=start)
 
 
 class RunConv(torch.autograd.Function):
@@ -178,11 +179,15 @@ class RunConv(torch.autograd.Function):
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         (out,) = ctx.saved_tensors
         rows, reach_outs = ctx.table_shape
+        table_row, value, grid_row, start = ctx.arrays
         grad_table, grad_bias = _backward_kernel(
             np.ascontiguousarray(grad.detach().cpu().numpy()),
             out.detach().cpu().numpy(),
             rows,
-            *ctx.arrays,
+            table_row,
+            value,
+            grid_row,
+            start,
             reach_outs // out.shape[2],
             ctx.lead,
         )
