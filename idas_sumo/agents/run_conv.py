@@ -24,42 +24,33 @@ __all__ = ["RunConv", "RunPieces"]
 
 
 def _runs(
-    grids: npt.NDArray[np.float32], rows_in: int, piece: int
+    grids: npt.NDArray[np.float32], rows_in: int, piece: int, capacity: int
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """The pieces of the runs of equal non-zero cells in ``grids`` (B · rows_in grid rows, cells): each run cut
     into pieces of at most ``piece`` cells. Per piece: its table row ((length - 1) · rows_in + input row), its
-    value, its batch row and its first cell."""
+    value, its batch row and its first cell. ``capacity``: at least the number of pieces (the non-zero cells)."""
     n_rows, cells = grids.shape
-    count = 0
-    for i in range(n_rows):
-        c = 0
-        while c < cells:
-            v = grids[i, c]
-            e = c + 1
-            while e < cells and grids[i, e] == v:
-                e += 1
-            if v != 0.0:
-                count += (e - c + piece - 1) // piece
-            c = e
-    table_row = np.empty(count, dtype=np.int64)
-    value = np.empty(count, dtype=np.float32)
-    grid_row = np.empty(count, dtype=np.int64)
-    start = np.empty(count, dtype=np.int64)
+    table_row = np.empty(capacity, dtype=np.int64)
+    value = np.empty(capacity, dtype=np.float32)
+    grid_row = np.empty(capacity, dtype=np.int64)
+    start = np.empty(capacity, dtype=np.int64)
     j = 0
     for i in range(n_rows):
         c = 0
         while c < cells:
             v = grids[i, c]
+            if v == 0.0:
+                c += 1
+                continue
             e = c + 1
             while e < cells and grids[i, e] == v:
                 e += 1
-            if v != 0.0:
-                for s in range(c, e, piece):
-                    table_row[j] = (min(piece, e - s) - 1) * rows_in + i % rows_in
-                    value[j], grid_row[j], start[j] = v, i // rows_in, s
-                    j += 1
+            for s in range(c, e, piece):
+                table_row[j] = (min(piece, e - s) - 1) * rows_in + i % rows_in
+                value[j], grid_row[j], start[j] = v, i // rows_in, s
+                j += 1
             c = e
-    return table_row, value, grid_row, start
+    return table_row[:j], value[:j], grid_row[:j], start[:j]
 
 
 def _forward(
@@ -142,7 +133,9 @@ class RunPieces:
     def of(cls, grids: torch.Tensor, rows_in: int, piece: int) -> RunPieces:
         """The pieces of a (B · rows_in, cells) float32 tensor's runs, at most ``piece`` cells long."""
         cells = np.ascontiguousarray(grids.detach().cpu().numpy(), dtype=np.float32)
-        table_row, value, grid_row, start = _runs_kernel(cells, rows_in, piece)
+        # A piece holds at least one non-zero cell: their count bounds the pieces (a few % of the cells).
+        capacity = int(np.count_nonzero(cells))
+        table_row, value, grid_row, start = _runs_kernel(cells, rows_in, piece, capacity)
         return cls(table_row=table_row, value=value, grid_row=grid_row, start=start)
 
 
