@@ -30,7 +30,7 @@ from rich.table import Table
 
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
 from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
-from idas_sumo.agents.networks import GridEncoder
+from idas_sumo.agents.networks import GridEncoder, ObsWindows
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
 from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
@@ -86,7 +86,12 @@ def rollout_like_batch(rows: int, seed: int = 0) -> Batch:
 @contextmanager
 def plain_encoder() -> Iterator[None]:
     fast = GridEncoder.forward
-    GridEncoder.forward = GridEncoder.reference_forward  # type: ignore[method-assign]
+
+    def plain(self: GridEncoder, obs: torch.Tensor | ObsWindows) -> torch.Tensor:
+        # The learner hands its networks the batch with its runs found (ObsWindows); the plain path reads the rows.
+        return self.reference_forward(obs.obs if isinstance(obs, ObsWindows) else obs)
+
+    GridEncoder.forward = plain  # type: ignore[method-assign]
     try:
         yield
     finally:
