@@ -3,12 +3,13 @@
     python benchmarks/learner_update.py [--rows 8000] [--threads 1 2] [--repeats 3]
 
 One stage-2 update (V, Q and actor) on a batch of ``--rows`` agent-steps shaped like a rollout's (agents of 100
-steps linked by ``next_row``, sparse occupancy grids), timed as the median of ``--repeats`` after a warm-up:
+steps linked by ``next_row``, grids with cars: runs of 11 equal cells, as the env draws them), timed as the median
+of ``--repeats`` after a warm-up:
 
 * *plain*: the encoder as written in the paper's terms (``GridEncoder.reference_forward``: conv2d, flatten,
   cat, Linear) and V(o') by its own forward pass on ``next_obs`` (``next_row`` left out);
-* *fast*: what training runs (``GridEncoder.forward``: the conv as one block-Toeplitz GEMM; V(o') read from
-  the next row's V(o)).
+* *fast*: what training runs (``GridEncoder.forward``: the conv from the grids' runs, agents/run_conv.py; V(o')
+  read from the next row's V(o)).
 """
 
 from __future__ import annotations
@@ -29,20 +30,33 @@ from rich.table import Table
 
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
 from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
-from idas_sumo.agents.networks import GridEncoder
+from idas_sumo.agents.networks import GridEncoder, ObsWindows
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.layout import N_SCALARS, OBS_DIM
+from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
 from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
 
 AGENT_STEPS = 100
 """Rows per agent in the synthetic batch (an agent's rows are linked by next_row)."""
+CARS_PER_ROW = 4
+CAR_CELLS = 11
 
 
 def rollout_like_batch(rows: int, seed: int = 0) -> Batch:
     g = torch.Generator().manual_seed(seed)
     obs = torch.zeros(rows + 1, OBS_DIM)
     obs[:, :N_SCALARS] = torch.randn(rows + 1, N_SCALARS, generator=g)
-    obs[:, N_SCALARS:] = (torch.rand(rows + 1, OBS_DIM - N_SCALARS, generator=g) < 0.1).float()
+    # About 5.5 runs per observation, as in a stage-2 round of the shipped policy: cars of 11 cells on the
+    # four grid rows (occupancy 1, a relative speed), some of them out of view.
+    grids = obs[:, N_SCALARS:].view(rows + 1, 4, GRID_CELLS)
+    for _ in range(CARS_PER_ROW):
+        lane_row = 2 * torch.randint(0, 2, (rows + 1,), generator=g)
+        first = torch.randint(0, GRID_CELLS - CAR_CELLS, (rows + 1,), generator=g)
+        speed = torch.rand(rows + 1, generator=g) - 0.5
+        seen = torch.rand(rows + 1, generator=g) < 0.7
+        for cell in range(CAR_CELLS):
+            at = (torch.arange(rows + 1), lane_row, first + cell)
+            grids[at] = torch.where(seen, 1.0, grids[at])
+            grids[(at[0], at[1] + 1, at[2])] = torch.where(seen, speed, grids[(at[0], at[1] + 1, at[2])])
     index = torch.arange(rows)
     last = (index % AGENT_STEPS) == AGENT_STEPS - 1
     next_row = torch.where(last, -1, index + 1)
@@ -72,7 +86,12 @@ def rollout_like_batch(rows: int, seed: int = 0) -> Batch:
 @contextmanager
 def plain_encoder() -> Iterator[None]:
     fast = GridEncoder.forward
-    GridEncoder.forward = GridEncoder.reference_forward  # type: ignore[method-assign]
+
+    def plain(self: GridEncoder, obs: torch.Tensor | ObsWindows) -> torch.Tensor:
+        # The learner hands its networks the batch with its runs found (ObsWindows); the plain path reads the rows.
+        return self.reference_forward(obs.obs if isinstance(obs, ObsWindows) else obs)
+
+    GridEncoder.forward = plain  # type: ignore[method-assign]
     try:
         yield
     finally:

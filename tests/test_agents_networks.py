@@ -105,8 +105,9 @@ def _assert_matches_conv2d(enc: GridEncoder, obs: torch.Tensor) -> None:
 
 
 def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
-    """The block-Toeplitz GEMM is the paper's conv: same outputs and same parameter gradients as the
-    plain conv2d → flatten → cat → Linear, for random weights, a non-zero bias and every cell."""
+    """The conv from the grids' runs is the paper's conv: same outputs and same parameter gradients as the
+    plain conv2d → flatten → cat → Linear, for random weights, a non-zero bias and every cell (random
+    cells: every cell a run of its own)."""
     torch.manual_seed(0)
     enc = GridEncoder()
     with torch.no_grad():
@@ -122,7 +123,7 @@ def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
 
 
 def test_fast_encoder_on_mostly_empty_road_matches_conv2d_gradients() -> None:
-    """Grids with empty windows (skipped by the GEMM) give conv2d's outputs and parameter gradients too."""
+    """Grids with empty road (cells no run reaches) give conv2d's outputs and parameter gradients too."""
     torch.manual_seed(1)
     enc = GridEncoder()
     with torch.no_grad():
@@ -132,7 +133,7 @@ def test_fast_encoder_on_mostly_empty_road_matches_conv2d_gradients() -> None:
     obs[:, :N_SCALARS] = torch.randn(5, N_SCALARS)
     obs[0, N_SCALARS + 10 : N_SCALARS + 21] = 1.0  # one car near the start of obs_cl
     obs[1, N_SCALARS + 3 * GRID_CELLS + 300 : N_SCALARS + 3 * GRID_CELLS + 311] = -0.4  # a speed in obs_ol
-    obs[2, N_SCALARS:] = torch.randn(4 * GRID_CELLS)  # every window occupied
+    obs[2, N_SCALARS:] = torch.randn(4 * GRID_CELLS)  # every cell its own run
     # rows 3 and 4: empty road
     _assert_matches_conv2d(enc, obs)
 
@@ -156,16 +157,79 @@ def test_encoder_in_row_slices_matches_conv2d_and_each_slice_alone() -> None:
     _assert_matches_conv2d(enc, obs)
 
 
+def _ones_kernel_encoder(bias: float) -> GridEncoder:
+    """An encoder whose conv weights are all 1 and whose conv bias is ``bias``: its conv output at cell p of
+    either output row is bias + the sum of the 30 cells p..p+29 of both lanes and both channels."""
+    enc = GridEncoder()
+    with torch.no_grad():
+        enc.conv.weight.fill_(1.0)
+        assert enc.conv.bias is not None
+        enc.conv.bias.fill_(bias)
+    return enc
+
+
+def _conv_features(enc: GridEncoder, obs: torch.Tensor) -> torch.Tensor:
+    """ReLU(conv) as the fast path computes it, back in conv2d's (filter, row, cell) order: (B, 2, 2, 371)."""
+    chunk = ObsWindows(obs).chunks[0]
+    ours = enc._conv(chunk, enc._operands()).reshape(obs.shape[0], 371, 2, 2)
+    return ours.permute(0, 2, 3, 1)
+
+
+@pytest.mark.parametrize(
+    ("start", "length", "value", "expected"),
+    [
+        # a car of 11 cells of 0.5 at cells 100..110: a window from p reads min(p + 30, 111) - max(p, 100) cells
+        (100, 11, 0.5, {70: 0.0, 71: 0.5, 81: 5.5, 85: 5.5, 100: 5.5, 101: 5.0, 110: 0.5, 111: 0.0}),
+        # a queue of 40 equal cells, longer than a piece (cut at 16 and 32): a window inside it reads 30 cells
+        (200, 40, 1.0, {171: 1.0, 190: 20.0, 200: 30.0, 210: 30.0, 225: 15.0, 239: 1.0, 240: 0.0}),
+        # a car on the last cells: only the last windows reach it
+        (395, 5, -0.2, {365: 0.0, 366: -0.2, 370: -1.0}),
+        # a car on the first cells
+        (0, 3, 2.0, {0: 6.0, 1: 4.0, 2: 2.0, 3: 0.0}),
+    ],
+)
+def test_conv_of_one_run_is_its_overlap_with_each_window(
+    start: int, length: int, value: float, expected: dict[int, float]
+) -> None:
+    """Hand-checked: with a kernel of ones, the conv at cell p is bias + value · (cells of the run among
+    p..p+29), on both output rows (the 3-tall kernel sees both lanes). And the whole encoder equals conv2d's."""
+    enc = _ones_kernel_encoder(bias=1.5)
+    obs = torch.zeros(1, OBS_DIM)
+    obs[0, N_SCALARS + start : N_SCALARS + start + length] = value  # obs_cl occupancy channel
+    conv = _conv_features(enc, obs)
+    for cell, summed in expected.items():
+        want = torch.full((2, 2), max(1.5 + summed, 0.0))
+        torch.testing.assert_close(conv[0, :, :, cell], want, rtol=0, atol=1e-5, msg=f"cell {cell}")
+    torch.testing.assert_close(enc(obs), enc.reference_forward(obs), rtol=1e-5, atol=1e-5)
+
+
+def test_conv_of_touching_runs_and_both_lanes_adds_up() -> None:
+    """Two cars touching (values 1 and 0.3, no gap: two runs) on obs_cl, a relative speed of -0.5 on obs_ol at
+    the same 20 cells; with a ones kernel and no bias the window from p sums what it reads of all four rows."""
+    enc = _ones_kernel_encoder(bias=0.0)
+    obs = torch.zeros(1, OBS_DIM)
+    cl_occ, ol_rel = N_SCALARS, N_SCALARS + 3 * GRID_CELLS
+    obs[0, cl_occ + 90 : cl_occ + 100] = 1.0
+    obs[0, cl_occ + 100 : cl_occ + 110] = 0.3
+    obs[0, ol_rel + 90 : ol_rel + 110] = -0.5
+    conv = _conv_features(enc, obs)
+    # p = 61 reads cell 90 of each; 80 and 90 read all: 10 + 3 - 10; 95: 5 + 3 - 7.5; 100: 3 - 5 < 0 (ReLU)
+    for cell, want in {61: 0.5, 80: 3.0, 90: 3.0, 95: 0.5, 100: 0.0}.items():
+        torch.testing.assert_close(conv[0, :, :, cell], torch.full((2, 2), want), rtol=0, atol=1e-5)
+    enc_random = GridEncoder()
+    _assert_matches_conv2d(enc_random, obs)
+
+
 @pytest.mark.parametrize("rows", [5, ENCODER_CHUNK_ROWS + 7])
-def test_networks_on_shared_windows_give_the_bits_of_their_own_cut(rows: int) -> None:
-    """The learner cuts a batch into windows once (ObsWindows) for the actor, V and V̂: each network's output
+def test_networks_on_shared_runs_give_the_bits_of_their_own_cut(rows: int) -> None:
+    """The learner finds a batch's runs once (ObsWindows) for the actor, V and V̂: each network's output
     and parameter gradients are exactly those it computes from the observations themselves, on a batch with
     empty, partly and fully occupied grids, in one chunk and in several."""
     torch.manual_seed(3)
     obs = torch.zeros(rows, OBS_DIM)
     obs[:, :N_SCALARS] = torch.randn(rows, N_SCALARS)
     obs[1::3, N_SCALARS + 40 : N_SCALARS + 51] = 0.6  # one car near the start of obs_cl
-    obs[2::3, N_SCALARS:] = torch.randn(len(range(2, rows, 3)), 4 * GRID_CELLS)  # every window occupied
+    obs[2::3, N_SCALARS:] = torch.randn(len(range(2, rows, 3)), 4 * GRID_CELLS)  # every cell its own run
     shared = ObsWindows(obs)
     assert len(shared.chunks) == (1 if rows <= ENCODER_CHUNK_ROWS else 2)
     for net in (Actor(), ValueCritic()):
@@ -179,7 +243,7 @@ def test_networks_on_shared_windows_give_the_bits_of_their_own_cut(rows: int) ->
 
 
 def test_frozen_conv_operands_follow_every_weight_change() -> None:
-    """With autograd off the encoder reuses its Toeplitz operands; an optimizer step or a
+    """With autograd off the encoder reuses its run table; an optimizer step or a
     load_state_dict (both change the weights in place) must be seen by the very next forward."""
     torch.manual_seed(0)
     actor, other = Actor(), Actor()

@@ -222,7 +222,7 @@ class _ValueForward:
     """V's forward pass on a batch: what the actor needs from it (A1) and what V's own step reuses."""
 
     obs: ObsWindows
-    """The batch's observations, cut into the encoder's windows once for V, V̂ and the actor."""
+    """The batch's observations, their grids' runs found once for V, V̂ and the actor."""
     values: torch.Tensor
     """V(o) (B,), with gradient."""
     advantage: torch.Tensor

@@ -16,6 +16,7 @@ from torch.distributions import Categorical
 
 from idas_sumo.agents.coma import coma_advantage
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
+from idas_sumo.agents.run_conv import RunConv, RunPieces
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import GRID_CELLS, N_CHANNELS, N_LANES, N_SCALARS, OBS_DIM
 from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
@@ -61,38 +62,39 @@ def _mlp(sizes: list[int]) -> nn.Sequential:
 
 
 # How the lane convolution is computed (ours: the maths is the paper's conv, only the arithmetic is
-# arranged for speed). A conv with a 3×30 kernel on 2 lanes padded to 4 rows is, per output row, a 1-D
-# correlation over the 4 (lane, channel) input rows; over a block of BLOCK_CELLS output cells that
-# correlation is one dense (Toeplitz) matrix built from the kernel. 371 = 7 × 53 output cells, so 7
-# blocks read the 400 cells exactly, and the conv is one GEMM (B·7, 4·82) @ (4·82, 4·53) with the bias
-# fused. Its output stays in (block, filter·row, cell) order: instead of permuting activations, the
-# first joint layer's weight columns are permuted to match. Faster than torch's conv2d
-# (benchmarks/learner_update.py); the result is the same to float rounding (tests/test_agents_networks.py).
-# The Conv2d and Linear modules stay the parameters' homes, so checkpoints keep their keys and layout.
-BLOCK_CELLS = 53
-# A learner batch goes through the encoder in slices of this many rows (the same maths; the float rounding
-# of a GEMM depends on its row count, and the weight gradient sums the slices in turn). A slice's windows
-# (2048 · 7 · 328 floats, 19 MB) fit a common L3 cache, where a whole stage-2 batch of 16 episodes (about
-# 9,600 rows, 88 MB of windows) does not. Batches up to this size, every rollout's and evaluation's, go
-# through in one piece.
-ENCODER_CHUNK_ROWS = 2048
-_BLOCKS = CONV_OUT_CELLS // BLOCK_CELLS  # 7
-assert _BLOCKS * BLOCK_CELLS == CONV_OUT_CELLS, "blocks must tile the conv output exactly"
-_BLOCK_IN = BLOCK_CELLS + KERNEL_CELLS - 1  # 82 input cells per block; the 7 blocks end at cell 400
+# arranged for speed). A grid row is mostly zeros, and each car is a run of about ten equal cells (its
+# occupancy, its relative speed). A conv over a run of n cells of value v starting at cell s adds, at output
+# cell p, v · Σ_k w[k] over the kernel taps k with s ≤ p + k < s + n: a box sum of the kernel, which
+# depends only on n and on t = p - s + 29, the output's place in the 29 + n cells the run reaches. So the
+# encoder finds the runs (``ObsWindows``), reads each run's contribution from a table of those box sums
+# (one small GEMM of the kernel taps, built from the weights) and adds it at its place: a few hundred
+# multiply-adds per car instead of the dense conv's ~1 million per observation, the same function.
+# A run longer than RUN_PIECE cells is cut into pieces (the sum of their contributions is the run's).
+# The result equals torch's conv2d to float rounding (tests/test_agents_networks.py), on every input, not
+# only on runs: a lone cell is a run of one. The conv's output stays in (cell, filter·row) order: instead of
+# permuting activations, the first joint layer's weight columns are permuted to match. The Conv2d and
+# Linear modules stay the parameters' homes, so checkpoints keep their keys and layout.
+RUN_PIECE = 16
+_REACH = RUN_PIECE + KERNEL_CELLS - 1  # output cells one piece reaches: 45
 _ROWS_IN = N_LANES * N_CHANNELS  # (lane, channel) rows, in the observation's own order
 _ROWS_OUT = CONV_FILTERS * CONV_OUT_LANES  # (filter, output row)
 
 
-def _toeplitz(weight: torch.Tensor) -> torch.Tensor:
-    """The block matrix (4·82, 4·53) of the conv weight (F, C, 3, 30): entry ((lane, c, j), (f, r, p)) is
-    weight[f, c, lane - r + 1, j - p] where 0 ≤ j - p < 30, else 0.
+def _box_taps() -> torch.Tensor:
+    """(30, RUN_PIECE · 45) of 0/1: entry (k, (n - 1, t)) is 1 where kernel tap k meets a piece of n cells at
+    output place t, i.e. 29 - t ≤ k < 29 - t + n."""
+    k = torch.arange(KERNEL_CELLS).view(-1, 1, 1)
+    n = torch.arange(1, RUN_PIECE + 1).view(1, -1, 1)
+    first = KERNEL_CELLS - 1 - torch.arange(_REACH).view(1, 1, -1)
+    return ((k >= first) & (k < first + n)).float().reshape(KERNEL_CELLS, RUN_PIECE * _REACH)
 
-    Built from slices, flips, a pad and an unfold only, so its gradient is a deterministic sum (a
-    gather by index would scatter-add the gradient, and torch does that in a nondeterministic order).
-    """
+
+def _kernel_pairs(weight: torch.Tensor) -> torch.Tensor:
+    """The conv weight (F, C, 3, 30) as the 1-D kernel (4 in rows, 4 out rows, 30) each (lane, channel) input
+    row meets in each (filter, output row): weight[f, c, lane - r + 1]."""
     # Output row r is centred on padded row r + 1, where lane `lane` sits at padded row lane + 1: it
     # meets kernel row lane - r + 1 (the kernel's third row only ever meets the zero padding).
-    per_pair = torch.stack(
+    return torch.stack(
         [
             torch.stack(
                 [
@@ -102,68 +104,67 @@ def _toeplitz(weight: torch.Tensor) -> torch.Tensor:
             )
             for lane, c in itertools.product(range(N_LANES), range(N_CHANNELS))
         ]
-    )  # (in row (lane, c), out row (f, r), k)
-    # T[j, p] = w[j - p] = u[j + p'] with p' = 52 - p and u = w padded by 52 zeros on the left and
-    # right: an unfold of u, then flip p' back to p.
-    padded = nn.functional.pad(per_pair, (BLOCK_CELLS - 1, BLOCK_CELLS - 1))
-    bands = padded.unfold(2, BLOCK_CELLS, 1)[:, :, :_BLOCK_IN].flip(3)  # (in, out, j, p)
-    return bands.permute(0, 2, 1, 3).reshape(_ROWS_IN * _BLOCK_IN, _ROWS_OUT * BLOCK_CELLS)
+    )
+
+
+def _run_table(weight: torch.Tensor, box_taps: torch.Tensor) -> torch.Tensor:
+    """(RUN_PIECE · 4, 45 · 4): row (n - 1, in row) holds a unit piece of n cells' conv output at its 45
+    places (t, out row). One GEMM and reshapes, so its gradient is deterministic (no scatter)."""
+    sums = _kernel_pairs(weight).reshape(_ROWS_IN * _ROWS_OUT, KERNEL_CELLS) @ box_taps
+    return (
+        sums.reshape(_ROWS_IN, _ROWS_OUT, RUN_PIECE, _REACH)
+        .permute(2, 0, 3, 1)
+        .reshape(RUN_PIECE * _ROWS_IN, _REACH * _ROWS_OUT)
+    )
 
 
 def _feature_order() -> torch.Tensor:
-    """For each conv feature in block order (block, filter, row, cell), its index in conv2d's
-    flattened (filter, row, cell) order."""
-    block, out_row, cell = torch.meshgrid(
-        torch.arange(_BLOCKS), torch.arange(_ROWS_OUT), torch.arange(BLOCK_CELLS), indexing="ij"
-    )
-    return (out_row * CONV_OUT_CELLS + block * BLOCK_CELLS + cell).flatten()
+    """For each conv feature in our order (cell, filter·row), its index in conv2d's flattened
+    (filter, row, cell) order."""
+    cell, out_row = torch.meshgrid(torch.arange(CONV_OUT_CELLS), torch.arange(_ROWS_OUT), indexing="ij")
+    return (out_row * CONV_OUT_CELLS + cell).flatten()
 
 
 @dataclass(frozen=True)
 class _ConvOperands:
-    toeplitz: torch.Tensor
-    """(4·82, 4·53): ``_toeplitz`` of the conv weight."""
+    run_table: torch.Tensor
+    """``_run_table`` of the conv weight."""
     bias: torch.Tensor
-    """The conv bias per output column of one block."""
+    """The conv bias per (filter, output row)."""
     joint_conv_weight: torch.Tensor
-    """The first joint layer's weight for the conv features, transposed, rows in block order."""
+    """The first joint layer's weight for the conv features, transposed, rows in (cell, filter·row) order."""
+
+
+# A learner batch goes through the encoder in slices of this many rows (the same maths; the float rounding
+# of a GEMM depends on its row count, and the weight gradient sums the slices in turn). A slice's conv output
+# (2048 · 454 · 4 floats, 15 MB) stays in a common L3 cache, where a whole stage-2 batch of 16 episodes
+# (about 9,800 rows) does not: in one piece the update ran at half the speed. Batches up to this size,
+# every rollout's and evaluation's, go through in one piece.
+ENCODER_CHUNK_ROWS = 2048
 
 
 @dataclass(frozen=True)
-class _WindowChunk:
-    """Up to ``ENCODER_CHUNK_ROWS`` observations and the conv's input windows of their grids."""
+class _RunChunk:
+    """Up to ``ENCODER_CHUNK_ROWS`` observations and their grids' runs, cut into pieces."""
 
     obs: torch.Tensor
     """The rows (B, OBS_DIM); the scalars are read from here."""
-    windows: torch.Tensor
-    """The occupied windows (n, 4·82), in (row, block) order; every window when ``occupied`` is None."""
-    occupied: torch.Tensor | None
-    """Where ``windows`` sit among the B·7 windows; None when every window is occupied."""
+    pieces: RunPieces
+    """The pieces of its grids' runs (agents/run_conv.py)."""
 
     @classmethod
-    def of(cls, obs: torch.Tensor) -> _WindowChunk:
-        b = obs.shape[0]
+    def of(cls, obs: torch.Tensor) -> _RunChunk:
         # layout.py orders the grid lane-major, [cl occ, cl rel, ol occ, ol rel]: (lane, channel) rows.
-        rows = obs[:, N_SCALARS:].reshape(b, _ROWS_IN, GRID_CELLS)
-        windows = (
-            rows.unfold(2, _BLOCK_IN, BLOCK_CELLS).transpose(1, 2).reshape(b * _BLOCKS, _ROWS_IN * _BLOCK_IN)
-        )
-        # Most windows of a grid are empty road (in the intelligent world about 40 %): their conv output is
-        # the bias alone, exactly, so only the others go through the GEMM. Empty rows add nothing to the
-        # weight gradient either; the bias still receives every row's gradient.
-        occupied = torch.nonzero(windows.ne(0).any(dim=1)).squeeze(1)
-        if occupied.numel() == b * _BLOCKS:
-            return cls(obs=obs, windows=windows, occupied=None)
-        return cls(obs=obs, windows=windows.index_select(0, occupied), occupied=occupied)
+        rows = obs[:, N_SCALARS:].reshape(obs.shape[0] * _ROWS_IN, GRID_CELLS)
+        return cls(obs=obs, pieces=RunPieces.of(rows, _ROWS_IN, RUN_PIECE))
 
 
 class ObsWindows:
-    """A batch of observations cut into the conv's windows once, for every encoder that reads it.
+    """A batch of observations with its grids' runs found once, for every encoder that reads it.
 
-    The learner runs the actor, V and (with one-step targets) V̂ on the same rows; cutting a batch (a copy of
-    its grids, the occupancy test and the gather of the occupied windows) is a noticeable share of each
-    encoder pass. The cut depends on the observations only, so the networks compute what they would from ``obs``,
-    bit for bit. Batches above ``ENCODER_CHUNK_ROWS`` are cut in chunks of that many rows.
+    The learner runs the actor, V and (with one-step targets) V̂ on the same rows; finding the runs depends on
+    the observations only, so the networks compute what they would from ``obs``, bit for bit. Batches above
+    ``ENCODER_CHUNK_ROWS`` are cut in chunks of that many rows.
     """
 
     def __init__(self, obs: torch.Tensor) -> None:
@@ -171,7 +172,7 @@ class ObsWindows:
             raise ValueError(f"observation must have {OBS_DIM} features, got {tuple(obs.shape)}")
         self.obs = obs
         parts = (obs,) if obs.shape[0] <= ENCODER_CHUNK_ROWS else obs.split(ENCODER_CHUNK_ROWS)
-        self.chunks = tuple(_WindowChunk.of(part) for part in parts)
+        self.chunks = tuple(_RunChunk.of(part) for part in parts)
 
 
 class GridEncoder(nn.Module):
@@ -198,17 +199,19 @@ class GridEncoder(nn.Module):
         self.joint = _mlp([SCALAR_HIDDEN + CONV_FEATURES, JOINT_HIDDEN, JOINT_HIDDEN, JOINT_HIDDEN])
         self._feature_order: torch.Tensor
         self.register_buffer("_feature_order", _feature_order() + SCALAR_HIDDEN, persistent=False)
+        self._box_taps: torch.Tensor
+        self.register_buffer("_box_taps", _box_taps(), persistent=False)
         self._frozen: tuple[tuple[object, ...], _ConvOperands] | None = None
 
     def forward(self, obs: torch.Tensor | ObsWindows) -> torch.Tensor:
-        """``obs`` (B, OBS_DIM), or the same rows already cut into windows (``ObsWindows``: the learner's
-        networks share one cut)."""
-        windows = obs if isinstance(obs, ObsWindows) else ObsWindows(obs)
+        """``obs`` (B, OBS_DIM), or the same rows with their runs already found (``ObsWindows``: the
+        learner's networks share them)."""
+        runs = obs if isinstance(obs, ObsWindows) else ObsWindows(obs)
         operands = self._operands()
-        if len(windows.chunks) == 1:
-            first = self._joint_input_layer(windows.chunks[0], operands)
+        if len(runs.chunks) == 1:
+            first = self._joint_input_layer(runs.chunks[0], operands)
         else:
-            first = torch.cat([self._joint_input_layer(chunk, operands) for chunk in windows.chunks])
+            first = torch.cat([self._joint_input_layer(chunk, operands) for chunk in runs.chunks])
         return self.joint[1:](first)
 
     def reference_forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -220,7 +223,7 @@ class GridEncoder(nn.Module):
         return out
 
     def _operands(self) -> _ConvOperands:
-        """The Toeplitz matrix, its bias and the first joint layer's conv columns, built from the weights.
+        """The run table, the conv bias and the first joint layer's conv columns, built from the weights.
 
         With autograd off (a rollout or an evaluation acts thousands of times between two weight changes)
         they are built once and reused while the weights stay the same tensors at the same version:
@@ -235,33 +238,30 @@ class GridEncoder(nn.Module):
             if self._frozen is not None and self._frozen[0] == key:
                 return self._frozen[1]
         operands = _ConvOperands(
-            toeplitz=_toeplitz(self.conv.weight),
-            bias=self.conv.bias.repeat_interleave(CONV_OUT_LANES * BLOCK_CELLS),  # (filter, row, cell)
+            run_table=_run_table(self.conv.weight, self._box_taps),
+            bias=self.conv.bias.repeat_interleave(CONV_OUT_LANES),  # (filter, row)
             joint_conv_weight=first.weight.index_select(1, self._feature_order).t(),
         )
         self._frozen = (key, operands) if key else None
         return operands
 
     @staticmethod
-    def _conv_blocks(chunk: _WindowChunk, operands: _ConvOperands) -> torch.Tensor:
-        """ReLU(conv) (B, CONV_FEATURES) in block order (block, filter, row, cell)."""
-        b = chunk.obs.shape[0]
-        conv = torch.relu(torch.addmm(operands.bias, chunk.windows, operands.toeplitz))
-        if chunk.occupied is not None:
-            # An empty window's output is ReLU(bias) exactly. The ReLU runs on the occupied rows and the bias
-            # only (its backward too), which gives the bits of one ReLU over every row: the gradient reaching
-            # the bias from the empty rows is the same column sums, masked once instead of per row.
-            empty = torch.relu(operands.bias).expand(b * _BLOCKS, -1)
-            conv = empty.index_copy(0, chunk.occupied, conv)
+    def _conv(runs: _RunChunk, operands: _ConvOperands) -> torch.Tensor:
+        """ReLU(conv) (B, CONV_FEATURES) in (cell, filter·row) order: each piece's outputs added at its places
+        (agents/run_conv.py); a cell no run reaches is the bias alone, exactly."""
+        b = runs.obs.shape[0]
+        conv: torch.Tensor = RunConv.apply(
+            operands.run_table, operands.bias, runs.pieces, b, CONV_OUT_CELLS, KERNEL_CELLS - 1
+        )
         return conv.reshape(b, CONV_FEATURES)
 
-    def _joint_input_layer(self, chunk: _WindowChunk, operands: _ConvOperands) -> torch.Tensor:
+    def _joint_input_layer(self, runs: _RunChunk, operands: _ConvOperands) -> torch.Tensor:
         """The first joint layer on cat(scalar features, conv features), without building the cat."""
         first = self.joint[0]
         assert isinstance(first, nn.Linear)
         w_scalars = first.weight[:, :SCALAR_HIDDEN]
-        out = torch.addmm(first.bias, self.scalars(chunk.obs[:, :N_SCALARS]), w_scalars.t())
-        return out.addmm_(self._conv_blocks(chunk, operands), operands.joint_conv_weight)
+        out = torch.addmm(first.bias, self.scalars(runs.obs[:, :N_SCALARS]), w_scalars.t())
+        return out.addmm_(self._conv(runs, operands), operands.joint_conv_weight)
 
 
 # Ours: the initial policy's prior over actions. With uniform logits a fresh policy hard-brakes on one

@@ -1,0 +1,195 @@
+"""The encoder's lane convolution from the grids' runs, forward and backward, as compiled loops.
+
+``networks.GridEncoder`` finds the runs of equal cells in a batch's grids and builds, from the conv weight, the
+table of a unit run's outputs (``networks._run_table``); this module adds each run's outputs at its places,
+adds the bias and applies the ReLU (``RunConv``), and gives the gradients of the table and the bias. A loop
+over a few pieces per grid row touches only the outputs a car reaches, in one pass with the bias and the
+ReLU, where torch's ops (gather, scale, scatter-add, slice, add, ReLU: each a pass over the whole output, and
+as many again backward) were slower than the dense conv they replace. The loops run in a fixed order, so the
+results do not vary from run to run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from idas_sumo.env.jit import kernel
+
+__all__ = ["RunConv", "RunPieces"]
+
+
+def _runs(
+    grids: npt.NDArray[np.float32], rows_in: int, piece: int, capacity: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """The pieces of the runs of equal non-zero cells in ``grids`` (B · rows_in grid rows, cells): each run cut
+    into pieces of at most ``piece`` cells. Per piece: its table row ((length - 1) · rows_in + input row), its
+    value, its batch row and its first cell. ``capacity``: at least the number of pieces (the non-zero cells)."""
+    n_rows, cells = grids.shape
+    table_row = np.empty(capacity, dtype=np.int64)
+    value = np.empty(capacity, dtype=np.float32)
+    grid_row = np.empty(capacity, dtype=np.int64)
+    start = np.empty(capacity, dtype=np.int64)
+    j = 0
+    for i in range(n_rows):
+        c = 0
+        while c < cells:
+            v = grids[i, c]
+            if v == 0.0:
+                c += 1
+                continue
+            e = c + 1
+            while e < cells and grids[i, e] == v:
+                e += 1
+            for s in range(c, e, piece):
+                table_row[j] = (min(piece, e - s) - 1) * rows_in + i % rows_in
+                value[j], grid_row[j], start[j] = v, i // rows_in, s
+                j += 1
+            c = e
+    return table_row[:j], value[:j], grid_row[:j], start[:j]
+
+
+def _forward(
+    table: npt.NDArray[np.float32],
+    bias: npt.NDArray[np.float32],
+    table_row: npt.NDArray[np.int64],
+    value: npt.NDArray[np.float32],
+    grid_row: npt.NDArray[np.int64],
+    start: npt.NDArray[np.int64],
+    rows: int,
+    cells: int,
+    lead: int,
+) -> npt.NDArray[np.float32]:
+    """ReLU(bias + Σ pieces) (rows, cells, outs): piece j adds value[j] · table[table_row[j], (t, o)] at cell
+    start[j] - lead + t of its grid row."""
+    outs = bias.shape[0]
+    reach = table.shape[1] // outs
+    summed = np.zeros(rows * cells * outs, dtype=np.float32)
+    for j in range(table_row.shape[0]):
+        r, v, first = table_row[j], value[j], start[j] - lead
+        at = (grid_row[j] * cells + first) * outs
+        for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
+            summed[at + k] += v * table[r, k]
+    zero = np.float32(0.0)
+    for i in range(rows * cells):
+        for o in range(outs):
+            summed[i * outs + o] = max(summed[i * outs + o] + bias[o], zero)
+    return summed.reshape(rows, cells, outs)
+
+
+def _backward(
+    grad: npt.NDArray[np.float32],
+    out: npt.NDArray[np.float32],
+    table_rows: int,
+    table_row: npt.NDArray[np.int64],
+    value: npt.NDArray[np.float32],
+    grid_row: npt.NDArray[np.int64],
+    start: npt.NDArray[np.int64],
+    reach: int,
+    lead: int,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """The gradients of the table and the bias, given the output's ``grad`` and the output (ReLU's mask)."""
+    rows, cells, outs = out.shape
+    flat_grad, flat_out = grad.reshape(-1), out.reshape(-1)
+    live = np.empty_like(flat_grad)
+    grad_bias = np.zeros(outs)  # float64 sums: millions of terms
+    for i in range(rows * cells):
+        for o in range(outs):
+            g = flat_grad[i * outs + o] if flat_out[i * outs + o] > 0.0 else np.float32(0.0)
+            live[i * outs + o] = g
+            grad_bias[o] += g
+    grad_table = np.zeros((table_rows, reach * outs))
+    for j in range(table_row.shape[0]):
+        r, v, first = table_row[j], value[j], start[j] - lead
+        at = (grid_row[j] * cells + first) * outs
+        for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
+            grad_table[r, k] += v * live[at + k]
+    return grad_table.astype(np.float32), grad_bias.astype(np.float32)
+
+
+_runs_kernel = kernel(_runs)
+_forward_kernel = kernel(_forward)
+_backward_kernel = kernel(_backward)
+
+
+@dataclass(frozen=True)
+class RunPieces:
+    """The runs of equal non-zero cells of a batch's grid rows, cut into pieces (``_runs``)."""
+
+    table_row: npt.NDArray[np.int64]
+    """Each piece's row of the run table: (its length - 1) · rows_in + its input row."""
+    value: npt.NDArray[np.float32]
+    """Each piece's cell value."""
+    grid_row: npt.NDArray[np.int64]
+    """Each piece's row in the batch."""
+    start: npt.NDArray[np.int64]
+    """Each piece's first cell."""
+
+    @classmethod
+    def of(cls, grids: torch.Tensor, rows_in: int, piece: int) -> RunPieces:
+        """The pieces of a (B · rows_in, cells) float32 tensor's runs, at most ``piece`` cells long."""
+        cells = np.ascontiguousarray(grids.detach().cpu().numpy(), dtype=np.float32)
+        # A piece holds at least one non-zero cell: their count bounds the pieces (a few % of the cells).
+        capacity = int(np.count_nonzero(cells))
+        table_row, value, grid_row, start = _runs_kernel(cells, rows_in, piece, capacity)
+        return cls(table_row=table_row, value=value, grid_row=grid_row, start=start)
+
+
+class RunConv(torch.autograd.Function):
+    """ReLU(conv) from the pieces of a batch's runs: ``apply(table, bias, pieces, rows, cells, lead)`` gives
+    (rows, cells, outs); gradients reach ``table`` and ``bias`` (float32)."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        table: torch.Tensor,
+        bias: torch.Tensor,
+        pieces: RunPieces,
+        rows: int,
+        cells: int,
+        lead: int,
+    ) -> torch.Tensor:
+        arrays = (pieces.table_row, pieces.value, pieces.grid_row, pieces.start)
+        out = torch.from_numpy(
+            _forward_kernel(
+                np.ascontiguousarray(table.detach().cpu().numpy()),
+                bias.detach().cpu().numpy(),
+                *arrays,
+                rows,
+                cells,
+                lead,
+            )
+        ).to(table.device)
+        ctx.arrays, ctx.table_shape, ctx.lead = arrays, table.shape, lead
+        ctx.save_for_backward(out)
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        (out,) = ctx.saved_tensors
+        rows, reach_outs = ctx.table_shape
+        table_row, value, grid_row, start = ctx.arrays
+        grad_table, grad_bias = _backward_kernel(
+            np.ascontiguousarray(grad.detach().cpu().numpy()),
+            out.detach().cpu().numpy(),
+            rows,
+            table_row,
+            value,
+            grid_row,
+            start,
+            reach_outs // out.shape[2],
+            ctx.lead,
+        )
+        device = grad.device
+        return (
+            torch.from_numpy(grad_table).to(device),
+            torch.from_numpy(grad_bias).to(device),
+            None,
+            None,
+            None,
+            None,
+        )
