@@ -154,12 +154,12 @@ def test_resume_skips_finished_runs(
     ran: list[int] = []
     real = study.run_once
 
-    def counting(site, flow, policy, folder, mask, warmup_s):  # type: ignore[no-untyped-def]
+    def counting(site, flow, policy, folder, mask, warmup_s, **kw):  # type: ignore[no-untyped-def]
         if flow.seed == 1 and not ran.count(1):
             ran.append(1)
             raise KeyboardInterrupt  # the study is stopped during its second run
         ran.append(flow.seed)
-        return real(site, flow, policy, folder, mask, warmup_s)
+        return real(site, flow, policy, folder, mask, warmup_s, **kw)
 
     monkeypatch.setattr(study, "run_once", counting)
     code, _, _ = main_in_process(capsys, *base, "--seeds", "0-2", "--out", str(out))
@@ -214,3 +214,33 @@ def test_onramp_automated_cars_keep_to_the_merge_lanes(tmp_path: Path) -> None:
     assert row["throughput_veh_per_h"] > 0
     # the roads can be named by their edges too
     assert parse_demand("hw_in=2400,ramp=600", site) == {"main": 2400.0, "merge": 600.0}
+
+
+TIMING_COLUMNS = ("wall_s", "real_time_factor")
+
+
+def _rows_without_timing(path: Path) -> list[dict[str, str]]:
+    return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in csv.DictReader(path.open())]
+
+
+@pytest.mark.sumo
+def test_workers_give_the_same_rows_and_resume(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """Two worker processes write the rows one process writes, in the same order; a second call with
+    workers skips every finished run; --trajectories writes each run's positions for the plot."""
+    grid = ["--demand", "main=900,merge=300", "--penetration", "0,0.5", "--policy", "idm"]
+    base = ["cosim", *grid, "--duration-s", "30", "--seeds", "0"]
+    one, two = tmp_path / "one", tmp_path / "two"
+    code, _, err = main_in_process(capsys, *base, "--out", str(one))
+    assert code == 0, err
+    code, _, err = main_in_process(capsys, *base, "--workers", "2", "--trajectories", "--out", str(two))
+    assert code == 0, err
+    rows = _rows_without_timing(one / "flows.csv")
+    assert len(rows) == 2 and rows == _rows_without_timing(two / "flows.csv")
+    assert [r["penetration"] for r in rows] == ["0", "0.5"] and int(rows[1]["automated"]) > 0
+    code, stdout, err = main_in_process(capsys, *base, "--workers", "2", "--out", str(two))
+    assert code == 0 and stdout.count("done before, skipped") == 2, err
+    traj = sorted((two / study.TRAJECTORY_DIR).glob("*.csv"))
+    assert len(traj) == 2 and "p0.5" in traj[0].name
+    cars = list(csv.DictReader(traj[0].open()))
+    assert {c["road"] for c in cars} >= {"main", "merge"} and {c["automated"] for c in cars} == {"0", "1"}
+    assert all(float(c["time_s"]).is_integer() for c in cars)
