@@ -11,7 +11,7 @@ import pytest
 
 from idas_sumo.baselines.policies import RuleBasedPolicy
 from idas_sumo.cosim import study
-from idas_sumo.cosim.demand import parse_demand, parse_penetrations
+from idas_sumo.cosim.demand import parse_demand, parse_penetrations, parse_profile
 from idas_sumo.cosim.run import run_once
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import is_matplotlib_png
@@ -244,3 +244,49 @@ def test_workers_give_the_same_rows_and_resume(capsys: pytest.CaptureFixture[str
     cars = list(csv.DictReader(traj[0].open()))
     assert {c["road"] for c in cars} >= {"main", "merge"} and {c["automated"] for c in cars} == {"0", "1"}
     assert all(float(c["time_s"]).is_integer() for c in cars)
+    code, stdout, err = main_in_process(capsys, "plot", str(two))
+    assert code == 0, err
+    assert is_matplotlib_png(two / "flows.png") and is_matplotlib_png(traj[0].with_suffix(".png"))
+    assert stdout.count("wrote ") == 3
+
+
+def test_demand_profile_makes_consecutive_flows(site: MergeSite, tmp_path: Path) -> None:
+    profile_csv = tmp_path / "profile.csv"
+    profile_csv.write_text("time_s,multiplier\n0,0.5\n60,1.5\n120,0\n")
+    profile = parse_profile(profile_csv, 150.0)
+    assert profile == ((0.0, 0.5), (60.0, 1.5), (120.0, 0.0))
+    xml = demand_xml(site, FlowDemand(MODERATE, 0.0, 150.0, 0, 30.0, profile))
+    flows = re.findall(r'<flow id="([\w.]+)" .*?begin="([\d.]+)" end="([\d.]+)" vehsPerHour="([\d.]+)"', xml)
+    assert flows == [
+        ("main.0", "0", "60", "300.0"),
+        ("main.1", "60", "120", "900.0"),
+        ("merge.0", "0", "60", "100.0"),
+        ("merge.1", "60", "120", "300.0"),
+    ]
+    # without a profile the file is the one it always was (one flow per road, named after it)
+    assert demand_xml(site, FlowDemand(MODERATE, 0.0, 150.0, 0, 30.0)).count("<flow ") == 2
+
+
+@pytest.mark.parametrize(
+    ("rows", "message"),
+    [
+        ("time_s,multiplier\n10,1\n", "times start at 0"),
+        ("time_s,multiplier\n0,1\n60,1\n30,2\n", "line 4: times start at 0 and increase"),
+        ("time_s,multiplier\n0,-1\n", "multiplier in [0, 10]"),
+        ("time_s,multiplier\n0,x\n", "two numbers"),
+        ("time,mult\n0,1\n", "header time_s,multiplier"),
+        ("time_s,multiplier\n0,1\n600,1\n", "not before the end"),
+        ("time_s,multiplier\n0,6\n", "more than 3600 vehicles per hour"),
+    ],
+)
+def test_bad_demand_profile_is_one_line_and_exit_2(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, rows: str, message: str
+) -> None:
+    profile_csv = tmp_path / "profile.csv"
+    profile_csv.write_text(rows)
+    out = tmp_path / "out"
+    args = ["--demand", "main=900", "--penetration", "0", "--duration-s", "600", "--out", str(out)]
+    code, _, err = main_in_process(capsys, "cosim", *args, "--demand-profile", str(profile_csv))
+    assert code == 2, err
+    assert err.count("\n") == 1 and err.startswith("idas-sumo: error: --demand-profile") and message in err
+    assert not out.exists()

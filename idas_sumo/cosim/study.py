@@ -21,7 +21,7 @@ from typing import Any
 
 from idas_sumo import stops
 from idas_sumo.cosim.demand import demand_label, profile_label
-from idas_sumo.cosim.plots import plot_flows
+from idas_sumo.cosim.plots import plot_flows, plot_study
 from idas_sumo.cosim.run import RunResult, run_once
 from idas_sumo.cosim.stats import Row
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SafetyMask
@@ -322,6 +322,22 @@ def run_study(
     return flows_path, bins_path
 
 
+def is_study(directory: Path) -> bool:
+    """A folder ``idas-sumo cosim`` wrote (its ``flows.csv``), for ``idas-sumo plot``."""
+    path = directory / FLOWS_NAME
+    if not path.is_file():
+        return False
+    with path.open(newline="", encoding="utf-8") as f:
+        header = next(csv.reader(f), [])
+    return set(KEY_COLUMNS) - set(OPTIONAL_KEYS) <= set(header)
+
+
+def plot_directory(directory: Path) -> list[Path]:
+    """``idas-sumo plot DIR`` on a cosim folder: ``flows.png`` and each run's time-space diagram."""
+    with output_directory(directory, False, keep=True, flag="plot"):
+        return plot_study(directory, FLOWS_NAME, PLOT_NAME, TRAJECTORY_DIR)
+
+
 __all__ = [
     "BINS_NAME",
     "FLOWS_NAME",
@@ -333,6 +349,8 @@ __all__ = [
     "RunRequest",
     "StudyPlan",
     "execute",
+    "is_study",
+    "plot_directory",
     "run_study",
     "trajectory_name",
 ]
