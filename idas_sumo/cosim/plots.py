@@ -31,7 +31,8 @@ def plot_flows(flows_csv: Path, out: Path) -> Path:
     cols = (*group, "demand_main_veh_per_h", "demand_merge_veh_per_h", "seed", *(c for c, _ in PANELS))
     frame = read_csv_columns(flows_csv, cols, "idas-sumo cosim")
     for name in OPTIONAL:
-        frame[name] = frame[name].fillna("").astype(str) if name in frame.columns else ""
+        column = frame[name].astype(object) if name in frame.columns else None  # all empty: read as NaN
+        frame[name] = "" if column is None else column.where(column.notna(), "").astype(str)
     frame["total_demand"] = frame["demand_main_veh_per_h"] + frame["demand_merge_veh_per_h"]
     varying = [g for g in GROUP if frame[g].nunique() > 1 or g == "penetration"]
     fig, axes = plt.subplots(1, len(PANELS), figsize=(5 * len(PANELS), 4))
