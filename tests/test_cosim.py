@@ -11,7 +11,7 @@ import pytest
 
 from idas_sumo.baselines.policies import RuleBasedPolicy
 from idas_sumo.cosim import study
-from idas_sumo.cosim.demand import parse_demand, parse_penetrations
+from idas_sumo.cosim.demand import parse_demand, parse_penetrations, parse_profile
 from idas_sumo.cosim.run import run_once
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import is_matplotlib_png
@@ -154,12 +154,12 @@ def test_resume_skips_finished_runs(
     ran: list[int] = []
     real = study.run_once
 
-    def counting(site, flow, policy, folder, mask, warmup_s):  # type: ignore[no-untyped-def]
+    def counting(site, flow, policy, folder, mask, warmup_s, **kw):  # type: ignore[no-untyped-def]
         if flow.seed == 1 and not ran.count(1):
             ran.append(1)
             raise KeyboardInterrupt  # the study is stopped during its second run
         ran.append(flow.seed)
-        return real(site, flow, policy, folder, mask, warmup_s)
+        return real(site, flow, policy, folder, mask, warmup_s, **kw)
 
     monkeypatch.setattr(study, "run_once", counting)
     code, _, _ = main_in_process(capsys, *base, "--seeds", "0-2", "--out", str(out))
@@ -214,3 +214,79 @@ def test_onramp_automated_cars_keep_to_the_merge_lanes(tmp_path: Path) -> None:
     assert row["throughput_veh_per_h"] > 0
     # the roads can be named by their edges too
     assert parse_demand("hw_in=2400,ramp=600", site) == {"main": 2400.0, "merge": 600.0}
+
+
+TIMING_COLUMNS = ("wall_s", "real_time_factor")
+
+
+def _rows_without_timing(path: Path) -> list[dict[str, str]]:
+    return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in csv.DictReader(path.open())]
+
+
+@pytest.mark.sumo
+def test_workers_give_the_same_rows_and_resume(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """Two worker processes write the rows one process writes, in the same order; a second call with
+    workers skips every finished run; --trajectories writes each run's positions for the plot."""
+    grid = ["--demand", "main=900,merge=300", "--penetration", "0,0.5", "--policy", "idm"]
+    base = ["cosim", *grid, "--duration-s", "30", "--seeds", "0"]
+    one, two = tmp_path / "one", tmp_path / "two"
+    code, _, err = main_in_process(capsys, *base, "--out", str(one))
+    assert code == 0, err
+    code, _, err = main_in_process(capsys, *base, "--workers", "2", "--trajectories", "--out", str(two))
+    assert code == 0, err
+    rows = _rows_without_timing(one / "flows.csv")
+    assert len(rows) == 2 and rows == _rows_without_timing(two / "flows.csv")
+    assert [r["penetration"] for r in rows] == ["0", "0.5"] and int(rows[1]["automated"]) > 0
+    code, stdout, err = main_in_process(capsys, *base, "--workers", "2", "--out", str(two))
+    assert code == 0 and stdout.count("done before, skipped") == 2, err
+    traj = sorted((two / study.TRAJECTORY_DIR).glob("*.csv"))
+    assert len(traj) == 2 and "p0.5" in traj[0].name
+    cars = list(csv.DictReader(traj[0].open()))
+    assert {c["road"] for c in cars} >= {"main", "merge"} and {c["automated"] for c in cars} == {"0", "1"}
+    assert all(float(c["time_s"]).is_integer() for c in cars)
+    code, stdout, err = main_in_process(capsys, "plot", str(two))
+    assert code == 0, err
+    assert is_matplotlib_png(two / "flows.png") and is_matplotlib_png(traj[0].with_suffix(".png"))
+    assert stdout.count("wrote ") == 3
+
+
+def test_demand_profile_makes_consecutive_flows(site: MergeSite, tmp_path: Path) -> None:
+    profile_csv = tmp_path / "profile.csv"
+    profile_csv.write_text("time_s,multiplier\n0,0.5\n60,1.5\n120,0\n")
+    profile = parse_profile(profile_csv, 150.0)
+    assert profile == ((0.0, 0.5), (60.0, 1.5), (120.0, 0.0))
+    xml = demand_xml(site, FlowDemand(MODERATE, 0.0, 150.0, 0, 30.0, profile))
+    flows = re.findall(r'<flow id="([\w.]+)" .*?begin="([\d.]+)" end="([\d.]+)" vehsPerHour="([\d.]+)"', xml)
+    assert flows == [
+        ("main.0", "0", "60", "300.0"),
+        ("main.1", "60", "120", "900.0"),
+        ("merge.0", "0", "60", "100.0"),
+        ("merge.1", "60", "120", "300.0"),
+    ]
+    # without a profile the file is the one it always was (one flow per road, named after it)
+    assert demand_xml(site, FlowDemand(MODERATE, 0.0, 150.0, 0, 30.0)).count("<flow ") == 2
+
+
+@pytest.mark.parametrize(
+    ("rows", "message"),
+    [
+        ("time_s,multiplier\n10,1\n", "times start at 0"),
+        ("time_s,multiplier\n0,1\n60,1\n30,2\n", "line 4: times start at 0 and increase"),
+        ("time_s,multiplier\n0,-1\n", "multiplier in [0, 10]"),
+        ("time_s,multiplier\n0,x\n", "two numbers"),
+        ("time,mult\n0,1\n", "header time_s,multiplier"),
+        ("time_s,multiplier\n0,1\n600,1\n", "not before the end"),
+        ("time_s,multiplier\n0,6\n", "more than 3600 vehicles per hour"),
+    ],
+)
+def test_bad_demand_profile_is_one_line_and_exit_2(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, rows: str, message: str
+) -> None:
+    profile_csv = tmp_path / "profile.csv"
+    profile_csv.write_text(rows)
+    out = tmp_path / "out"
+    args = ["--demand", "main=900", "--penetration", "0", "--duration-s", "600", "--out", str(out)]
+    code, _, err = main_in_process(capsys, "cosim", *args, "--demand-profile", str(profile_csv))
+    assert code == 2, err
+    assert err.count("\n") == 1 and err.startswith("idas-sumo: error: --demand-profile") and message in err
+    assert not out.exists()

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from idas_sumo.cli.common import JUNCTION_HELP, input_file, out_path
+from idas_sumo.cli.common import JUNCTION_HELP, add_worker_flags, check_backend, input_file, out_path
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS
 from idas_sumo.errors import InputError
 from idas_sumo.resources import DEFAULT_NET_NAME
@@ -91,6 +91,25 @@ def add_parser(sub: Subparsers) -> None:
     co.add_argument(
         "--force", action="store_true", help="start over in --out (its earlier cosim files are removed)"
     )
+    _add_extra_flags(co)
+
+
+def _add_extra_flags(co: argparse.ArgumentParser) -> None:
+    """The demand's time profile, trajectories, and where the runs run."""
+    co.add_argument(
+        "--demand-profile",
+        type=input_file,
+        metavar="CSV",
+        help="a time profile of every --demand: a CSV with the header time_s,multiplier, piecewise "
+        "constant (each row's multiplier from its time to the next row's; the first row at 0)",
+    )
+    co.add_argument(
+        "--trajectories",
+        action="store_true",
+        help="also record every car's position on the merge's roads each second, OUT/trajectories/"
+        "RUN.csv, for the time-space diagram `idas-sumo plot OUT` draws (slower runs, larger files)",
+    )
+    add_worker_flags(co, "runs")
 
 
 def _bin_s(args: argparse.Namespace) -> float:
@@ -113,21 +132,33 @@ def _report(key: dict[str, str], row: Row | None) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from idas_sumo.cosim.demand import check_duration, parse_demands, parse_penetrations
+    from functools import partial
+
+    from idas_sumo.cosim.demand import (
+        check_duration,
+        check_profile_demand,
+        parse_demands,
+        parse_penetrations,
+        parse_profile,
+    )
     from idas_sumo.cosim.study import StudyPlan, run_study
     from idas_sumo.evaluation.policies import LEARNED_METHODS, check_method, resolve_policy
     from idas_sumo.sim.merge_detect import choose_merge
     from idas_sumo.training.sweep import parse_seeds
 
+    check_backend(args)
     bin_s = _bin_s(args)
     check_duration(float(args.duration_s), bin_s, float(args.warmup_s))
+    profile = parse_profile(args.demand_profile, float(args.duration_s)) if args.demand_profile else ()
     penetrations = parse_penetrations(args.penetration)
     seeds = parse_seeds(args.seeds)
     policy = check_method(args.policy, "--policy")
     site = choose_merge(args.net, args.junction)
+    demands = parse_demands(list(args.demand), site)
+    check_profile_demand(demands, profile, site)
     plan = StudyPlan(
         site=site,
-        demands=parse_demands(list(args.demand), site),
+        demands=demands,
         penetrations=penetrations,
         seeds=seeds,
         policy=policy,
@@ -135,16 +166,20 @@ def run(args: argparse.Namespace) -> int:
         bin_s=bin_s,
         safety_mask=args.safety_mask,
         warmup_s=float(args.warmup_s),
+        profile=profile,
+        trajectories=args.trajectories,
     )
     policy_file = Path(args.policy_file) if args.policy_file is not None else None
     if policy_file is not None and policy not in LEARNED_METHODS:
         raise InputError(f"--policy-file: {policy} is a rule, not a learned policy; leave --policy-file out")
     flows, bins = run_study(
         plan,
-        lambda: resolve_policy(policy, policy_file),
+        partial(resolve_policy, policy, policy_file),  # picklable: workers make it themselves
         args.out,
         force=args.force,
         on_run=_report,
+        workers=args.workers,
+        ray_address=args.ray_address,
     )
     print(f"wrote {flows}, {bins}, {flows.with_name('flows.png')}")
     return 0

@@ -20,7 +20,7 @@ def add_parser(sub: Subparsers) -> None:
         "dir",
         type=out_path,
         nargs="+",
-        help="directory written by `idas-sumo evaluate` or `train`; several training runs (seeds, variants) "
+        help="directory written by `idas-sumo evaluate`, `train` or `cosim`; several training runs (seeds, variants) "
         "are drawn on one figure, written to --out",
     )
     plot.add_argument(
@@ -50,6 +50,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {compare_runs(args.dir, args.out)}")
         return 0
     (directory,) = args.dir
+    from idas_sumo.cosim.study import is_study
+    from idas_sumo.cosim.study import plot_directory as plot_cosim
+
+    if not (directory / "episodes.csv").exists() and is_study(directory):  # a cosim folder: flows.csv
+        for png in plot_cosim(directory):
+            print(f"wrote {png}")
+        return 0
     # An evaluation has episodes.csv; a training run, metrics.csv or validation.csv.
     training = not (directory / "episodes.csv").exists() and is_training_run(directory)
     for png in plot_training_run(directory) if training else plot_directory(directory):

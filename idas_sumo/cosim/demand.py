@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import csv
 import math
 import re
+from pathlib import Path
 
 from idas_sumo.errors import InputError
 from idas_sumo.sim.backend import STEP_LENGTH_S
@@ -100,6 +102,69 @@ def parse_penetrations(text: str, flag: str = "--penetration") -> list[float]:
     return rates
 
 
+MAX_MULTIPLIER = 10.0
+"""A profile step more than ten times the demand given is taken for a typo."""
+MAX_PROFILE_STEPS = 1000
+
+
+def _profile_rows(path: Path) -> list[list[str]]:
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            rows = [r for r in csv.reader(f) if any(c.strip() for c in r)]
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise InputError(f"--demand-profile: cannot read {path} ({err})") from None
+    if not rows or [c.strip() for c in rows[0]] != ["time_s", "multiplier"]:
+        raise InputError(f"--demand-profile: {path}: expected a CSV with the header time_s,multiplier")
+    if not 2 <= len(rows) <= MAX_PROFILE_STEPS + 1:
+        raise InputError(f"--demand-profile: {path}: expected 1 to {MAX_PROFILE_STEPS} rows after the header")
+    return rows[1:]
+
+
+def parse_profile(path: Path, duration_s: float) -> tuple[tuple[float, float], ...]:
+    """A demand time profile from a CSV ``time_s,multiplier``: piecewise constant, each row's multiplier
+    of every road's demand from its time until the next row's; the first row at 0, times increasing,
+    whole steps, before the run's end; multipliers in [0, ``MAX_MULTIPLIER``]."""
+    steps: list[tuple[float, float]] = []
+    for n, row in enumerate(_profile_rows(path), start=2):
+        where = f"--demand-profile: {path}, line {n}"
+        try:
+            t, m = (float(c) for c in row)
+        except ValueError:
+            raise InputError(
+                f"{where}: expected two numbers time_s,multiplier, got {','.join(row)!r}"
+            ) from None
+        if not math.isfinite(t) or t < 0 or (not steps and t != 0) or (steps and t <= steps[-1][0]):
+            raise InputError(f"{where}: times start at 0 and increase, got {t:g}")
+        if t >= duration_s:
+            raise InputError(f"{where}: {t:g} s is not before the end of the run ({duration_s:g} s)")
+        if abs(t / STEP_LENGTH_S - round(t / STEP_LENGTH_S)) > 1e-6:
+            raise InputError(f"{where}: {t:g} s is not a whole number of {STEP_LENGTH_S:g} s steps")
+        if not math.isfinite(m) or not 0 <= m <= MAX_MULTIPLIER:
+            raise InputError(f"{where}: expected a multiplier in [0, {MAX_MULTIPLIER:g}], got {m:g}")
+        steps.append((t, m))
+    return tuple(steps)
+
+
+def check_profile_demand(
+    demands: list[dict[Side, float]], profile: tuple[tuple[float, float], ...], site: MergeSite
+) -> None:
+    """Every demand times the profile's largest multiplier within a road's limit (as ``parse_demand``)."""
+    peak = max((m for _, m in profile), default=1.0)
+    for demand in demands:
+        for side, rate in demand.items():
+            limit = MAX_VEH_PER_H_PER_LANE * _lanes(site, side)
+            if rate * peak > limit:
+                raise InputError(
+                    f"--demand-profile: {side}={rate:g} times {peak:g} is more than {limit:g} vehicles "
+                    f"per hour ({MAX_VEH_PER_H_PER_LANE:g} per lane of the {side} road)"
+                )
+
+
+def profile_label(profile: tuple[tuple[float, float], ...]) -> str:
+    """``0:1 600:1.5``: the demand_profile column (empty without a profile)."""
+    return " ".join(f"{t:g}:{m:g}" for t, m in profile)
+
+
 def check_duration(duration_s: float, bin_s: float, warmup_s: float = 0.0) -> None:
     """A run of at least one step and at most ``MAX_DURATION_S``, of whole steps; a bin of whole steps
     that divides it; a warm-up of whole bins that leaves at least one."""
@@ -128,9 +193,12 @@ def check_duration(duration_s: float, bin_s: float, warmup_s: float = 0.0) -> No
 __all__ = [
     "MAX_VEH_PER_H_PER_LANE",
     "check_duration",
+    "check_profile_demand",
     "demand_label",
     "parse_demand",
     "parse_demands",
     "parse_penetrations",
+    "parse_profile",
+    "profile_label",
     "road_names",
 ]

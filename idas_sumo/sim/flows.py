@@ -81,6 +81,20 @@ class FlowDemand:
     """SUMO's ``--seed``: its driver imperfection, and each car's draw of automated or not."""
     bin_s: float
     """The statistics' time bin (detector and edge data period)."""
+    profile: tuple[tuple[float, float], ...] = ()
+    """A time profile of the demand: (start s, multiplier) steps, the first at 0, each multiplying
+    ``veh_per_h`` until the next starts (empty: the demand is constant)."""
+
+    def intervals(self) -> list[tuple[float, float, float]]:
+        """(begin s, end s, multiplier) of each step of the profile inside the run ((0, duration, 1)
+        without one)."""
+        steps = self.profile or ((0.0, 1.0),)
+        ends = [t for t, _ in steps[1:]] + [self.duration_s]
+        return [
+            (t, min(end, self.duration_s), m)
+            for (t, m), end in zip(steps, ends, strict=True)
+            if t < self.duration_s
+        ]
 
 
 def _vtypes(site: MergeSite, penetration: float) -> list[str]:
@@ -117,12 +131,17 @@ def demand_xml(site: MergeSite, demand: FlowDemand) -> str:
     for side in SIDES:
         lines.append(f'  <route id="{side}_route" edges="{" ".join(site.route_edge_ids(side))}"/>')
     vtype = flow_type(demand.penetration)
+    steps = demand.intervals()
     for side in SIDES:
         rate = float(demand.veh_per_h.get(side, 0.0))
-        if rate > 0.0:
+        for i, (begin, end, multiplier) in enumerate(steps):
+            if rate * multiplier <= 0.0:
+                continue
+            # one flow per step of a profile, named SIDE.I (its cars SIDE.I.N: the road is the first part)
+            name = f"{side}.{i}" if demand.profile else side
             lines.append(
-                f'  <flow id="{side}" type="{vtype}" route="{side}_route" begin="0" '
-                f'end="{demand.duration_s:g}" vehsPerHour="{rate!r}" departLane="best" departSpeed="max"/>'
+                f'  <flow id="{name}" type="{vtype}" route="{side}_route" begin="{begin:g}" '
+                f'end="{end:g}" vehsPerHour="{rate * multiplier!r}" departLane="best" departSpeed="max"/>'
             )
     lines.append("</routes>")
     return "\n".join(lines) + "\n"
