@@ -193,22 +193,3 @@ def check_backend(args: argparse.Namespace) -> None:
         from idas_sumo.distributed import require_ray
 
         require_ray()
-
-
-def add_worker_flags(parser: argparse.ArgumentParser, what: str) -> None:
-    """``--workers N`` and ``--ray-address ADDRESS`` (``check_backend`` checks them): ``what`` names
-    the work the workers share ("runs"). Only ``cosim`` uses this yet; ``evaluate`` and ``train`` have
-    their own help texts for the same two flags."""
-    parser.add_argument(
-        "--workers",
-        type=positive_int,
-        default=1,
-        help=f"processes sharing the {what}, one SUMO each, at most the CPU count (with --ray-address: "
-        "Ray actors, at most the cluster's CPUs); results do not depend on it (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--ray-address",
-        type=ray_address,
-        metavar="ADDRESS",
-        help=RAY_ADDRESS_HELP.format(what=f"--workers workers of the {what}"),
-    )

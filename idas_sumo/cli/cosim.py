@@ -109,7 +109,9 @@ def _add_extra_flags(co: argparse.ArgumentParser) -> None:
         help="also record every car's position on the merge's roads each second, OUT/trajectories/"
         "RUN.csv, for the time-space diagram `idas-sumo plot OUT` draws (slower runs, larger files)",
     )
-    add_worker_flags(co, "runs")
+    add_worker_flags(
+        co, "co-simulation workers", "processes sharing the runs", "default: %(default)s", workers_default=1
+    )
 
 
 def _bin_s(args: argparse.Namespace) -> float:
