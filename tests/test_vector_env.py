@@ -243,3 +243,22 @@ def test_rgb_array_frames_have_a_fixed_shape_and_show_the_ego(small_budget: Any)
         assert frames is not None and [f.shape for f in frames] == [(320, 640, 3)] * 2
     finally:
         env.close()
+
+
+def test_render_modes_are_checked_before_sumo_starts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ "human" is sumo-gui (a display needed: a clear error instead of sumo-gui aborting the process);
+    an unknown mode is refused; both environments list the same modes."""
+    from idas_sumo.env.gym_env import MergeEnv
+    from idas_sumo.env.vector_env import MergeVectorEnv
+    from idas_sumo.errors import InputError
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert (
+        MergeEnv.metadata["render_modes"] == MergeVectorEnv.metadata["render_modes"] == ["rgb_array", "human"]
+    )
+    for make in (lambda mode: MergeEnv(render_mode=mode), lambda mode: MergeVectorEnv(2, render_mode=mode)):
+        with pytest.raises(InputError, match="needs a display"):
+            make("human")
+        with pytest.raises(ValueError, match="render_mode 'ansi'"):
+            make("ansi")

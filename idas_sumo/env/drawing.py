@@ -13,11 +13,26 @@ import numpy.typing as npt
 
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.env.snapshot import ROAD_NAMES
+from idas_sumo.errors import InputError
+from idas_sumo.sim.backend import has_display
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import NetParams
 
 if TYPE_CHECKING:
     from idas_sumo.env.engine import MergeEngine
+
+RENDER_MODES = ("rgb_array", "human")
+"""The environments' render modes: frames of this drawing, or sumo-gui showing every step."""
+
+
+def checked_render_mode(mode: str | None) -> str | None:
+    """``mode`` if the environments know it and this machine can show it (``"human"`` needs a display)."""
+    if mode is not None and mode not in RENDER_MODES:
+        raise ValueError(f"render_mode {mode!r}: one of {', '.join(RENDER_MODES)}, or None")
+    if mode == "human" and not has_display():
+        raise InputError('render_mode "human" opens sumo-gui, which needs a display (DISPLAY is not set)')
+    return mode
+
 
 ROBOT_COLOUR = (150, 150, 150)
 """SUMO-driven (robot) cars: grey, as in the route file's vType."""

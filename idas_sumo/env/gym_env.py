@@ -12,7 +12,7 @@ from gymnasium import Env, spaces
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import Policy, placeholder_mask
-from idas_sumo.env.drawing import TopViewFrames, slot_frame
+from idas_sumo.env.drawing import RENDER_MODES, TopViewFrames, checked_render_mode, slot_frame
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.parallel import DEFAULT_NET
 from idas_sumo.env.scenario import (
@@ -55,7 +55,7 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
     ``subprocess``, so no ``if __name__ == "__main__":`` guard is needed); ``close()`` ends it.
     """
 
-    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 5}  # sumo-gui: pass gui=True
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES), "render_fps": 5}
 
     def __init__(
         self,
@@ -69,8 +69,9 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         gui: bool = False,
         safety_mask: SafetyMask | None = None,
     ) -> None:
-        self.render_mode = render_mode
+        self.render_mode = checked_render_mode(render_mode)
         self._frames: TopViewFrames | None = None
+        gui = gui or render_mode == "human"
         self.sim = SingleEpisode(net, config=with_safety_mask(config, safety_mask), gui=gui)
         if scenario is not None:
             engine = self.sim.engine
@@ -177,7 +178,8 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
 
     def render(self) -> npt.NDArray[np.uint8] | None:
         """``render_mode="rgb_array"``: the merge from above now (the drawing of ``idas-sumo replay``), a
-        (320, 640, 3) uint8 frame, the ego ringed; other modes draw nothing (``gui=True``: sumo-gui)."""
+        (320, 640, 3) uint8 frame, the ego ringed; ``"human"`` draws nothing here: sumo-gui shows every
+        step."""
         if self.render_mode != "rgb_array":
             return None
         if self.sim.scenario is None:

@@ -36,7 +36,7 @@ from gymnasium.vector.utils import batch_space
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask
 from idas_sumo.env.config import EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.drawing import TopViewFrames, slot_frame
+from idas_sumo.env.drawing import RENDER_MODES, TopViewFrames, checked_render_mode, slot_frame
 from idas_sumo.env.engine import MergeEngine
 from idas_sumo.env.gym_env import _EGO_ATTEMPTS, with_controlled
 from idas_sumo.env.layout import OBS_DIM
@@ -67,7 +67,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     metadata: dict[str, Any] = {
         "autoreset_mode": AutoresetMode.NEXT_STEP,
-        "render_modes": ["rgb_array"],
+        "render_modes": list(RENDER_MODES),
         "render_fps": 5,
     }
 
@@ -83,7 +83,10 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         render_mode: str | None = None,
         safety_mask: SafetyMask | None = None,
     ) -> None:
-        self.engine = MergeEngine(net, copies=num_envs, config=with_safety_mask(config, safety_mask))
+        render_mode = checked_render_mode(render_mode)
+        self.engine = MergeEngine(
+            net, copies=num_envs, config=with_safety_mask(config, safety_mask), gui=render_mode == "human"
+        )
         if self.engine.copies != num_envs:
             self.engine.close()
             raise SimulationError(
@@ -374,7 +377,8 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     def render(self) -> tuple[npt.NDArray[np.uint8], ...] | None:
         """``render_mode="rgb_array"``: one frame per world (``MergeEnv.render``'s), an idle world's slot as
-        it is (empty once its episode ended)."""
+        it is (empty once its episode ended); ``"human"`` draws nothing here: sumo-gui shows every step of
+        the K worlds (each on its own copy of the net)."""
         if self.render_mode != "rgb_array":
             return None
         if self._batch is None:

@@ -141,9 +141,14 @@ def start_or_load(args: Sequence[str], running: bool, net_path: object) -> None:
         raise SumoRefusedInput(f"SUMO could not load {net_path}: {_sumo_message(failure, stderr_lines)}")
 
 
+def has_display() -> bool:
+    """Whether sumo-gui can open a window here (without one it would abort the whole process)."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def require_display(gui: bool) -> None:
     """Refuse ``--gui`` without a display (sumo-gui would abort the whole process)."""
-    if gui and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+    if gui and not has_display():
         raise InputError("--gui needs a display (DISPLAY is not set); run without --gui")
 
 
