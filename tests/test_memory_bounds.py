@@ -211,10 +211,13 @@ def test_a_tampered_generated_net_is_rebuilt_and_a_good_one_checked_once(
 
 
 def test_validation_merges_are_bounded_by_the_validation_scenarios() -> None:
-    """Before: 10^6 validation merges were accepted, each a net built (netconvert) up front."""
-    from idas_sumo.training.geometry import GeometryConfig
+    """Before: 10^6 validation merges were accepted, each a net built (netconvert) up front. Now at most
+    one per validation scenario, and at most MAX_VALIDATION_GEOMETRIES whatever the scenarios."""
+    from idas_sumo.training.geometry import MAX_VALIDATION_GEOMETRIES, GeometryConfig, GeometryRangeError
 
     ok = TrainConfig(validation_scenarios=8, geometry=GeometryConfig(validation_geometries=8))
     assert ok.geometry is not None and ok.geometry.validation_geometries == 8
-    with pytest.raises(ConfigValueError, match=r"validation_geometries \(1000000\) must be at most"):
-        TrainConfig(validation_scenarios=40, geometry=GeometryConfig(validation_geometries=1_000_000))
+    with pytest.raises(ConfigValueError, match=r"validation_geometries \(500\) must be at most"):
+        TrainConfig(validation_scenarios=40, geometry=GeometryConfig(validation_geometries=500))
+    with pytest.raises(GeometryRangeError, match=r"validation_geometries must be in \[0, 1000\]"):
+        GeometryConfig(validation_geometries=MAX_VALIDATION_GEOMETRIES + 1)
