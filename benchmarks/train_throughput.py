@@ -21,6 +21,7 @@ from pathlib import Path
 from report import print_table
 from rich.table import Table
 
+from idas_sumo.config import MAX_EPISODES
 from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG, resolve_user_path
 from idas_sumo.training.config import TrainConfig
 
@@ -36,7 +37,8 @@ def measure(net: Path, stage: str, workers: int, episodes: int, init_from: str =
     """
     default = DEFAULT_TRAIN_CONFIG.read_text(encoding="utf-8")
     config = default.replace('init_from = ""', f"init_from = {json.dumps(init_from)}").replace(
-        "checkpoint_every = 1000", f"checkpoint_every = {10**9}"
+        "checkpoint_every = 1000",
+        f"checkpoint_every = {MAX_EPISODES}",  # never within a measurement
     )
     with tempfile.TemporaryDirectory() as tmp:
         toml = Path(tmp) / "config.toml"
