@@ -36,6 +36,19 @@ def pending(exc: BaseException | None) -> bool:
     return exc is not None and exc is _raised
 
 
+def behind(err: BaseException) -> KeyboardInterrupt | None:
+    """The stop that ``err`` was raised from (its cause or context, at any depth), if one was: C code
+    that calls back into Python turns an exception there into its own error, chained to it."""
+    seen: set[int] = set()
+    link: BaseException | None = err
+    while link is not None and id(link) not in seen:
+        if isinstance(link, KeyboardInterrupt):
+            return link
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
+    return None
+
+
 def check() -> None:
     """Raise again a stop that was raised and lost: one still remembered while no exception is being
     handled (a stop on its way up runs ``except``/``finally`` blocks with it as the current exception),

@@ -104,3 +104,30 @@ def test_the_episode_loop_raises_a_swallowed_stop_again(net_path: Path) -> None:
         stops.forget()
         engine.close()
     assert outcome.end_reasons == {"car": "timeout"}  # the episode ran to its end (5 s)
+
+
+def test_a_stop_that_c_code_turned_into_its_own_error_is_still_a_stop(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """numba unpickling a kernel's constants calls Python from C: a SIGTERM landing there came out as
+    ``SystemError: ... returned a result with an exception set`` (the stop its cause), and evaluate
+    ended with a traceback and exit 1 (CI, 2026-11-26). It is the stop: exit 143, the usual line."""
+    from idas_sumo import stops
+    from idas_sumo.cli.exits import Terminated, exit_code
+
+    def command() -> int:
+        try:
+            stops.raise_stop(Terminated(signal.SIGTERM))
+        except KeyboardInterrupt as stop:
+            raise SystemError("<function _numba_unpickle> returned a result with an exception set") from stop
+        return 0
+
+    assert exit_code(command, None) == 143
+    assert capsys.readouterr().err.strip() == "idas-sumo: terminated (SIGTERM); completed outputs were kept"
+    stops.check()  # forgotten once reported: nothing is raised again
+
+    def bug() -> int:
+        raise SystemError("a bug of ours")
+
+    with pytest.raises(SystemError, match="a bug of ours"):
+        exit_code(bug, None)

@@ -135,19 +135,27 @@ def exit_code(command: Callable[[], int], late: LateSignals | None) -> int:
         finally:
             if late is not None:
                 late.install()
-    except Terminated as stop:
-        stops.forget()
-        return stopped(stop.signum)
-    except KeyboardInterrupt:
-        stops.forget()
-        return stopped(signal.SIGINT)
-    except InputError as err:
+    except KeyboardInterrupt as stop:  # Terminated for SIGTERM / SIGHUP
+        return _stopped_by(stop)
+    except Exception as err:
+        # A stop raised inside C code that calls back into Python (numba unpickling a kernel's
+        # constants) comes out as that code's own error, the stop as its cause: still a stop.
+        cause = stops.behind(err)
+        return _stopped_by(cause) if cause is not None else _error_exit(err)
+
+
+def _stopped_by(stop: KeyboardInterrupt) -> int:
+    stops.forget()
+    return stopped(stop.signum if isinstance(stop, Terminated) else signal.SIGINT)
+
+
+def _error_exit(err: Exception) -> int:
+    """The exit code of a failed command and its one line; an error that is not ours is raised again
+    (a bug: its traceback is the report)."""
+    if isinstance(err, IdasError):
         print(f"idas-sumo: error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except IdasError as err:
-        print(f"idas-sumo: error: {err}", file=sys.stderr)
-        return err.exit_code
-    except OSError as err:  # disk full, I/O error: outputs are atomic, so earlier files are intact
+        return EXIT_BAD_INPUT if isinstance(err, InputError) else err.exit_code
+    if isinstance(err, OSError):  # disk full, I/O error: outputs are atomic, so earlier files are intact
         where = f"{err.filename}: " if err.filename else ""
         if err.errno in PATH_ERRNOS:  # the name itself is unusable, wherever the OS noticed
             print(f"idas-sumo: error: {where}{err.strerror}", file=sys.stderr)
@@ -157,3 +165,4 @@ def exit_code(command: Callable[[], int], late: LateSignals | None) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
+    raise err
