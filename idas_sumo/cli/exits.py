@@ -76,7 +76,8 @@ def sigterm_as_interrupt() -> Iterator[None]:
         stops.forget()
         sys.unraisablehook = report
         for signum, handler in previous.items():
-            signal.signal(signum, handler)
+            if signal.getsignal(signum) is handlers[signum]:  # LateSignals may own it now: leave it so
+                signal.signal(signum, handler)
 
 
 def stopped(signum: int) -> int:
