@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import stat
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
@@ -62,25 +62,22 @@ def seed(text: str) -> int:
     return value
 
 
-def copies(text: str) -> int:
-    value = positive_int(text)
-    if value > MAX_COPIES:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_COPIES}, got {value}")
-    return value
+def _positive_int_up_to(limit: int, name: str) -> Callable[[str], int]:
+    """An argparse type: a positive integer no larger than ``limit``."""
+
+    def parse(text: str) -> int:
+        value = positive_int(text)
+        if value > limit:
+            raise argparse.ArgumentTypeError(f"expected at most {limit}, got {value}")
+        return value
+
+    parse.__name__ = name
+    return parse
 
 
-def episode_count(text: str) -> int:
-    value = positive_int(text)
-    if value > MAX_EPISODES:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_EPISODES}, got {value}")
-    return value
-
-
-def scenario_count(text: str) -> int:
-    value = positive_int(text)
-    if value > MAX_SCENARIOS:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_SCENARIOS}, got {value}")
-    return value
+copies = _positive_int_up_to(MAX_COPIES, "copies")
+episode_count = _positive_int_up_to(MAX_EPISODES, "episode_count")
+scenario_count = _positive_int_up_to(MAX_SCENARIOS, "scenario_count")
 
 
 def out_path(text: str) -> Path:
