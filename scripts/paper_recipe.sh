@@ -8,8 +8,8 @@
 # Every run continues with --resume where a checkpoint exists, so the script can be stopped (Ctrl-C saves a
 # checkpoint) and started again in another session; a finished run is left as it is. EPISODES (per stage)
 # shortens every run, for a smoke test: `bash scripts/paper_recipe.sh /tmp/paper_smoke 100`. SEEDS="0" runs
-# fewer seeds. About 2 h per curriculum seed and 2.5 h per direct seed on 2 cores (estimated from the shipped
-# runs' pace, not measured for this recipe).
+# fewer seeds. All six runs: about 15-30 h on 2 cores (estimated: the shipped stage 2 ran 50,000 episodes in
+# 100 min; from random weights a 100-episode smoke ran 3-5 episodes/s on a shared machine, most of them timeouts).
 set -euo pipefail
 out=${1:-runs/paper}
 episodes=${2:-}
@@ -30,4 +30,4 @@ train() { # STAGE SEED
 
 for seed in $seeds; do train curriculum "$seed"; done
 for seed in $seeds; do train direct "$seed"; done
-python scripts/paper_pick.py "$out" --seeds $seeds
+python "$(dirname "$0")/paper_pick.py" "$out" --seeds $seeds
