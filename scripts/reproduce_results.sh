@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate the numbers and plots in docs/results.md (under 15 minutes on a 2-core laptop; the time of the last
-# run is in docs/results.md; issue 36's additions took 1.5 min of it on the shared machine).
+# run is in docs/results.md; issue 36's additions took 3 min of it on the shared machine).
 # Usage: bash scripts/reproduce_results.sh [OUT_DIR]   (default: results/)
 # The variant policies' evaluations are in experiments/reproduce_variants.sh.
 # Every run uses the paper's own-lane safety mask (the default) unless it says --safety-mask merge_aware.
@@ -42,6 +42,10 @@ done
 # declared seed and 2019-2021 (experiments/diary.md "Declared: a warm start that brakes hard only when forced").
 for seed in 2024 2019 2020 2021; do
   ev --baseline fsm_idm_smooth --scenarios 100 --seed "$seed" --out "$out/smooth/paper-$seed"
+done
+# The imitation of it that IDAS's recipe starts from, before any RL episode (issue 36), on the same seeds.
+for seed in 2024 2019 2020 2021; do
+  ev --baseline warm_start --scenarios 100 --seed "$seed" --out "$out/warm-start/paper-$seed"
 done
 # Four more evaluation seeds for IDAS's margin over the rules (experiments/diary.md "Declared: four more evaluation seeds
 # for the margin over the rules"), then the margins over all eight seeds, paired by scenario.
