@@ -1,8 +1,11 @@
 """Each shipped policy's JSON agrees with the checkpoint it describes: its file's SHA-256, the stage, the episode
-picked, whether the central critic was on, the seed, and the recipes it names ship in the package."""
+picked and its validation score, whether the central critic was on, the seed, the whole training config (γ, λ,
+learning rates, episodes, traffic, ...), the RL episodes its weights saw, and the recipes it names ship in the
+package."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import zlib
@@ -15,6 +18,7 @@ import torch
 from idas_sumo.evaluation.policies import LEARNED_METHODS
 from idas_sumo.io_utils import file_digest
 from idas_sumo.resources import POLICY_DIR, SCENARIO_DIR
+from idas_sumo.training.config import TrainConfig, train_config_from_dict
 
 SHIPPED = sorted(LEARNED_METHODS)
 
@@ -32,7 +36,19 @@ def _checkpoint(name: str) -> dict[str, Any]:
 def test_the_package_ships_exactly_the_learned_methods_policies() -> None:
     assert sorted(p.stem for p in POLICY_DIR.glob("*.pt")) == SHIPPED
     assert sorted(p.stem for p in POLICY_DIR.glob("*.json")) == SHIPPED
-    assert SHIPPED == ["idas", "idas_direct", "idas_geometry", "idas_v"]
+    assert SHIPPED == ["idas", "idas_direct", "idas_geometry", "idas_v", "warm_start"]
+
+
+def _stated_config(meta: dict[str, Any], ckpt: dict[str, Any]) -> tuple[TrainConfig, TrainConfig]:
+    """The config the JSON states and the one the checkpoint stores, both read as a recipe is (a key the
+    checkpoint lacks is its default; a retired key is accepted only at its old default). The central critic is
+    the stage's (training/curriculum.py), so the JSON records what the learner ran with."""
+    stored = train_config_from_dict(ckpt["config"], "checkpoint")
+    ran_with = ckpt["learner"]["config"]["use_central_critic"]
+    stored = dataclasses.replace(
+        stored, learner=dataclasses.replace(stored.learner, use_central_critic=ran_with)
+    )
+    return train_config_from_dict(meta["config"], "json"), stored
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -42,16 +58,47 @@ def test_metadata_agrees_with_its_checkpoint(name: str) -> None:
     assert meta["file_sha256"] == file_digest(POLICY_DIR / meta["file"])
     assert meta["stage_of_checkpoint"] == ckpt["stage"]
     assert meta["checkpoint_global_episode"] == ckpt["global_episode"]
-    assert meta["picked_by_validation"]["global_episode"] == ckpt["global_episode"]
-    assert meta["picked_by_validation"]["stage_episode"] == ckpt["episode"]
     assert meta["run_episodes"] >= ckpt["global_episode"]
-    assert meta["seed"] == ckpt["config"]["seed"] == meta["config"]["seed"]
-    # The stage decides the central critic (off in the robot world); the learner's state says what ran.
+    assert meta["rl_episodes_in_weights"] >= ckpt["global_episode"]
+    assert meta["config"]["seed"] == ckpt["config"]["seed"]
+    if ckpt["stage"].startswith("imitation-"):
+        # The imitation's seed is its own flag (scripts/pretrain_imitation.py --seed), kept as its torch state.
+        assert ckpt["torch_rng"].equal(torch.Generator().manual_seed(meta["seed"]).get_state())
+    else:
+        assert meta["seed"] == ckpt["config"]["seed"]
+    pick = meta["picked_by_validation"]
+    assert (pick is None) is (ckpt.get("validation") is None)
+    if pick is not None:
+        assert pick["global_episode"] == ckpt["global_episode"]
+        assert pick["stage_episode"] == ckpt["episode"]
+        assert pick["validation_seed"] == ckpt["config"]["validation_seed"]
+        assert pick["success_rate"] == round(ckpt["validation"]["success_rate"], 4)
+        assert pick["joint_return"] == round(ckpt["validation"]["joint_return"], 4)
+    # Only the intelligent world's stages train Q (the robot stage and the imitation do not).
     ran_with = ckpt["learner"]["config"]["use_central_critic"]
-    assert meta["central_critic"] is ran_with is (ckpt["stage"] != "robot")
-    assert meta["config"]["learner"]["use_central_critic"] is ran_with
-    for field in ("lr_actor", "gamma", "alpha", "entropy_coef", "gae_lambda", "q_lambda"):
-        assert meta["config"]["learner"][field] == ckpt["learner"]["config"][field], field
+    assert meta["central_critic"] is ran_with is (ckpt["stage"] in ("intelligent", "direct"))
+    stated, stored = _stated_config(meta, ckpt)
+    assert stated == stored
+    # The learner's own state: what the weights were trained with (the imitation overrides the learning rates).
+    for field in ("gamma", "alpha", "entropy_coef", "gae_lambda", "q_lambda", "normalize_advantages"):
+        assert getattr(stated.learner, field) == ckpt["learner"]["config"][field], field
+
+
+def test_the_metadata_check_fails_on_a_wrong_claim() -> None:
+    meta, ckpt = _metadata("idas"), _checkpoint("idas")
+    wrong = {**meta, "config": {**meta["config"], "learner": {**meta["config"]["learner"], "gamma": 0.9}}}
+    stated, stored = _stated_config(wrong, ckpt)
+    assert stated != stored
+
+
+def test_the_warm_start_is_what_the_rl_policies_started_from() -> None:
+    warm = _metadata("warm_start")
+    assert warm["rl_episodes_in_weights"] == warm["checkpoint_global_episode"] == 0
+    assert warm["stage_of_checkpoint"] == f"imitation-{warm['teacher']}" == "imitation-fsm_idm_smooth"
+    for name in ("idas_v", "idas_direct"):
+        meta = _metadata(name)
+        assert meta["config"]["init_from"] == warm["source_checkpoint"], name
+        assert meta["rl_episodes_in_weights"] == meta["checkpoint_global_episode"], name
 
 
 @pytest.mark.parametrize("name", SHIPPED)

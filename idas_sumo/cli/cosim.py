@@ -55,7 +55,7 @@ def add_parser(sub: Subparsers) -> None:
         "--policy",
         default="idas",
         metavar="METHOD",
-        help="the automated cars' method: idas, idas_v, idas_direct, idas_geometry, idm, fsm_idm, "
+        help="the automated cars' method: idas, idas_v, idas_direct, idas_geometry, warm_start, idm, fsm_idm, "
         "fsm_idm_smooth (default: %(default)s)",
     )
     co.add_argument(

@@ -18,6 +18,9 @@ LEARNED_METHODS: dict[str, str] = {
     # Ours, beside the paper's: IDAS trained on generated merges of many geometries (issue #17). Variant
     # policies live in experiments/policies and are evaluated by path (--policy; experiments/README.md).
     "idas_geometry": "idas_geometry.pt",
+    # Ours (issue 36): the imitation of FSM+IDM-smooth that IDAS, IDAS-V and IDAS-direct start from, before any
+    # RL episode, so that what RL adds to it is measured.
+    "warm_start": "warm_start.pt",
 }
 PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", "idm", "fsm_idm")
 """The paper's five methods: what ``--baseline all`` runs."""
@@ -27,6 +30,7 @@ METHOD_LABELS: dict[str, str] = {
     "idas_v": "IDAS-V",
     "idas_direct": "IDAS-direct",
     "idas_geometry": "IDAS-geometry",
+    "warm_start": "warm start",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
     "fsm_idm_smooth": "FSM+IDM-smooth",
