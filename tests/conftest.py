@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,18 @@ class SmallBudget:
     api_cycles: int = 30
     """num_cycles for the PettingZoo API test."""
 
+    def env_kwargs(self) -> dict[str, Any]:
+        """The environments' ``traffic`` and ``config`` at this budget."""
+        from idas_sumo.env.engine import EnvConfig
+        from idas_sumo.env.scenario import TrafficConfig
+
+        return {
+            "traffic": TrafficConfig(
+                n_vehicles=self.n_vehicles, max_vehicles_per_road=self.max_vehicles_per_road
+            ),
+            "config": EnvConfig(max_episode_s=self.max_episode_s),
+        }
+
 
 def pytest_configure(config: pytest.Config) -> None:
     """A suite started in the background (``cmd &`` in a script) inherits SIGINT ignored (under nohup, SIGHUP too),
@@ -43,6 +56,15 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.fixture(scope="session")
 def small_budget() -> SmallBudget:
     return SmallBudget()
+
+
+@pytest.fixture
+def no_leaked_simulation() -> Iterator[None]:
+    """Fails a test that leaves this process's SUMO simulation open (``pytest.mark.usefixtures``)."""
+    from idas_sumo.sim.backend import slot_taken
+
+    yield
+    assert not slot_taken(), "a test left a SUMO simulation open"
 
 
 @pytest.fixture(scope="session")

@@ -3,7 +3,6 @@ documented observation, info and state."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import gymnasium
@@ -16,35 +15,19 @@ from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.engine import AgentBatch, EnvConfig
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
 from idas_sumo.env.parallel import END_REASONS, GONE, ROAD_NAMES
-from idas_sumo.env.scenario import Scenario, TrafficConfig, VehicleSpec
+from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.env.state_layout import STATE_DIM
 from idas_sumo.errors import SimulationError
-from idas_sumo.sim.backend import slot_taken
 
-pytestmark = pytest.mark.sumo
+pytestmark = [pytest.mark.sumo, pytest.mark.usefixtures("no_leaked_simulation")]
 
 INFO_KEYS = {"speed_mps", "accel_mps2", "dist_to_merge_m", "road"}
-
-
-def _small(budget: Any) -> dict[str, Any]:
-    return {
-        "traffic": TrafficConfig(
-            n_vehicles=budget.n_vehicles, max_vehicles_per_road=budget.max_vehicles_per_road
-        ),
-        "config": EnvConfig(max_episode_s=budget.max_episode_s),
-    }
-
-
-@pytest.fixture(autouse=True)
-def _no_leaked_simulation() -> Iterator[None]:
-    yield
-    assert not slot_taken(), "a test left a SUMO simulation open"
 
 
 def test_gymnasium_check_env(small_budget: Any) -> None:
     from gymnasium.utils.env_checker import check_env
 
-    env = gymnasium.make("idas_sumo/Merge-v0", **_small(small_budget)).unwrapped
+    env = gymnasium.make("idas_sumo/Merge-v0", **small_budget.env_kwargs()).unwrapped
     try:
         assert isinstance(env, MergeEnv)
         check_env(env, skip_render_check=True)
@@ -64,7 +47,7 @@ def test_gymnasium_check_env(small_budget: Any) -> None:
 def test_pettingzoo_parallel_api(small_budget: Any) -> None:
     from pettingzoo.test import parallel_api_test
 
-    env = MergeParallelEnv(seed=0, **_small(small_budget))
+    env = MergeParallelEnv(seed=0, **small_budget.env_kwargs())
     try:
         parallel_api_test(env, num_cycles=small_budget.api_cycles)
     finally:
@@ -77,7 +60,7 @@ def test_pettingzoo_seed_test(small_budget: Any) -> None:
     made: list[MergeParallelEnv] = []
 
     def make() -> MergeParallelEnv:
-        env = MergeParallelEnv(**_small(small_budget))
+        env = MergeParallelEnv(**small_budget.env_kwargs())
         made.append(env)
         return env
 
@@ -89,7 +72,7 @@ def test_pettingzoo_seed_test(small_budget: Any) -> None:
 
 
 def _trajectory(seed: int, budget: Any) -> list[tuple[dict[str, np.ndarray], dict[str, float]]]:
-    env = MergeParallelEnv(seed=seed, **_small(budget))
+    env = MergeParallelEnv(seed=seed, **budget.env_kwargs())
     rng = np.random.default_rng(seed)
     trace = []
     try:
@@ -129,7 +112,7 @@ def _assert_numeric(value: Any) -> None:
 
 
 def test_infos_and_state(small_budget: Any) -> None:
-    env = MergeParallelEnv(seed=2, **_small(small_budget))
+    env = MergeParallelEnv(seed=2, **small_budget.env_kwargs())
     try:
         obs, infos = env.reset(seed=2)
         assert env.agents and set(infos) == set(env.agents)
@@ -275,7 +258,7 @@ def test_gym_env_with_policy_driven_others(small_budget: Any) -> None:
             assert env.ego not in {batch.ids[i] for i in rows}
             return np.argmax(batch.masks[rows], axis=1)
 
-    env = MergeEnv(others=FirstAllowed(), **_small(small_budget))
+    env = MergeEnv(others=FirstAllowed(), **small_budget.env_kwargs())
     try:
         for seed in range(small_budget.episodes):
             _, info = env.reset(seed=seed)
@@ -293,7 +276,7 @@ def test_gym_env_with_policy_driven_others(small_budget: Any) -> None:
 def test_action_masks_method_through_the_wrappers(small_budget: Any) -> None:
     # MaskablePPO reads the mask with get_wrapper_attr("action_masks"); it must equal info["action_mask"]
     # after reset and every step, including the placeholder handed back with the last observation.
-    env = gymnasium.make("idas_sumo/Merge-v0", **_small(small_budget))
+    env = gymnasium.make("idas_sumo/Merge-v0", **small_budget.env_kwargs())
     try:
         assert env is not env.unwrapped  # gymnasium's wrappers are in between
         masks = env.get_wrapper_attr("action_masks")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib.util
 from collections import defaultdict
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -16,18 +15,11 @@ from idas_sumo.env.episodes import run_episodes
 from idas_sumo.env.marl_batch import MergeMarlBatch, slots_for
 from idas_sumo.env.scenario import Scenario, TrafficConfig, generate_scenario
 from idas_sumo.resources import DEFAULT_NET
-from idas_sumo.sim.backend import slot_taken
 
-pytestmark = pytest.mark.sumo
+pytestmark = [pytest.mark.sumo, pytest.mark.usefixtures("no_leaked_simulation")]
 
 WORLDS = 2
 WAVES = 2
-
-
-@pytest.fixture(autouse=True)
-def _no_leaked_simulation() -> Iterator[None]:
-    yield
-    assert not slot_taken(), "a test left a SUMO simulation open"
 
 
 def _keep_or_first(masks: np.ndarray) -> np.ndarray:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -14,33 +13,15 @@ import pytest
 import idas_sumo  # noqa: F401  (registers idas_sumo/Merge-v0)
 from idas_sumo.env import MergeEnv
 from idas_sumo.env.actions import N_ACTIONS
-from idas_sumo.env.engine import EnvConfig
 from idas_sumo.env.layout import OBS_DIM
-from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.vector_env import MergeVectorEnv
 from idas_sumo.errors import SimulationError
-from idas_sumo.sim.backend import slot_taken
 
-pytestmark = pytest.mark.sumo
+pytestmark = [pytest.mark.sumo, pytest.mark.usefixtures("no_leaked_simulation")]
 
 SEED = 11
 EPISODES = 2
 """Episodes per world compared: the second comes after a wave change (the autoreset path)."""
-
-
-def _kwargs(budget: Any) -> dict[str, Any]:
-    return {
-        "traffic": TrafficConfig(
-            n_vehicles=budget.n_vehicles, max_vehicles_per_road=budget.max_vehicles_per_road
-        ),
-        "config": EnvConfig(max_episode_s=budget.max_episode_s),
-    }
-
-
-@pytest.fixture(autouse=True)
-def _no_leaked_simulation() -> Iterator[None]:
-    yield
-    assert not slot_taken(), "a test left a SUMO simulation open"
 
 
 def _pick(rng: np.random.Generator, mask: np.ndarray) -> int:
@@ -66,7 +47,7 @@ def _vector_episodes(k_worlds: int, seed: int, budget: Any, others: Any = None) 
         num_envs=k_worlds,
         vectorization_mode="vector_entry_point",
         others=others,
-        **_kwargs(budget),
+        **budget.env_kwargs(),
     )
     assert isinstance(env, MergeVectorEnv)
     rngs = [np.random.default_rng(1000 + seed + k) for k in range(k_worlds)]
@@ -102,7 +83,7 @@ def _vector_episodes(k_worlds: int, seed: int, budget: Any, others: Any = None) 
 
 def _single_episodes(seed: int, world: int, budget: Any, others: Any = None) -> list[Episode]:
     """The same world on MergeEnv: seed + world, the same action generator."""
-    env = MergeEnv(others=others, **_kwargs(budget))
+    env = MergeEnv(others=others, **budget.env_kwargs())
     rng = np.random.default_rng(1000 + seed + world)
     episodes: list[Episode] = []
     try:
@@ -186,7 +167,9 @@ def test_sb3_maskable_ppo_on_make_vec_never_takes_a_masked_action(monkeypatch: p
 def test_make_vec_picks_the_engine_and_checks_its_input(small_budget: Any) -> None:
     from gymnasium.error import ResetNeeded
 
-    env = gymnasium.make_vec("idas_sumo/Merge-v0", num_envs=2, **_kwargs(small_budget))  # the default mode
+    env = gymnasium.make_vec(
+        "idas_sumo/Merge-v0", num_envs=2, **small_budget.env_kwargs()
+    )  # the default mode
     try:
         assert isinstance(env, MergeVectorEnv) and env.metadata["autoreset_mode"].value == "NextStep"
         assert env.observation_space.shape == (2, OBS_DIM) and env.action_space.shape == (2,)
@@ -206,11 +189,11 @@ def test_make_vec_picks_the_engine_and_checks_its_input(small_budget: Any) -> No
 
 
 def test_make_vec_beside_an_open_simulation_says_so(small_budget: Any) -> None:
-    single = MergeEnv(**_kwargs(small_budget))
+    single = MergeEnv(**small_budget.env_kwargs())
     try:
         single.reset(seed=0)  # holds this process's libsumo simulation
         with pytest.raises(SimulationError, match="another simulation is open"):
-            gymnasium.make_vec("idas_sumo/Merge-v0", num_envs=2, **_kwargs(small_budget))
+            gymnasium.make_vec("idas_sumo/Merge-v0", num_envs=2, **small_budget.env_kwargs())
     finally:
         single.close()
 
@@ -218,7 +201,7 @@ def test_make_vec_beside_an_open_simulation_says_so(small_budget: Any) -> None:
 def test_rgb_array_frames_have_a_fixed_shape_and_show_the_ego(small_budget: Any) -> None:
     from idas_sumo.env.drawing import vehicle_colour
 
-    single = gymnasium.make("idas_sumo/Merge-v0", render_mode="rgb_array", **_kwargs(small_budget))
+    single = gymnasium.make("idas_sumo/Merge-v0", render_mode="rgb_array", **small_budget.env_kwargs())
     try:
         _, info = single.reset(seed=1)
         first = single.render()
@@ -235,7 +218,7 @@ def test_rgb_array_frames_have_a_fixed_shape_and_show_the_ego(small_budget: Any)
     finally:
         single.close()
     env = gymnasium.make_vec(
-        "idas_sumo/Merge-v0", num_envs=2, render_mode="rgb_array", **_kwargs(small_budget)
+        "idas_sumo/Merge-v0", num_envs=2, render_mode="rgb_array", **small_budget.env_kwargs()
     )
     try:
         env.reset(seed=0)
