@@ -58,7 +58,9 @@ class AgentBatch:
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
         # scalars or the speeds are not is every entry tested.
         speed = self.snapshot.speed_mps
-        spread = float(np.ptp(speed)) if len(speed) else 0.0
+        spread = (
+            float(speed.max() - speed.min()) if len(speed) else 0.0
+        )  # np.ptp's value, without its wrappers
         if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():

@@ -139,6 +139,11 @@ class MergeEngine:
         self._cars = _Cars.of((), lambda k, vid: vid)
         self._car = np.zeros(0, dtype=np.int64)
         """Each snapshot row's car (``_Cars``)."""
+        self._layout: (
+            tuple[IntArray, _Cars, IntArray, IntArray, IntArray, npt.NDArray[np.bool_], FloatArray] | None
+        ) = None
+        """``_read_snapshot``'s arrays for the cars on the road: (the backend's ``vehicle`` array they came
+        from, the ``_Cars`` of the episodes, car, row per car, origin, controlled, length)."""
         self._agents: _Agents | None = None
         """``observe``'s agents while they stay the same (None: gather them again)."""
         self._batch: AgentBatch | None = None
@@ -340,14 +345,29 @@ class MergeEngine:
         copy = states.copy
         bounds = states.bounds
         cars = self._cars
-        if n and int(states.vehicle.min()) < 0:
-            bad = states.ids[int(np.argmin(states.vehicle))]
-            raise SimulationError(f"vehicle {bad!r} on the road is from no scenario of the engine")
-        car = cars.first[copy] + states.vehicle
-        origin = cars.origin[car]
-        controlled = cars.controlled[car]
-        row = np.full(len(cars.ids), -1, dtype=np.int64)
-        row[car] = np.arange(n)
+        layout = self._layout
+        # What depends only on which cars are on the road is kept while they stay the same (a backend hands
+        # out the same ``vehicle`` array then): most steps only read new positions and speeds.
+        if layout is None or layout[0] is not states.vehicle or layout[1] is not cars:
+            if n and int(states.vehicle.min()) < 0:
+                bad = states.ids[int(np.argmin(states.vehicle))]
+                raise SimulationError(f"vehicle {bad!r} on the road is from no scenario of the engine")
+            car = cars.first[copy] + states.vehicle
+            row = np.full(len(cars.ids), -1, dtype=np.int64)
+            row[car] = np.arange(n)
+            length = np.full(n, VEHICLE_LENGTH_M)
+            for a in (car, row, length):
+                a.flags.writeable = False
+            layout = self._layout = (
+                states.vehicle,
+                cars,
+                car,
+                row,
+                cars.origin[car],
+                cars.controlled[car],
+                length,
+            )
+        _, _, car, row, origin, controlled, length = layout
         cars.row = row
         self._car = car
         origin, road, dist, limit = self._routes.place(states, origin)
@@ -358,9 +378,9 @@ class MergeEngine:
             ids=states.ids,
             road=road,
             dist_to_merge_m=dist,
-            speed_mps=states.speed_mps.copy(),
-            accel_mps2=states.accel_mps2.copy(),
-            length_m=np.full(n, VEHICLE_LENGTH_M),
+            speed_mps=states.speed_mps,  # (fresh arrays of each read: nobody else holds them)
+            accel_mps2=states.accel_mps2,
+            length_m=length,
             speed_limit_mps=limit,
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
