@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -11,6 +10,7 @@ import numpy.typing as npt
 
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, RELATIVE_SPEED_SCALE_MPS
+from idas_sumo.env.lazy import lazy
 from idas_sumo.env.observation import build_observations_checked
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.snapshot import TrafficSnapshot
@@ -47,7 +47,7 @@ class AgentBatch:
     def __len__(self) -> int:
         return len(self.ids)
 
-    @functools.cached_property
+    @lazy
     def obs(self) -> npt.NDArray[np.float32]:
         """(n, OBS_DIM) observations, built on first use (rule-based policies never need them)."""
         if not len(self.ids):
@@ -70,7 +70,7 @@ class AgentBatch:
                 )
         return obs
 
-    @functools.cached_property
+    @lazy
     def copy_runs(self) -> list[tuple[int, int, int]]:
         """(copy, lo, hi): the rows of each copy's agents (a batch comes copy by copy)."""
         return _copy_runs(self.copy)

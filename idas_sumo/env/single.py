@@ -7,7 +7,7 @@ while no agent is on the road, and keeps each agent's last observation for the s
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -200,6 +200,8 @@ class SingleEpisode:
         batch = self.batch
         if agent_ids is None:
             return batch.obs, batch.masks
+        if len(agent_ids) == len(batch.ids) and tuple(agent_ids) == batch.ids:  # (every agent, in order)
+            return batch.obs.copy(), batch.masks.copy()
         if len(agent_ids) == 1:
             rows = np.array([batch.ids.index(agent_ids[0])], dtype=np.int64)
         else:
@@ -225,6 +227,10 @@ class SingleEpisode:
     def agent_info(self, agent_id: str) -> dict[str, object]:
         """Raw physical values of an agent now (or at its last step on the road)."""
         return agent_info(self.engine, 0, agent_id)
+
+    def agent_infos(self, agent_ids: Sequence[str]) -> list[dict[str, object]]:
+        """``agent_info`` of each of these agents (of the scenario), read in one pass."""
+        return agent_infos(self.engine, 0, agent_ids)
 
     def step(self, actions: Mapping[str, object]) -> StepOutcome:
         """Apply one action per active agent, advance SUMO one step, score it and end whoever is done."""
@@ -272,12 +278,28 @@ def agent_info(engine: MergeEngine, k: int, agent_id: str) -> dict[str, object]:
             "dist_to_merge_m": float(snap.dist_to_merge_m[i]),
             "road": ROAD_NAMES[int(snap.road[i])],
         }
-    return {
-        "speed_mps": float("nan"),
-        "accel_mps2": float("nan"),
-        "dist_to_merge_m": float("nan"),
-        "road": "gone",
-    }
+    return _gone()
+
+
+def agent_infos(engine: MergeEngine, k: int, agent_ids: Sequence[str]) -> list[dict[str, object]]:
+    """``agent_info`` of each of slot k's ``agent_ids`` (vehicles of its scenario, agents or not), with
+    numpy over all of them instead of lookups per agent."""
+    snap = engine.snapshot
+    if not len(snap):
+        return [agent_info(engine, k, a) for a in agent_ids]
+    speed, accel, dist, road = engine.agent_values(k, agent_ids)
+    infos: list[dict[str, object]] = []
+    for s, a, d, r in zip(speed, accel, dist, road, strict=True):
+        if r >= 0:
+            infos.append({"speed_mps": s, "accel_mps2": a, "dist_to_merge_m": d, "road": ROAD_NAMES[r]})
+        else:
+            infos.append(_gone())
+    return infos
+
+
+def _gone() -> dict[str, object]:
+    nan = float("nan")
+    return {"speed_mps": nan, "accel_mps2": nan, "dist_to_merge_m": nan, "road": "gone"}
 
 
 def _fast_actions(values: list[object]) -> IntArray | None:

@@ -8,13 +8,13 @@ outgoing road as current lane and both incoming roads as other lane.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.env.jit import kernel
+from idas_sumo.env.lazy import lazy
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -48,7 +48,7 @@ class TrafficSnapshot:
     def __len__(self) -> int:
         return len(self.ids)
 
-    @functools.cached_property
+    @lazy
     def _lookup(self) -> dict[str, int]:
         return {vid: i for i, vid in enumerate(self.ids)}
 
@@ -59,17 +59,17 @@ class TrafficSnapshot:
     def __contains__(self, vehicle_id: str) -> bool:
         return vehicle_id in self._lookup
 
-    @functools.cached_property
+    @lazy
     def longest_m(self) -> float:
         """The longest vehicle's length (m; 0 without vehicles): how far a body reaches past its front."""
         return float(self.length_m.max()) if len(self.length_m) else 0.0
 
-    @functools.cached_property
+    @lazy
     def by_distance(self) -> DistanceOrder:
         """The rows sorted by (copy, distance to the merge point), for searching relations."""
         return DistanceOrder.of(self)
 
-    @functools.cached_property
+    @lazy
     def copy_bounds(self) -> IntArray | None:
         """Where each copy's vehicles start (K + 1 entries), if they come copy by copy; else None."""
         if self.copy is None:
@@ -210,7 +210,7 @@ class DistanceOrder:
             else:
                 n_copies = int(copy.max()) + 1 if len(copy) else 0
                 starts = np.searchsorted(copy[order], np.arange(n_copies + 1)).astype(np.int64)
-        order = order.astype(np.int64)
+        order = order.astype(np.int64, copy=False)
         return DistanceOrder(order=order, sorted_dist=dist[order], starts=starts)
 
     def spans(self, snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, IntArray]:
