@@ -54,6 +54,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 import numpy.typing as npt
+from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -258,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
             raw = statistics.median(rates[("raw", n)])
             cells += [f"{rate:,.0f}", f"{rate / raw:.2f}"]
         table.add_row(*cells)
-    print_table(table)
+    print_table(table, Console(width=150))
     return 0
 
 

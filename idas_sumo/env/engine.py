@@ -641,22 +641,23 @@ class MergeEngine:
         """Into each slot's outcome: returns, counts, new arrivals, and whether its episode is over."""
         cars = self._cars
         k_count = len(self.slots)
-        copies = batch.copy.tolist()
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
         first_action = ~cars.scored[agents.car]
-        if first_action.any():
+        scored = np.flatnonzero(scores.rewards)
+        if first_action.any() or len(scored):
+            copies = batch.copy.tolist()
             for i in np.flatnonzero(first_action).tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
             cars.scored[agents.car] = True
-        scored = np.flatnonzero(scores.rewards)
-        for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
-            self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
+            for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
+                self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
         impedes = np.bincount(batch.copy[scores.parts[:, _IMPEDE] < 0], minlength=k_count).tolist()
         agents_per_copy = np.bincount(batch.copy, minlength=k_count).tolist()
         active_per_copy = np.bincount(cars.copy[cars.state == ACTIVE], minlength=k_count).tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
+        timed_out = self.timed_out()
         for k, slot in enumerate(self.slots):
             if slot.over:
                 continue
@@ -671,7 +672,9 @@ class MergeEngine:
                 out.agent_steps += agents_per_copy[k]
                 out.impedes += impedes[k]
             added = self._admit(k, ev) if ev.departed else 0
-            self._settle(k, active_per_copy[k] + added > 0)
+            active = active_per_copy[k] + added > 0
+            if timed_out or not active or not slot.started:  # (else _settle has nothing to do)
+                self._settle(k, active)
 
     @staticmethod
     def _row_copy(snap: TrafficSnapshot) -> IntArray:
