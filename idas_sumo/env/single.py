@@ -6,7 +6,6 @@ while no agent is on the road, and keeps each agent's last observation for the s
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.config import EnvConfig
 from idas_sumo.env.contracts import AgentBatch, StepResult
 from idas_sumo.env.engine import MergeEngine
+from idas_sumo.env.lazy import lazy
 from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.snapshot import ROAD_NAMES, TrafficSnapshot
 from idas_sumo.errors import SimulationError
@@ -74,11 +74,11 @@ class StepOutcome:
         """'' while ``agent`` goes on, else one of END_REASONS."""
         return self.result.end_reason[self.row(agent)]
 
-    @functools.cached_property
+    @lazy
     def rewards(self) -> dict[str, float]:
         return dict(zip(self.acting, self.result.rewards.tolist(), strict=True))
 
-    @functools.cached_property
+    @lazy
     def reward_parts(self) -> dict[str, dict[str, float]]:
         names = self.result.part_names
         return {
@@ -86,22 +86,22 @@ class StepOutcome:
             for a, row in zip(self.acting, self.result.reward_parts.tolist(), strict=True)
         }
 
-    @functools.cached_property
+    @lazy
     def end_reason(self) -> dict[str, str]:
         """'finished', 'collided', 'removed' or 'timeout' for agents whose episode ended this step."""
         return {a: r for a, r in zip(self.acting, self.result.end_reason, strict=True) if r}
 
-    @functools.cached_property
+    @lazy
     def terminated(self) -> dict[str, bool]:
         ends = self.end_reason
         return {a: a in ends and ends[a] != "timeout" for a in self.acting}
 
-    @functools.cached_property
+    @lazy
     def truncated(self) -> dict[str, bool]:
         ends = self.end_reason
         return {a: ends.get(a) == "timeout" for a in self.acting}
 
-    @functools.cached_property
+    @lazy
     def replaced_actions(self) -> dict[str, int]:
         """Agents whose requested action was masked, and the action applied instead."""
         return {
