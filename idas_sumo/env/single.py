@@ -209,13 +209,13 @@ class SingleEpisode:
             rows = np.array([index[a] for a in agent_ids], dtype=np.int64)
         if not len(rows):
             return batch.obs[:0], batch.masks[:0]
-        return batch.obs[rows], batch.masks[rows]
+        return batch.obs_of(rows), batch.masks[rows]
 
     def last_observation(self, agent_id: str) -> npt.NDArray[np.float32]:
         """The observation ``agent_id`` last had (now, or in the last step it acted)."""
         for batch in (self._batch, self._prev_batch):
             if batch is not None and agent_id in batch.ids:
-                return batch.obs[batch.ids.index(agent_id)]
+                return batch.obs_of(np.array([batch.ids.index(agent_id)], dtype=np.int64))[0]
         return self._last_obs[agent_id]
 
     def prev_accel(self, agent_id: str) -> float:
