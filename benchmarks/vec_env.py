@@ -251,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         table.add_column("ratio", justify="right")
     rows = list(ROWS)
     if args.old is not None:
-        rows += [(f"old {key}", f"{label} [old code]") for key, label in ROWS if key in OLD_ROWS]
+        rows += [(f"old {key}", f"{label}, old code") for key, label in ROWS if key in OLD_ROWS]
     for key, label in rows:
         cells = [label]
         for n, _ in CASES:
