@@ -26,8 +26,8 @@ is >= 0.5 for make_vec. Median of ``--repeats`` interleaved repeats.
 ``--cpu`` times with this process's CPU time instead of the wall clock: libsumo runs in the process, so both
 count the same work, and on a machine shared with other jobs the CPU time swings far less. ``--old TREE`` adds
 the rows an older checkout can run (the engine and the single-world envs), each in a child process that imports
-``idas_sumo`` from TREE, interleaved with the others: e.g. ``git worktree add /tmp/base b744397`` and
-``--old /tmp/base``.
+``idas_sumo`` from TREE, interleaved with the others, and then times every row of this checkout in a fresh
+child process too: e.g. ``git worktree add /tmp/base b744397`` and ``--old /tmp/base``.
 """
 
 from __future__ import annotations
@@ -68,6 +68,8 @@ from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.netgen import read_merge_net
 
 IntArray = npt.NDArray[np.int64]
+ROOT = Path(__file__).resolve().parents[1]
+"""This checkout (what ``--old`` runs its own rows from)."""
 
 CASES = ((8, 16), (32, 4))
 """(N vehicles per world, K worlds in the one SUMO)."""
@@ -174,13 +176,13 @@ OLD_ROWS = ("engine", "single robots", "single all", "parallel")
 """The rows an older checkout runs (it may have no vector env)."""
 
 
-def _old(tree: Path, row: str, n: int, k: int, steps: int, cpu: bool) -> float:
-    """One row timed on the code of ``tree``, in a child process (its numba kernels warmed up first)."""
+def _in_child(tree: Path, row: str, n: int, k: int, steps: int, cpu: bool) -> float:
+    """One row timed on the code of ``tree`` in a fresh child process (its numba kernels warmed up first)."""
     args = [sys.executable, __file__, "--child", json.dumps([row, n, k, steps])] + (["--cpu"] if cpu else [])
     env = {**os.environ, _TREE_VAR: str(tree)}
     done = subprocess.run(args, env=env, capture_output=True, text=True, check=False)
     if done.returncode != 0:
-        raise SystemExit(f"the old code's {row!r} at N = {n} failed:\n{done.stderr[-2000:]}")
+        raise SystemExit(f"{row!r} at N = {n} on {tree} failed:\n{done.stderr[-2000:]}")
     return float(done.stdout.strip().splitlines()[-1])
 
 
@@ -196,16 +198,21 @@ def child(spec: str) -> int:
 
 
 def measure(repeats: int, steps: int, old: Path | None, cpu: bool) -> dict[tuple[str, int], list[float]]:
-    """Steps/s per (row, N), each repeat interleaving every row (``old ...``: the older checkout's)."""
+    """Steps/s per (row, N), each repeat interleaving every row. With ``old`` every row runs in a fresh
+    child process, this checkout's and the older one's alike (``old ...``), so that neither side inherits
+    the other's process."""
     net = read_merge_net(DEFAULT_NET)
     rates: dict[tuple[str, int], list[float]] = {}
     for _ in range(repeats):
         for n, k in CASES:
             scenario = make_scenario(n, net, EPISODE_STEPS)
             for name, run in _runs(scenario, n, k, steps).items():
-                rates.setdefault((name, n), []).append(run())
-                if old is not None and name in OLD_ROWS:
-                    rates.setdefault((f"old {name}", n), []).append(_old(old, name, n, k, steps, cpu))
+                if old is None:
+                    rates.setdefault((name, n), []).append(run())
+                    continue
+                rates.setdefault((name, n), []).append(_in_child(ROOT, name, n, k, steps, cpu))
+                if name in OLD_ROWS:
+                    rates.setdefault((f"old {name}", n), []).append(_in_child(old, name, n, k, steps, cpu))
     return rates
 
 
