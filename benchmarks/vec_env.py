@@ -1,6 +1,6 @@
 """make_vec's vector env against raw libsumo, and the single-world Gymnasium env, in one run.
 
-    python benchmarks/vec_env.py [--repeats 3] [--steps 1500] [--quick]
+    python benchmarks/vec_env.py [--repeats 3] [--steps 1500] [--quick] [--cpu] [--old TREE]
 
 Rows, at N = 8 vehicles per world (K = 16 worlds in one SUMO) and N = 32 (K = 4):
 
@@ -12,6 +12,8 @@ Rows, at N = 8 vehicles per world (K = 16 worlds in one SUMO) and N = 32 (K = 4)
   ego, N - 1 SUMO-driven cars) and *all agents* (``others=`` a policy that keeps its acceleration: N agents,
   as in the raw row and the speed table's engine rows).
 * **MergeEnv**: the single-world env's ``step()`` (one SUMO per world), the same two worlds.
+* **MergeParallelEnv**: the PettingZoo env's ``step()``, one world, every car an agent
+  (``env_throughput.run_env``: random allowed actions, drawn untimed).
 * **engine alone**: the speed table's engine row (``speed_table.run_engine``: observe, every agent's
   observation, masks and step, no Gymnasium API), for what the vector env adds on top of it.
 
@@ -20,36 +22,54 @@ the merge for the episode) with the last car on the main road as the ego, which 
 2, or the first allowed one); episodes time out after ``EPISODE_STEPS``. Resets are not timed on any side (a
 make_vec step that only starts the next wave is one). Ratio = measured / raw at the same N; the issue's target
 is >= 0.5 for make_vec. Median of ``--repeats`` interleaved repeats.
+
+``--cpu`` times with this process's CPU time instead of the wall clock: libsumo runs in the process, so both
+count the same work, and on a machine shared with other jobs the CPU time swings far less. ``--old TREE`` adds
+the rows an older checkout can run (the engine and the single-world envs), each in a child process that imports
+``idas_sumo`` from TREE, interleaved with the others, and then times every row of this checkout in a fresh
+child process too: e.g. ``git worktree add /tmp/base b744397`` and ``--old /tmp/base``.
 """
 
 from __future__ import annotations
+
+import os
+import sys
+
+if os.environ.get(_TREE_VAR := "IDAS_SUMO_BENCH_TREE"):  # a child timing an older checkout's code
+    sys.path.insert(0, os.environ[_TREE_VAR])
 
 import idas_sumo  # noqa: F401  (first: its OMP_WAIT_POLICY must be set before torch loads)
 
 # isort: split
 import argparse
+import json
 import statistics
-import sys
+import subprocess
 import time
+import types
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import gymnasium
 import numpy as np
+import numpy.typing as npt
+from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from env_throughput import make_scenario, run_raw
+from env_throughput import make_scenario, run_env, run_raw
 from report import print_table
-from speed_table import run_engine
 
-from idas_sumo.env.contracts import AgentBatch, IntArray
-from idas_sumo.env.engine import EnvConfig
+from idas_sumo.env.engine import AgentBatch, EnvConfig  # (names an older checkout has too)
 from idas_sumo.env.gym_env import MergeEnv
 from idas_sumo.env.scenario import Scenario
 from idas_sumo.resources import DEFAULT_NET
 from idas_sumo.sim.netgen import read_merge_net
+
+IntArray = npt.NDArray[np.int64]
+ROOT = Path(__file__).resolve().parents[1]
+"""This checkout (what ``--old`` runs its own rows from)."""
 
 CASES = ((8, 16), (32, 4))
 """(N vehicles per world, K worlds in the one SUMO)."""
@@ -136,23 +156,63 @@ def run_single(scenario: Scenario, steps: int, others: Any) -> Timed:
     return timed
 
 
-def measure(repeats: int, steps: int) -> dict[tuple[str, int], list[float]]:
-    """Steps/s per (row, N), each repeat interleaving every row."""
+def _runs(scenario: Scenario, n: int, k: int, steps: int) -> dict[str, Any]:
+    """Each row's measurement (steps/s) at N = n, K = k."""
+    from speed_table import run_engine
+
+    net = read_merge_net(DEFAULT_NET)
+    return {
+        "raw": lambda: run_raw(net, scenario, steps, EPISODE_STEPS).steps_per_s,
+        "engine": lambda: run_engine(net, scenario, k, steps, seed=0).steps_per_s,
+        "vec robots": lambda: run_vec(scenario, k, steps, None).per_s,
+        "vec all": lambda: run_vec(scenario, k, steps, KeepAcceleration()).per_s,
+        "single robots": lambda: run_single(scenario, steps // 4, None).per_s,
+        "single all": lambda: run_single(scenario, steps // 4, KeepAcceleration()).per_s,
+        "parallel": lambda: run_env(net, scenario, steps // 4, EPISODE_STEPS, seed=0).steps_per_s,
+    }
+
+
+OLD_ROWS = ("engine", "single robots", "single all", "parallel")
+"""The rows an older checkout runs (it may have no vector env)."""
+
+
+def _in_child(tree: Path, row: str, n: int, k: int, steps: int, cpu: bool) -> float:
+    """One row timed on the code of ``tree`` in a fresh child process (its numba kernels warmed up first)."""
+    args = [sys.executable, __file__, "--child", json.dumps([row, n, k, steps])] + (["--cpu"] if cpu else [])
+    env = {**os.environ, _TREE_VAR: str(tree)}
+    done = subprocess.run(args, env=env, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"{row!r} at N = {n} on {tree} failed:\n{done.stderr[-2000:]}")
+    return float(done.stdout.strip().splitlines()[-1])
+
+
+def child(spec: str) -> int:
+    """``--child``: time one row (steps/s on the last line), after a short warm-up run of it."""
+    row, n, k, steps = json.loads(spec)
+    # speed_table's training rows import what an older checkout may lack; the engine row needs none of it.
+    sys.modules.setdefault("train_throughput", types.SimpleNamespace(measure=None))  # type: ignore[arg-type]
+    scenario = make_scenario(n, read_merge_net(DEFAULT_NET), EPISODE_STEPS)
+    _runs(scenario, n, k, 40)[row]()
+    print(_runs(scenario, n, k, steps)[row]())
+    return 0
+
+
+def measure(repeats: int, steps: int, old: Path | None, cpu: bool) -> dict[tuple[str, int], list[float]]:
+    """Steps/s per (row, N), each repeat interleaving every row. With ``old`` every row runs in a fresh
+    child process, this checkout's and the older one's alike (``old ...``), so that neither side inherits
+    the other's process."""
     net = read_merge_net(DEFAULT_NET)
     rates: dict[tuple[str, int], list[float]] = {}
     for _ in range(repeats):
         for n, k in CASES:
             scenario = make_scenario(n, net, EPISODE_STEPS)
-            runs = {
-                "raw": lambda: run_raw(net, scenario, steps, EPISODE_STEPS).steps_per_s,  # noqa: B023
-                "engine": lambda: run_engine(net, scenario, k, steps, seed=0).steps_per_s,  # noqa: B023
-                "vec robots": lambda: run_vec(scenario, k, steps, None).per_s,  # noqa: B023
-                "vec all": lambda: run_vec(scenario, k, steps, KeepAcceleration()).per_s,  # noqa: B023
-                "single robots": lambda: run_single(scenario, steps // 4, None).per_s,  # noqa: B023
-                "single all": lambda: run_single(scenario, steps // 4, KeepAcceleration()).per_s,  # noqa: B023
-            }
-            for name, run in runs.items():
-                rates.setdefault((name, n), []).append(run())
+            for name, run in _runs(scenario, n, k, steps).items():
+                if old is None:
+                    rates.setdefault((name, n), []).append(run())
+                    continue
+                rates.setdefault((name, n), []).append(_in_child(ROOT, name, n, k, steps, cpu))
+                if name in OLD_ROWS:
+                    rates.setdefault((f"old {name}", n), []).append(_in_child(old, name, n, k, steps, cpu))
     return rates
 
 
@@ -163,6 +223,7 @@ ROWS = (
     ("vec all", "make_vec, K worlds in one SUMO, all cars agents"),
     ("single robots", "MergeEnv (one SUMO per world), robots"),
     ("single all", "MergeEnv (one SUMO per world), all cars agents"),
+    ("parallel", "MergeParallelEnv (PettingZoo, one world), all agents"),
 )
 
 
@@ -173,24 +234,39 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--steps", type=int, default=1500, help="timed world-steps per run (default: 1500)")
     parser.add_argument("--quick", action="store_true", help="1 repeat of 200 steps: a smoke run")
+    parser.add_argument("--cpu", action="store_true", help="time with this process's CPU time (see above)")
+    parser.add_argument(
+        "--old", type=Path, default=None, help="also time an older checkout's code (see above)"
+    )
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.cpu:  # every timer of the benchmark functions reads time.perf_counter when it runs
+        time.perf_counter = time.process_time
+    if args.child is not None:
+        return child(args.child)
     repeats, steps = (1, 200) if args.quick else (args.repeats, args.steps)
     # The numba kernels compile (or load from the cache) before anything is timed.
     run_vec(make_scenario(8, read_merge_net(DEFAULT_NET), EPISODE_STEPS), 2, 20, None)
-    rates = measure(repeats, steps)
-    table = Table(title=f"make_vec against raw libsumo (median of {repeats}, {steps} world-steps per run)")
+    rates = measure(repeats, steps, args.old, args.cpu)
+    clock = "CPU time" if args.cpu else "wall clock"
+    table = Table(
+        title=f"make_vec against raw libsumo ({clock}, median of {repeats}, {steps} world-steps per run)"
+    )
     table.add_column("what")
     for n, k in CASES:
         table.add_column(f"N = {n} (K = {k}) steps/s", justify="right")
         table.add_column("ratio", justify="right")
-    for key, label in ROWS:
+    rows = list(ROWS)
+    if args.old is not None:
+        rows += [(f"old {key}", f"{label}, old code") for key, label in ROWS if key in OLD_ROWS]
+    for key, label in rows:
         cells = [label]
         for n, _ in CASES:
             rate = statistics.median(rates[(key, n)])
             raw = statistics.median(rates[("raw", n)])
             cells += [f"{rate:,.0f}", f"{rate / raw:.2f}"]
         table.add_row(*cells)
-    print_table(table)
+    print_table(table, Console(width=150))
     return 0
 
 

@@ -151,3 +151,44 @@ def test_next_speeds_match_numpy() -> None:
         want = np.maximum(speed[egos] + accel * 0.2, 0.0)
         got = _next_speeds(speed, egos, accel, 0.2)
         assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist(), trial
+
+
+def test_distance_order_and_place_match_numpy() -> None:
+    """``_sort_spans`` sorts each copy's rows as ``np.lexsort((dist, copy))`` does (ties, ±0, inf and NaN
+    included), and ``_place_kernel`` gives ``Routes.place``'s former numpy formulas bit for bit."""
+    from idas_sumo.env.routes import _place_kernel
+    from idas_sumo.env.snapshot import MERGE, OUT, _sort_spans
+
+    rng = np.random.default_rng(5)
+    for t in range(400):
+        sizes = rng.integers(0, 12, size=rng.integers(1, 6))
+        copy = np.repeat(np.arange(len(sizes)), sizes)
+        pool = [0.0, -0.0, 1.5, 2.0, np.nan, np.inf, -np.inf, 3.25]
+        dist = rng.choice(pool, size=len(copy)) if t % 2 else rng.normal(size=len(copy)).round(1)
+        starts = np.searchsorted(copy, np.arange(len(sizes) + 1)).astype(np.int64)
+        order, sorted_dist = _sort_spans(dist, starts)
+        expected = np.lexsort((dist, copy))
+        assert np.array_equal(order, expected)
+        assert np.array_equal(sorted_dist.view(np.int64), dist[expected].view(np.int64))
+    # place: 2 origins x 4 edge codes (the last: an edge on no route), lane-drop lanes on code 1.
+    start_by = rng.uniform(-50.0, 300.0, size=(2, 4))
+    incoming_by = start_by > 0.0
+    limit_by = rng.choice([13.89, 16.67, 27.78], size=(2, 4))
+    merged_lane = np.array([-1, 0, -1, -1])
+    n = 500
+    code = rng.integers(0, 4, size=n)
+    origin = rng.integers(0, 2, size=n)
+    lane_index = rng.integers(0, 2, size=n)
+    lane_pos = np.where(rng.random(n) < 0.1, start_by[origin, code], rng.uniform(0.0, 300.0, size=n))
+    got = _place_kernel(
+        code, lane_pos, origin, lane_index, merged_lane, incoming_by, start_by, limit_by, 27.78, 100.0
+    )
+    merged = (origin == MERGE) & (lane_index == merged_lane[code])
+    o = np.where(merged, 0, origin)
+    incoming = incoming_by[o, code]
+    dist = -(lane_pos - start_by[o, code])
+    exempt = (dist >= 0.0) & (dist <= 100.0)
+    own = np.where(exempt, np.maximum(limit_by[o, code], 27.78), limit_by[o, code])
+    expected_out = (o, np.where(incoming, o, OUT), dist, np.where(incoming, own, limit_by[o, code]))
+    for a, b in zip(got, expected_out, strict=True):
+        assert np.array_equal(np.asarray(a).view(np.int64), np.asarray(b).astype(a.dtype).view(np.int64))

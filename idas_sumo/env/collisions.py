@@ -36,21 +36,34 @@ def geometric_collisions(
     if n < 2:
         return []
     d = snap.dist_to_merge_m
-    copy = snap.copy if snap.copy is not None else np.zeros(n, dtype=np.int64)
+    copy = snap.copy if snap.copy is not None else _zeros(n)
     order = snap.by_distance.order  # by (copy, distance), shared with the step's relations and grids
     joined_past = np.asarray(joined_past_m, dtype=np.float64)
     if joined_past.shape != d.shape:  # one value for every car
         joined_past = np.broadcast_to(joined_past, d.shape)
     pairs = _overlapping_pairs(
         order,
-        np.ascontiguousarray(d, dtype=np.float64),
-        np.ascontiguousarray(copy, dtype=np.int64),
-        np.ascontiguousarray(snap.length_m, dtype=np.float64),
-        np.ascontiguousarray(origin, dtype=np.int64),
+        _contiguous(d, np.float64),
+        _contiguous(copy, np.int64),
+        _contiguous(snap.length_m, np.float64),
+        _contiguous(origin, np.int64),
         np.ascontiguousarray(joined_past),
         snap.longest_m,
     )
+    if not len(pairs):  # (nearly every step)
+        return []
     return sorted(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist(), strict=True))
+
+
+def _contiguous(a: npt.NDArray[np.generic], dtype: type) -> npt.NDArray[np.generic]:
+    """``a`` as a contiguous array of ``dtype`` (itself when it is one: the engine's arrays are)."""
+    if a.dtype == dtype and a.flags.c_contiguous:
+        return a
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+def _zeros(n: int) -> IntArray:
+    return np.zeros(n, dtype=np.int64)
 
 
 @kernel

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -11,6 +10,7 @@ import numpy.typing as npt
 
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, RELATIVE_SPEED_SCALE_MPS
+from idas_sumo.env.lazy import lazy
 from idas_sumo.env.observation import build_observations_checked
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.snapshot import TrafficSnapshot
@@ -47,28 +47,49 @@ class AgentBatch:
     def __len__(self) -> int:
         return len(self.ids)
 
-    @functools.cached_property
+    @lazy
     def obs(self) -> npt.NDArray[np.float32]:
         """(n, OBS_DIM) observations, built on first use (rule-based policies never need them)."""
-        if not len(self.ids):
+        return self._build_obs(None)
+
+    def obs_of(self, rows: IntArray) -> npt.NDArray[np.float32]:
+        """The observations of these rows only (a new array): ``obs[rows]``, built for them alone unless
+        every row's is built already (a single-ego env among other agents needs one of N)."""
+        if "obs" in self.__dict__:
+            return self.obs[rows]
+        return self._build_obs(rows)
+
+    def _build_obs(self, rows: IntArray | None) -> npt.NDArray[np.float32]:
+        """The observations of ``rows`` (None: every row), checked finite."""
+        if not len(self.ids) or (rows is not None and not len(rows)):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
-        obs, scalars_finite = build_observations_checked(
-            self.snapshot, self.egos, self.prev_accel, self.b_prio, self.b_type
-        )
+        if rows is None:
+            egos, prev, b_prio, b_type = self.egos, self.prev_accel, self.b_prio, self.b_type
+        else:
+            egos, prev, b_prio, b_type = (
+                self.egos[rows],
+                self.prev_accel[rows],
+                self.b_prio[rows],
+                self.b_type[rows],
+            )
+        obs, scalars_finite = build_observations_checked(self.snapshot, egos, prev, b_prio, b_type)
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
         # scalars or the speeds are not is every entry tested.
         speed = self.snapshot.speed_mps
-        spread = float(np.ptp(speed)) if len(speed) else 0.0
+        spread = (
+            float(speed.max() - speed.min()) if len(speed) else 0.0
+        )  # np.ptp's value, without its wrappers
         if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():
-                bad = self.ids[int(np.argmin(finite))]
+                bad_row = int(np.argmin(finite))
+                bad = self.ids[bad_row if rows is None else int(rows[bad_row])]
                 raise SimulationError(
                     f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
                 )
         return obs
 
-    @functools.cached_property
+    @lazy
     def copy_runs(self) -> list[tuple[int, int, int]]:
         """(copy, lo, hi): the rows of each copy's agents (a batch comes copy by copy)."""
         return _copy_runs(self.copy)

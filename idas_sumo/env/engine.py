@@ -139,6 +139,11 @@ class MergeEngine:
         self._cars = _Cars.of((), lambda k, vid: vid)
         self._car = np.zeros(0, dtype=np.int64)
         """Each snapshot row's car (``_Cars``)."""
+        self._layout: (
+            tuple[IntArray, _Cars, IntArray, IntArray, IntArray, npt.NDArray[np.bool_], FloatArray] | None
+        ) = None
+        """``_read_snapshot``'s arrays for the cars on the road: (the backend's ``vehicle`` array they came
+        from, the ``_Cars`` of the episodes, car, row per car, origin, controlled, length)."""
         self._agents: _Agents | None = None
         """``observe``'s agents while they stay the same (None: gather them again)."""
         self._batch: AgentBatch | None = None
@@ -244,6 +249,26 @@ class MergeEngine:
             raise KeyError(agent_id)
         return float(self._cars.accel[c])
 
+    def agent_values(
+        self, k: int, vehicle_ids: Sequence[str]
+    ) -> tuple[list[float], list[float], list[float], list[int]]:
+        """Speed, acceleration (an agent's: the one it drives with), distance to the merge point and road
+        (-1: not on the road) of slot k's vehicles (KeyError: one is not in its scenario), as
+        ``single.agent_info`` reads them one by one."""
+        cars, snap = self._cars, self.snapshot
+        order = self.slots[k].order
+        first = int(cars.first[k])
+        car = np.array([first + order[v] for v in vehicle_ids], dtype=np.int64)
+        rows = cars.row[car]
+        on = rows >= 0
+        r = np.where(on, rows, 0)
+        if not len(snap):
+            nothing = [0.0] * len(car)
+            return nothing, nothing, nothing, [-1] * len(car)
+        accel = np.where(cars.admitted[car], cars.accel[car], snap.accel_mps2[r])
+        road = np.where(on, snap.road[r], -1)
+        return snap.speed_mps[r].tolist(), accel.tolist(), snap.dist_to_merge_m[r].tolist(), road.tolist()
+
     def rows_of(self, k: int) -> slice:
         """Slot k's vehicles in ``snapshot``."""
         lo, hi = self._bounds[k], self._bounds[k + 1]
@@ -340,14 +365,29 @@ class MergeEngine:
         copy = states.copy
         bounds = states.bounds
         cars = self._cars
-        if n and int(states.vehicle.min()) < 0:
-            bad = states.ids[int(np.argmin(states.vehicle))]
-            raise SimulationError(f"vehicle {bad!r} on the road is from no scenario of the engine")
-        car = cars.first[copy] + states.vehicle
-        origin = cars.origin[car]
-        controlled = cars.controlled[car]
-        row = np.full(len(cars.ids), -1, dtype=np.int64)
-        row[car] = np.arange(n)
+        layout = self._layout
+        # What depends only on which cars are on the road is kept while they stay the same (a backend hands
+        # out the same ``vehicle`` array then): most steps only read new positions and speeds.
+        if layout is None or layout[0] is not states.vehicle or layout[1] is not cars:
+            if n and int(states.vehicle.min()) < 0:
+                bad = states.ids[int(np.argmin(states.vehicle))]
+                raise SimulationError(f"vehicle {bad!r} on the road is from no scenario of the engine")
+            car = cars.first[copy] + states.vehicle
+            row = np.full(len(cars.ids), -1, dtype=np.int64)
+            row[car] = np.arange(n)
+            length = np.full(n, VEHICLE_LENGTH_M)
+            for a in (car, row, length):
+                a.flags.writeable = False
+            layout = self._layout = (
+                states.vehicle,
+                cars,
+                car,
+                row,
+                cars.origin[car],
+                cars.controlled[car],
+                length,
+            )
+        _, _, car, row, origin, controlled, length = layout
         cars.row = row
         self._car = car
         origin, road, dist, limit = self._routes.place(states, origin)
@@ -358,9 +398,9 @@ class MergeEngine:
             ids=states.ids,
             road=road,
             dist_to_merge_m=dist,
-            speed_mps=states.speed_mps.copy(),
-            accel_mps2=states.accel_mps2.copy(),
-            length_m=np.full(n, VEHICLE_LENGTH_M),
+            speed_mps=states.speed_mps,  # (fresh arrays of each read: nobody else holds them)
+            accel_mps2=states.accel_mps2,
+            length_m=length,
             speed_limit_mps=limit,
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
@@ -601,22 +641,23 @@ class MergeEngine:
         """Into each slot's outcome: returns, counts, new arrivals, and whether its episode is over."""
         cars = self._cars
         k_count = len(self.slots)
-        copies = batch.copy.tolist()
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
         first_action = ~cars.scored[agents.car]
-        if first_action.any():
+        scored = np.flatnonzero(scores.rewards)
+        if first_action.any() or len(scored):
+            copies = batch.copy.tolist()
             for i in np.flatnonzero(first_action).tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
             cars.scored[agents.car] = True
-        scored = np.flatnonzero(scores.rewards)
-        for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
-            self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
+            for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
+                self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
         impedes = np.bincount(batch.copy[scores.parts[:, _IMPEDE] < 0], minlength=k_count).tolist()
         agents_per_copy = np.bincount(batch.copy, minlength=k_count).tolist()
         active_per_copy = np.bincount(cars.copy[cars.state == ACTIVE], minlength=k_count).tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
+        timed_out = self.timed_out()
         for k, slot in enumerate(self.slots):
             if slot.over:
                 continue
@@ -631,7 +672,9 @@ class MergeEngine:
                 out.agent_steps += agents_per_copy[k]
                 out.impedes += impedes[k]
             added = self._admit(k, ev) if ev.departed else 0
-            self._settle(k, active_per_copy[k] + added > 0)
+            active = active_per_copy[k] + added > 0
+            if timed_out or not active or not slot.started:  # (else _settle has nothing to do)
+                self._settle(k, active)
 
     @staticmethod
     def _row_copy(snap: TrafficSnapshot) -> IntArray:

@@ -23,7 +23,7 @@ from idas_sumo.env.scenario import (
     generate_scenario,
     start_room_m,
 )
-from idas_sumo.env.single import EPISODE_OVER, ResetFirst, SingleEpisode
+from idas_sumo.env.single import EPISODE_OVER, ResetFirst, SingleEpisode, _checked_action
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
@@ -128,16 +128,20 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
 
     def _advance_until_ego(self) -> None:
         while self.ego not in self.sim.active_agents and not self.sim.episode_over:
-            self.sim.step(self._others_actions())
+            self.sim.step_requested(self._others_actions(-1))
 
-    def _others_actions(self) -> dict[str, int]:
+    def _others_actions(self, ego_row: int) -> npt.NDArray[np.int64]:
+        """Every agent's action in batch order: ``others``' for all but row ``ego_row`` (-1: no ego), which
+        is left 0 for the caller to fill."""
         batch = self.sim.batch
-        rows = np.array([i for i, a in enumerate(batch.ids) if a != self.ego], dtype=np.int64)
-        if not len(rows):
-            return {}
-        assert self.others is not None
-        actions = self.others.act(batch, rows)
-        return {batch.ids[i]: int(act) for i, act in zip(rows.tolist(), actions.tolist(), strict=True)}
+        actions = np.zeros(len(batch), dtype=np.int64)
+        rows = np.arange(len(batch), dtype=np.int64)
+        if ego_row >= 0:
+            rows = np.delete(rows, ego_row)
+        if len(rows):
+            assert self.others is not None
+            actions[rows] = [int(a) for a in self.others.act(batch, rows).tolist()]
+        return actions
 
     def action_masks(self) -> npt.NDArray[np.bool_]:
         """The ego's current action mask (True = allowed): ``info["action_mask"]`` of the last reset/step.
@@ -153,15 +157,17 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
     def step(self, action: int) -> tuple[npt.NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         if self._ended:  # the ego has left: there is no next step until reset() (was a KeyError)
             raise ResetFirst(EPISODE_OVER)
-        actions = self._others_actions()
-        actions[self.ego] = action  # checked in the simulation, with the agent named
-        outcome = self.sim.step(actions)
-        reward = outcome.rewards[self.ego]
-        terminated = outcome.terminated[self.ego]
-        truncated = outcome.truncated[self.ego]
-        extra: dict[str, Any] = {"reward_parts": outcome.reward_parts[self.ego]}
-        if self.ego in outcome.end_reason:
-            extra["end_reason"] = outcome.end_reason[self.ego]
+        batch = self.sim.batch
+        ego_row = batch.ids.index(self.ego)
+        actions = self._others_actions(ego_row)
+        actions[ego_row] = _checked_action(self.ego, action, batch.time_s)
+        outcome = self.sim.step_requested(actions)
+        reward = outcome.reward_of(self.ego)
+        reason = outcome.end_reason_of(self.ego)
+        terminated, truncated = reason not in ("", "timeout"), reason == "timeout"
+        extra: dict[str, Any] = {"reward_parts": outcome.parts_of(self.ego)}
+        if reason:
+            extra["end_reason"] = reason
         if terminated or truncated:
             self._ended = True
             self._mask = placeholder_mask()

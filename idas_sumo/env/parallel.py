@@ -117,25 +117,29 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         self.sim.reset(scenario)
         self.agents = self.sim.active_agents
         observations = self._observations()
-        infos = {a: self._info(a) for a in self.agents}
+        infos = self._infos(self.agents)
         return observations, infos
 
     def _observations(self) -> dict[str, dict[str, np.ndarray]]:
         obs, masks = self.sim.observe(self.agents)
         return {a: {"observation": obs[i], "action_mask": masks[i]} for i, a in enumerate(self.agents)}
 
-    def _info(self, agent: str, outcome: StepOutcome | None = None) -> dict[str, Any]:
-        info: dict[str, Any] = self.sim.agent_info(agent)
-        road = info["road"]
-        info["road"] = ROAD_NAMES.index(road) if road in ROAD_NAMES else GONE
-        if outcome is not None:
-            info["reward_parts"] = outcome.reward_parts[agent]
-            info["joint_reward"] = outcome.joint_reward
-            if agent in outcome.end_reason:
-                info["end_reason"] = END_REASONS.index(outcome.end_reason[agent])
-            if agent in outcome.replaced_actions:
-                info["replaced_action"] = outcome.replaced_actions[agent]
-        return info
+    def _infos(self, agents: list[str], outcome: StepOutcome | None = None) -> dict[str, dict[str, Any]]:
+        """Each agent's info: its raw physical values (``agent_info``), and with ``outcome`` the step's
+        reward parts, joint reward, end reason and replaced action."""
+        infos: dict[str, dict[str, Any]] = {}
+        for agent, info in zip(agents, self.sim.agent_infos(agents), strict=True):
+            road = info["road"]
+            info["road"] = ROAD_NAMES.index(road) if road in ROAD_NAMES else GONE
+            if outcome is not None:
+                info["reward_parts"] = outcome.reward_parts[agent]
+                info["joint_reward"] = outcome.joint_reward
+                if agent in outcome.end_reason:
+                    info["end_reason"] = END_REASONS.index(outcome.end_reason[agent])
+                if agent in outcome.replaced_actions:
+                    info["replaced_action"] = outcome.replaced_actions[agent]
+            infos[agent] = info
+        return infos
 
     def step(
         self, actions: dict[str, int]
@@ -156,7 +160,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         acting = list(self.agents)
         outcome = self.sim.step({a: actions[a] for a in acting if a in actions})  # checked there, per agent
         self.last_outcome = outcome
-        infos = {a: self._info(a, outcome) for a in acting}
+        infos = self._infos(acting, outcome)
         self.agents = self.sim.active_agents
         observations = self._observations()
         for a in acting:
@@ -166,8 +170,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
                     "action_mask": placeholder_mask(),
                 }
         new_agents = [a for a in self.agents if a not in acting]
-        for a in new_agents:
-            infos[a] = self._info(a)
+        infos.update(self._infos(new_agents))
         if self.sim.timed_out():
             self.agents = []
         return (

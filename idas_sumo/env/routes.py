@@ -8,7 +8,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.env.actions import effective_speed_limit
+from idas_sumo.env.actions import MERGE_EXEMPTION_M
+from idas_sumo.env.jit import kernel
 from idas_sumo.env.snapshot import MAIN, MERGE, OUT
 from idas_sumo.sim.batch import BatchStates
 from idas_sumo.sim.merge_detect import MergeSite
@@ -30,6 +31,9 @@ class Routes:
             self._merged_lane[self._edge_code[edge_id]] = lane_index
         self.via_length_m = np.array([site.main.via_length_m, site.merge.via_length_m])
         """By origin (MAIN, MERGE): where its junction lane joins the outgoing road, past the merge point."""
+        self._last_edges: tuple[str, ...] | None = None
+        self._last_code = np.zeros(0, dtype=np.int64)
+        """The edge codes of the last read's edges (``place`` without numbered edges)."""
         self._code_by_edge_index: IntArray | None = None
         """The edge codes by ``BatchStates.edge_index``, where the backend numbers its edges."""
 
@@ -50,23 +54,63 @@ class Routes:
         n = len(states.ids)
         if self._code_by_edge_index is not None:
             code = self._code_by_edge_index[states.edge_index]
+        elif states.edge == self._last_edges:  # the same edges as the last read (most steps of one world)
+            code = self._last_code
         else:
             unknown = self._start_by.shape[1] - 1
             code = np.fromiter(map(self._edge_code.get, states.edge, itertools.repeat(unknown)), np.int64, n)
-        if states.lane_index is not None and n:
-            # On a lane drop a merging car that changed onto the main road's lane drives on as a main-road
-            # car: the cars behind it in that lane see it in their own lane (the paper's mask keeps its
-            # distance to it), and it sees theirs.
-            merged = (origin == MERGE) & (states.lane_index == self._merged_lane[code])
-            origin = np.where(merged, MAIN, origin)
-        incoming = self._incoming_by[origin, code]
-        road = np.where(incoming, origin, OUT)
-        # -(pos - start), not start - pos: bit for bit the T-junction's former formulas (L - pos on an
-        # incoming road, -(via + pos) on the outgoing one, -pos on a junction lane, -0.0 included).
-        dist = -(states.lane_pos_m - self._start_by[origin, code])
-        lane_limit = self._limit_by[origin, code]
-        own_limit = effective_speed_limit(lane_limit, dist, self.out_limit_mps)
-        return origin, road.astype(np.int64), dist, np.where(incoming, own_limit, lane_limit)
+            self._last_edges, self._last_code = states.edge, code
+        lane_index = states.lane_index if states.lane_index is not None and n else _NO_LANES
+        # One compiled pass: (origin, road, distance, limit), bit for bit the numpy formulas it replaced
+        # (tests/test_engine_kernels.py).
+        return _place_kernel(
+            code,
+            np.ascontiguousarray(states.lane_pos_m, dtype=np.float64),
+            np.ascontiguousarray(origin, dtype=np.int64),
+            np.ascontiguousarray(lane_index, dtype=np.int64),
+            self._merged_lane,
+            self._incoming_by,
+            self._start_by,
+            self._limit_by,
+            float(self.out_limit_mps),
+            MERGE_EXEMPTION_M,
+        )
+
+
+_NO_LANES = np.zeros(0, dtype=np.int64)
+
+
+@kernel
+def _place_kernel(
+    code, lane_pos, origin, lane_index, merged_lane, incoming_by, start_by, limit_by, out_limit, exempt_m
+):
+    """``Routes.place`` per car: a merging car on the main road's lane of a lane drop (``lane_index`` has a
+    row per car; empty elsewhere) counts as MAIN; road = its origin before the merge point, else OUT;
+    distance ``-(pos - start)`` (not ``start - pos``: -0.0 as before); the limit is the lane's, raised to
+    the outgoing road's within ``exempt_m`` before the merge point on an incoming road
+    (``effective_speed_limit``)."""
+    n = code.shape[0]
+    out_origin = np.empty(n, dtype=np.int64)
+    road = np.empty(n, dtype=np.int64)
+    dist = np.empty(n)
+    limit = np.empty(n)
+    lanes = lane_index.shape[0] > 0
+    for i in range(n):
+        c = code[i]
+        o = origin[i]
+        if lanes and o == MERGE and lane_index[i] == merged_lane[c]:
+            o = MAIN
+        out_origin[i] = o
+        incoming = incoming_by[o, c]
+        road[i] = o if incoming else OUT
+        d = -(lane_pos[i] - start_by[o, c])
+        dist[i] = d
+        lane_limit = limit_by[o, c]
+        if incoming and d >= 0.0 and d <= exempt_m:
+            limit[i] = max(lane_limit, out_limit)
+        else:
+            limit[i] = lane_limit
+    return out_origin, road, dist, limit
 
 
 def _route_tables(site: MergeSite) -> tuple[dict[str, int], FloatArray, npt.NDArray[np.bool_], FloatArray]:

@@ -155,7 +155,8 @@ def _finish(ctx: StepContext) -> FloatArray:
     """r_finish = (15·b_type + 50)/4 for each agent that finished in this step."""
     part = np.zeros(len(ctx.copy))
     won = ctx.ended("finished")
-    part[won] = ctx.config.finish(ctx.b_type[won])
+    if won.any():  # (most steps nobody finishes)
+        part[won] = ctx.config.finish(ctx.b_type[won])
     return part
 
 
@@ -163,12 +164,15 @@ def _collide(ctx: StepContext) -> FloatArray:
     """r_collide = -5·b_prio - 5 (or the config's other sign) for each agent that collided in this step."""
     part = np.zeros(len(ctx.copy))
     hit = ctx.ended("collided")
-    part[hit] = collide_reward(ctx.b_prio[hit], ctx.config.collision_sign)
+    if hit.any():
+        part[hit] = collide_reward(ctx.b_prio[hit], ctx.config.collision_sign)
     return part
 
 
 def _impede(ctx: StepContext) -> FloatArray:
     """r_impede = -5 per hard brake the agent caused (it was the nearest car ahead of the braking one)."""
+    if not len(ctx.impeded_by):  # no hard brake had a car ahead: -5 * 0 everywhere (-0.0, as before)
+        return np.full(len(ctx.egos), IMPEDE_PENALTY * 0.0)
     caused = np.bincount(ctx.impeded_by, minlength=len(ctx.before))
     return np.asarray(IMPEDE_PENALTY * caused[ctx.egos], dtype=np.float64)
 

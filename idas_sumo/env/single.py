@@ -6,8 +6,7 @@ while no agent is on the road, and keeps each agent's last observation for the s
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -16,14 +15,21 @@ from gymnasium.error import ResetNeeded
 
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.config import EnvConfig
-from idas_sumo.env.contracts import AgentBatch
+from idas_sumo.env.contracts import AgentBatch, StepResult
 from idas_sumo.env.engine import MergeEngine
+from idas_sumo.env.lazy import lazy
 from idas_sumo.env.scenario import Scenario
 from idas_sumo.env.snapshot import ROAD_NAMES, TrafficSnapshot
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import Backend
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.netgen import MergeNet
+
+IntArray = npt.NDArray[np.int64]
+_PLAIN_INTS = frozenset(
+    {int, np.int64, np.int32, np.int16, np.int8, np.uint8, np.uint16, np.uint32, np.uint64}
+)
+"""Action types taken as they are (a bool, a float or a 0-d array goes through ``_checked_action``)."""
 
 EPISODE_OVER = "step() after the episode ended (terminated or truncated): call reset() to start the next one"
 
@@ -33,23 +39,76 @@ class ResetFirst(ResetNeeded, SimulationError):
     ``ResetNeeded``, as its ``OrderEnforcing`` raises it, and an idas-sumo ``SimulationError``."""
 
 
-@dataclass
 class StepOutcome:
-    """Everything one step produced, per agent that acted in it."""
+    """Everything one step produced, per agent that acted in it (``acting``, batch order).
 
-    rewards: dict[str, float]
-    reward_parts: dict[str, dict[str, float]]
-    joint_reward: float
-    """Sum of the agents' rewards plus the shared flow penalty (the centralised critic's reward)."""
-    terminated: dict[str, bool]
-    truncated: dict[str, bool]
-    end_reason: dict[str, str]
-    """'finished', 'collided', 'removed' or 'timeout' for agents whose episode ended this step."""
-    hard_brakes: int
-    hard_brakes_merge_zone: int
-    collisions: list[tuple[str, str]]
-    replaced_actions: dict[str, int]
-    """Agents whose requested action was masked, and the action applied instead."""
+    The per-agent dictionaries are built when first read: a single-ego env reads one agent's entries
+    (``reward_of``, ``parts_of``, ``end_reason_of``), and eight dictionaries per step cost more than SUMO's step.
+    """
+
+    def __init__(self, acting: tuple[str, ...], requested: IntArray, result: StepResult) -> None:
+        self.acting = acting
+        self.result = result
+        self._requested = requested
+        self._row: dict[str, int] | None = None
+        self.joint_reward = float(result.joint_reward[0])
+        """Sum of the agents' rewards plus the shared flow penalty (the centralised critic's reward)."""
+        self.hard_brakes = int(result.hard_brakes[0])
+        self.hard_brakes_merge_zone = int(result.hard_brakes_merge_zone[0])
+        self.collisions: list[tuple[str, str]] = list(result.collisions[0])
+
+    def row(self, agent: str) -> int:
+        """``agent``'s row in the step (KeyError: it did not act)."""
+        if self._row is None:
+            self._row = {a: i for i, a in enumerate(self.acting)}
+        return self._row[agent]
+
+    def reward_of(self, agent: str) -> float:
+        return float(self.result.rewards[self.row(agent)])
+
+    def parts_of(self, agent: str) -> dict[str, float]:
+        result = self.result
+        return dict(zip(result.part_names, result.reward_parts[self.row(agent)].tolist(), strict=True))
+
+    def end_reason_of(self, agent: str) -> str:
+        """'' while ``agent`` goes on, else one of END_REASONS."""
+        return self.result.end_reason[self.row(agent)]
+
+    @lazy
+    def rewards(self) -> dict[str, float]:
+        return dict(zip(self.acting, self.result.rewards.tolist(), strict=True))
+
+    @lazy
+    def reward_parts(self) -> dict[str, dict[str, float]]:
+        names = self.result.part_names
+        return {
+            a: dict(zip(names, row, strict=True))
+            for a, row in zip(self.acting, self.result.reward_parts.tolist(), strict=True)
+        }
+
+    @lazy
+    def end_reason(self) -> dict[str, str]:
+        """'finished', 'collided', 'removed' or 'timeout' for agents whose episode ended this step."""
+        return {a: r for a, r in zip(self.acting, self.result.end_reason, strict=True) if r}
+
+    @lazy
+    def terminated(self) -> dict[str, bool]:
+        ends = self.end_reason
+        return {a: a in ends and ends[a] != "timeout" for a in self.acting}
+
+    @lazy
+    def truncated(self) -> dict[str, bool]:
+        ends = self.end_reason
+        return {a: ends.get(a) == "timeout" for a in self.acting}
+
+    @lazy
+    def replaced_actions(self) -> dict[str, int]:
+        """Agents whose requested action was masked, and the action applied instead."""
+        return {
+            a: int(applied)
+            for a, wanted, applied in zip(self.acting, self._requested, self.result.applied, strict=True)
+            if wanted != applied
+        }
 
 
 class SingleEpisode:
@@ -65,7 +124,10 @@ class SingleEpisode:
         self.engine = MergeEngine(net, copies=1, seed=seed, config=config, gui=gui)
         self.scenario: Scenario | None = None
         self._batch: AgentBatch | None = None
+        self._prev_batch: AgentBatch | None = None
+        """The last batch with agents before ``_batch`` (an agent that ended was in it)."""
         self._last_obs: dict[str, npt.NDArray[np.float32]] = {}
+        """Last observations of agents that ended before ``_prev_batch``."""
 
     @property
     def backend(self) -> Backend:
@@ -75,6 +137,7 @@ class SingleEpisode:
     def reset(self, scenario: Scenario) -> None:
         self.scenario = scenario
         self._last_obs = {}
+        self._batch = self._prev_batch = None
         self.engine.reset([scenario])
         self._advance()
 
@@ -87,8 +150,15 @@ class SingleEpisode:
 
     def _observe(self) -> None:
         batch = self.engine.observe()
-        for a, o in zip(batch.ids, batch.obs, strict=True):
-            self._last_obs[a] = o
+        old = self._batch
+        if old is not None and len(old):
+            dropped = self._prev_batch
+            if dropped is not None and dropped.ids is not old.ids and not set(dropped.ids) <= set(old.ids):
+                # Agents of ``dropped`` that ended before ``old``: keep their last observations.
+                for a, o in zip(dropped.ids, dropped.obs, strict=True):
+                    if a not in old.ids:
+                        self._last_obs[a] = o
+            self._prev_batch = old
         self._batch = batch
 
     def _advance(self) -> None:
@@ -130,13 +200,22 @@ class SingleEpisode:
         batch = self.batch
         if agent_ids is None:
             return batch.obs, batch.masks
-        index = {a: i for i, a in enumerate(batch.ids)}
-        rows = np.array([index[a] for a in agent_ids], dtype=np.int64)
+        if len(agent_ids) == len(batch.ids) and tuple(agent_ids) == batch.ids:  # (every agent, in order)
+            return batch.obs.copy(), batch.masks.copy()
+        if len(agent_ids) == 1:
+            rows = np.array([batch.ids.index(agent_ids[0])], dtype=np.int64)
+        else:
+            index = {a: i for i, a in enumerate(batch.ids)}
+            rows = np.array([index[a] for a in agent_ids], dtype=np.int64)
         if not len(rows):
             return batch.obs[:0], batch.masks[:0]
-        return batch.obs[rows], batch.masks[rows]
+        return batch.obs_of(rows), batch.masks[rows]
 
     def last_observation(self, agent_id: str) -> npt.NDArray[np.float32]:
+        """The observation ``agent_id`` last had (now, or in the last step it acted)."""
+        for batch in (self._batch, self._prev_batch):
+            if batch is not None and agent_id in batch.ids:
+                return batch.obs_of(np.array([batch.ids.index(agent_id)], dtype=np.int64))[0]
         return self._last_obs[agent_id]
 
     def prev_accel(self, agent_id: str) -> float:
@@ -149,40 +228,36 @@ class SingleEpisode:
         """Raw physical values of an agent now (or at its last step on the road)."""
         return agent_info(self.engine, 0, agent_id)
 
+    def agent_infos(self, agent_ids: Sequence[str]) -> list[dict[str, object]]:
+        """``agent_info`` of each of these agents (of the scenario), read in one pass."""
+        return agent_infos(self.engine, 0, agent_ids)
+
     def step(self, actions: Mapping[str, object]) -> StepOutcome:
         """Apply one action per active agent, advance SUMO one step, score it and end whoever is done."""
         batch = self.batch
         if self.engine.over(0):  # as gymnasium's OrderEnforcing refuses a step before reset()
             raise ResetFirst(EPISODE_OVER)
-        acting = list(batch.ids)
-        missing = [a for a in acting if a not in actions]
-        if missing:
-            raise ValueError(f"no action for active agents {missing}")
-        requested = np.array(
-            [_checked_action(a, actions[a], batch.time_s) for a in acting], dtype=np.int64
-        ).reshape(len(acting))
+        acting = batch.ids
+        try:
+            values = [actions[a] for a in acting]
+        except KeyError:
+            missing = [a for a in acting if a not in actions]
+            raise ValueError(f"no action for active agents {missing}") from None
+        requested = _fast_actions(values)
+        if requested is None:  # something is not a plain int in range: find it and name its agent
+            requested = np.array(
+                [_checked_action(a, v, batch.time_s) for a, v in zip(acting, values, strict=True)],
+                dtype=np.int64,
+            ).reshape(len(acting))
+        return self.step_requested(requested)
+
+    def step_requested(self, requested: IntArray) -> StepOutcome:
+        """``step`` with the actions as an int64 array in ``batch`` order (checked by the engine)."""
+        batch = self.batch
+        if self.engine.over(0):
+            raise ResetFirst(EPISODE_OVER)
         result = self.engine.step(requested)
-        parts = {
-            a: dict(zip(result.part_names, map(float, result.reward_parts[i]), strict=True))
-            for i, a in enumerate(acting)
-        }
-        end_reason = {a: r for a, r in zip(acting, result.end_reason, strict=True) if r}
-        outcome = StepOutcome(
-            rewards={a: float(r) for a, r in zip(acting, result.rewards, strict=True)},
-            reward_parts=parts,
-            joint_reward=float(result.joint_reward[0]),
-            terminated={a: a in end_reason and end_reason[a] != "timeout" for a in acting},
-            truncated={a: end_reason.get(a) == "timeout" for a in acting},
-            end_reason=end_reason,
-            hard_brakes=int(result.hard_brakes[0]),
-            hard_brakes_merge_zone=int(result.hard_brakes_merge_zone[0]),
-            collisions=list(result.collisions[0]),
-            replaced_actions={
-                a: int(applied)
-                for a, wanted, applied in zip(acting, requested, result.applied, strict=True)
-                if wanted != applied
-            },
-        )
+        outcome = StepOutcome(batch.ids, requested, result)
         self._advance()
         return outcome
 
@@ -203,12 +278,39 @@ def agent_info(engine: MergeEngine, k: int, agent_id: str) -> dict[str, object]:
             "dist_to_merge_m": float(snap.dist_to_merge_m[i]),
             "road": ROAD_NAMES[int(snap.road[i])],
         }
-    return {
-        "speed_mps": float("nan"),
-        "accel_mps2": float("nan"),
-        "dist_to_merge_m": float("nan"),
-        "road": "gone",
-    }
+    return _gone()
+
+
+def agent_infos(engine: MergeEngine, k: int, agent_ids: Sequence[str]) -> list[dict[str, object]]:
+    """``agent_info`` of each of slot k's ``agent_ids`` (vehicles of its scenario, agents or not), with
+    numpy over all of them instead of lookups per agent."""
+    snap = engine.snapshot
+    if not len(snap):
+        return [agent_info(engine, k, a) for a in agent_ids]
+    speed, accel, dist, road = engine.agent_values(k, agent_ids)
+    infos: list[dict[str, object]] = []
+    for s, a, d, r in zip(speed, accel, dist, road, strict=True):
+        if r >= 0:
+            infos.append({"speed_mps": s, "accel_mps2": a, "dist_to_merge_m": d, "road": ROAD_NAMES[r]})
+        else:
+            infos.append(_gone())
+    return infos
+
+
+def _gone() -> dict[str, object]:
+    nan = float("nan")
+    return {"speed_mps": nan, "accel_mps2": nan, "dist_to_merge_m": nan, "road": "gone"}
+
+
+def _fast_actions(values: list[object]) -> IntArray | None:
+    """The actions as int64 when every one is a plain int (or numpy integer) in [0, 7), else None."""
+    if not values:
+        return np.zeros(0, dtype=np.int64)
+    if set(map(type, values)) <= _PLAIN_INTS:
+        out = np.array(values, dtype=np.int64)
+        if ((out >= 0) & (out < N_ACTIONS)).all():
+            return out
+    return None
 
 
 def _checked_action(agent: str, action: object, time_s: float) -> int:

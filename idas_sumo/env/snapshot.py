@@ -8,13 +8,13 @@ outgoing road as current lane and both incoming roads as other lane.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.env.jit import kernel
+from idas_sumo.env.lazy import lazy
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -48,7 +48,7 @@ class TrafficSnapshot:
     def __len__(self) -> int:
         return len(self.ids)
 
-    @functools.cached_property
+    @lazy
     def _lookup(self) -> dict[str, int]:
         return {vid: i for i, vid in enumerate(self.ids)}
 
@@ -59,17 +59,17 @@ class TrafficSnapshot:
     def __contains__(self, vehicle_id: str) -> bool:
         return vehicle_id in self._lookup
 
-    @functools.cached_property
+    @lazy
     def longest_m(self) -> float:
         """The longest vehicle's length (m; 0 without vehicles): how far a body reaches past its front."""
         return float(self.length_m.max()) if len(self.length_m) else 0.0
 
-    @functools.cached_property
+    @lazy
     def by_distance(self) -> DistanceOrder:
         """The rows sorted by (copy, distance to the merge point), for searching relations."""
         return DistanceOrder.of(self)
 
-    @functools.cached_property
+    @lazy
     def copy_bounds(self) -> IntArray | None:
         """Where each copy's vehicles start (K + 1 entries), if they come copy by copy; else None."""
         if self.copy is None:
@@ -199,18 +199,19 @@ class DistanceOrder:
     @staticmethod
     def of(snapshot: TrafficSnapshot) -> DistanceOrder:
         dist = np.ascontiguousarray(snapshot.dist_to_merge_m, dtype=np.float64)
-        if snapshot.copy is None:
-            order = np.argsort(dist, kind="stable")
-            starts = np.array([0, len(dist)], dtype=np.int64)
-        else:
-            copy = np.asarray(snapshot.copy, dtype=np.int64)
-            order = np.lexsort((dist, copy))
-            if snapshot.known_copy_bounds is not None:  # sorted by copy first: each copy keeps its row span
-                starts = np.asarray(snapshot.known_copy_bounds, dtype=np.int64)
+        if snapshot.copy is None or snapshot.known_copy_bounds is not None:
+            # Rows come copy by copy: one compiled pass sorts each copy's span (stable, as lexsort is).
+            if snapshot.copy is None:
+                starts = np.array([0, len(dist)], dtype=np.int64)
             else:
-                n_copies = int(copy.max()) + 1 if len(copy) else 0
-                starts = np.searchsorted(copy[order], np.arange(n_copies + 1)).astype(np.int64)
-        order = order.astype(np.int64)
+                starts = np.asarray(snapshot.known_copy_bounds, dtype=np.int64)
+            order, sorted_dist = _sort_spans(dist, starts)
+            return DistanceOrder(order=order, sorted_dist=sorted_dist, starts=starts)
+        # Copies interleave (a snapshot made by hand): sorted by (copy, distance) over all rows.
+        copy = np.asarray(snapshot.copy, dtype=np.int64)
+        order = np.lexsort((dist, copy)).astype(np.int64, copy=False)
+        n_copies = int(copy.max()) + 1 if len(copy) else 0
+        starts = np.searchsorted(copy[order], np.arange(n_copies + 1)).astype(np.int64)
         return DistanceOrder(order=order, sorted_dist=dist[order], starts=starts)
 
     def spans(self, snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, IntArray]:
@@ -219,6 +220,22 @@ class DistanceOrder:
             return np.zeros(len(egos), dtype=np.int64), np.full(len(egos), len(self.order), dtype=np.int64)
         ego_copy = np.asarray(snapshot.copy, dtype=np.int64)[egos]
         return self.starts[ego_copy], self.starts[ego_copy + 1]
+
+
+@kernel
+def _sort_spans(dist, starts):
+    """Each span ``starts[k]:starts[k + 1]`` of the rows sorted by distance (stable: ``np.lexsort((dist,
+    copy))``'s order for rows grouped by copy), and the distances in that order."""
+    n = dist.shape[0]
+    order = np.arange(n)
+    for k in range(starts.shape[0] - 1):
+        lo, hi = starts[k], min(starts[k + 1], n)
+        if hi - lo > 1:
+            order[lo:hi] = lo + np.argsort(dist[lo:hi], kind="mergesort")
+    sorted_dist = np.empty(n)
+    for i in range(n):
+        sorted_dist[i] = dist[order[i]]
+    return order, sorted_dist
 
 
 def walk_start(

@@ -24,12 +24,16 @@ class _SoloBackend:
         self._backend = backend
         self._index: dict[str, int] = {}
         """Vehicle id -> its index in the scenario."""
+        self._read_ids: tuple[str, ...] | None = None
+        self._read_vehicle = np.zeros(0, dtype=np.int64)
+        """Each car's index in the scenario for the id list ``_read_ids`` (kept while the same cars drive)."""
 
     def reset(self, scenarios: Sequence[Scenario], extra_args: Sequence[str] = ()) -> None:
         if len(scenarios) != 1:
             raise SimulationError(f"{len(scenarios)} scenarios for a single simulation (a bug)")
         self._backend.reset(scenarios[0], extra_args)
         self._index = {v.id: i for i, v in enumerate(scenarios[0].vehicles)}
+        self._read_ids = None
 
     def global_id(self, copy: int, vehicle_id: str) -> str:
         return vehicle_id
@@ -42,10 +46,14 @@ class _SoloBackend:
         s = self._backend.vehicle_states()
         n = len(s.ids)
         zeros = np.zeros(n, dtype=np.int64)
+        if s.ids != self._read_ids:  # cars entered or left since the last read
+            self._read_vehicle = np.fromiter(map(self._index.get, s.ids, itertools.repeat(-1)), np.int64, n)
+            self._read_vehicle.flags.writeable = False
+            self._read_ids = s.ids
         return BatchStates(
             s.ids,
             zeros,
-            np.fromiter(map(self._index.get, s.ids, itertools.repeat(-1)), np.int64, n),
+            self._read_vehicle,
             s.edge,
             zeros,
             s.lane_pos_m,
@@ -58,8 +66,7 @@ class _SoloBackend:
     def set_speeds(
         self, vehicle_ids: Sequence[str], speeds_mps: npt.ArrayLike, copy: npt.ArrayLike | None = None
     ) -> None:
-        speeds = np.asarray(speeds_mps, dtype=np.float64).tolist()
-        self._backend.set_speeds(dict(zip(vehicle_ids, speeds, strict=True)))
+        self._backend.set_speed_list(vehicle_ids, np.asarray(speeds_mps, dtype=np.float64).tolist())
 
     def release(self, vehicle_id: str, copy: int) -> None:
         self._backend.release(vehicle_id)

@@ -40,7 +40,6 @@ from idas_sumo.env.drawing import RENDER_MODES, TopViewFrames, checked_render_mo
 from idas_sumo.env.engine import MergeEngine
 from idas_sumo.env.gym_env import _EGO_ATTEMPTS, with_controlled
 from idas_sumo.env.layout import OBS_DIM
-from idas_sumo.env.observation import build_observations
 from idas_sumo.env.scenario import Scenario, TrafficConfig, check_against_net, generate_scenario, start_room_m
 from idas_sumo.env.single import ResetFirst, _checked_action, agent_info
 from idas_sumo.env.snapshot import ROAD_NAMES
@@ -359,17 +358,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     def _ego_observations(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> Obs:
         """The egos' observations: only theirs are built when other agents share the batch."""
-        if self.others is None:  # every agent is an ego: the batch's own (checked) observations
-            return batch.obs[rows]
-        obs = build_observations(
-            batch.snapshot, batch.egos[rows], batch.prev_accel[rows], batch.b_prio[rows], batch.b_type[rows]
-        )
-        if not np.isfinite(obs).all():
-            bad = batch.ids[int(rows[np.argmin(np.isfinite(obs).all(axis=1))])]
-            raise SimulationError(
-                f"non-finite observation for agent {bad!r} at t = {batch.time_s:.1f} s (a bug)"
-            )
-        return obs
+        return batch.obs_of(rows)
 
     def action_masks(self) -> npt.NDArray[np.bool_]:
         """(K, 7): each world's action mask of the last reset/step (True = allowed)."""

@@ -14,6 +14,7 @@ import shutil
 import tempfile
 import time
 import typing
+from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -399,19 +400,29 @@ class SumoBackend:
 
     def set_speeds(self, speeds_mps: dict[str, float]) -> None:
         """Command the next step's speed of controlled vehicles (validated: finite, >= 0)."""
-        import libsumo
+        self.set_speed_list(list(speeds_mps), list(speeds_mps.values()))
 
-        for vid, speed in speeds_mps.items():
+    def set_speed_list(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
+        """``set_speeds`` with the ids and their speeds as two lists (what the engine has at hand)."""
+        import libsumo
+        from libsumo import _libsumo
+
+        for vid, speed in zip(vehicle_ids, speeds_mps, strict=True):
             if not math.isfinite(speed) or speed < 0:
                 raise SimulationError(
                     f"invalid speed command {speed!r} for vehicle {vid!r} (a bug, not an input)"
                 )
-            try:
-                libsumo.vehicle.setSpeed(vid, speed)
-            except libsumo.TraCIException as err:
-                if vid in libsumo.vehicle.getIDList():
-                    raise SimulationError(f"SUMO refused the speed of vehicle {vid!r}: {err}") from None
-                # Removed by SUMO (or a tool) since the last step: the step reports it as 'removed'.
+        try:  # the common case in one pass, through libsumo's SWIG function (as BatchBackend does)
+            deque(map(_libsumo.vehicle_setSpeed, vehicle_ids, speeds_mps), maxlen=0)
+        except libsumo.TraCIException:
+            # Some car is gone; setting a speed twice is harmless, so go again one by one.
+            for vid, speed in zip(vehicle_ids, speeds_mps, strict=True):
+                try:
+                    _libsumo.vehicle_setSpeed(vid, speed)
+                except libsumo.TraCIException as err:
+                    if vid in libsumo.vehicle.getIDList():
+                        raise SimulationError(f"SUMO refused the speed of vehicle {vid!r}: {err}") from None
+                    # Removed by SUMO (or a tool) since the last step: the step reports it as 'removed'.
 
     def release(self, vehicle_id: str) -> None:
         """Hand a controlled vehicle back to SUMO's own driver model (after it finished)."""
@@ -453,24 +464,20 @@ class SumoBackend:
         return events
 
     def vehicle_states(self) -> VehicleStates:
-        import libsumo
+        """Every vehicle's edge, lane position, speed and acceleration: the plain getters through libsumo's
+        SWIG functions, ``map`` into ``np.fromiter`` (``BatchBackend.vehicle_states``' reader)."""
+        from libsumo import _libsumo
 
-        vehicle = libsumo.vehicle
-        ids = tuple(vehicle.getIDList())
+        ids = _libsumo.vehicle_getIDList()
         n = len(ids)
-        lane_pos = np.empty(n)
-        speed = np.empty(n)
-        accel = np.empty(n)
-        edges = []
-        for i, vid in enumerate(ids):
-            edges.append(vehicle.getRoadID(vid))
-            lane_pos[i] = vehicle.getLanePosition(vid)
-            speed[i] = vehicle.getSpeed(vid)
-            accel[i] = vehicle.getAcceleration(vid)
+        edges = tuple(map(_libsumo.vehicle_getRoadID, ids))
+        lane_pos = np.fromiter(map(_libsumo.vehicle_getLanePosition, ids), np.float64, n)
+        speed = np.fromiter(map(_libsumo.vehicle_getSpeed, ids), np.float64, n)
+        accel = np.fromiter(map(_libsumo.vehicle_getAcceleration, ids), np.float64, n)
         lane_index = None
         if self._read_lanes:
-            lane_index = np.fromiter(map(vehicle.getLaneIndex, ids), np.int64, n)
-        return VehicleStates(ids, tuple(edges), lane_pos, speed, accel, lane_index)
+            lane_index = np.fromiter(map(_libsumo.vehicle_getLaneIndex, ids), np.int64, n)
+        return VehicleStates(tuple(ids), edges, lane_pos, speed, accel, lane_index)
 
     def raw_call(self, domain: str, method: str, *args: Any) -> Any:
         """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args)."""
@@ -630,6 +637,9 @@ class SubprocessBackend:
 
     def set_speeds(self, speeds_mps: dict[str, float]) -> None:
         self._call("set_speeds", speeds_mps)
+
+    def set_speed_list(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
+        self._call("set_speed_list", list(vehicle_ids), list(speeds_mps))
 
     def release(self, vehicle_id: str) -> None:
         self._call("release", vehicle_id)

@@ -185,6 +185,9 @@ class BatchBackend:
         self._read_ids: tuple[str, ...] | None = None
         self._read_layout: _IdLayout | None = None
         """``vehicle_states``' split of the id list ``_read_ids``, kept while the same cars are on the road."""
+        self._read_roads: list[str] | None = None
+        self._read_edges: tuple[tuple[str, ...], IntArray] = ((), np.zeros(0, dtype=np.int64))
+        """The copy-local edges and their indices of the SUMO edges ``_read_roads`` (kept while they stay)."""
         self._controlled: set[str] = set()
         self._released: set[str] = set()
         self._cleared: set[int] = set()
@@ -224,6 +227,7 @@ class BatchBackend:
             for i, v in enumerate(s.vehicles)
         }
         self._read_ids = self._read_layout = None
+        self._read_roads = None
         self._controlled = {
             self._prefixes[k] + vid for k, s in enumerate(scenarios) for vid in s.controlled_ids
         }
@@ -344,13 +348,18 @@ class BatchBackend:
             self._read_ids = gids
         layout = self._read_layout
         assert layout is not None
-        edge_map = self._edge_map
-        try:
-            edge_indices, edges = zip(*map(edge_map.__getitem__, roads), strict=True) if n else ((), ())
-        except KeyError:  # an edge not in the source net (cannot happen on a checked copy; kept raw)
-            edge_indices, edges = zip(*((edge_map.get(r) or (-1, r)) for r in roads), strict=True)
-        edge_index = np.array(edge_indices, dtype=np.int64)
-        edge: tuple[str, ...] = edges
+        if roads == self._read_roads:  # every car on the same edge as in the last read (most steps)
+            edge, edge_index = self._read_edges
+        else:
+            edge_map = self._edge_map
+            try:
+                edge_indices, edges = zip(*map(edge_map.__getitem__, roads), strict=True) if n else ((), ())
+            except KeyError:  # an edge not in the source net (cannot happen on a checked copy; kept raw)
+                edge_indices, edges = zip(*((edge_map.get(r) or (-1, r)) for r in roads), strict=True)
+            edge_index = np.array(edge_indices, dtype=np.int64)
+            edge_index.flags.writeable = False
+            edge = edges
+            self._read_roads, self._read_edges = roads, (edge, edge_index)
         order = layout.order
         if order is not None:  # SUMO lists by id, so copies come in order; if not, sorted by copy
             lane_pos, speed, accel, edge_index = (
