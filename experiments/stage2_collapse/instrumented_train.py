@@ -18,13 +18,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from idas_sumo.agents import learner as learner_module  # (idas_sumo before torch: see its import warning)
 from idas_sumo.cli import main as cli_main
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS
 from idas_sumo.env.layout import SPEED_SCALE_MPS
-
-import torch  # noqa: E402  (after idas_sumo on purpose)
 
 KL_ROWS = 4096  # rows of the batch the KL between consecutive policies is measured on
 
