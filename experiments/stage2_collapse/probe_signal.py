@@ -92,6 +92,7 @@ def horizon_audit(data: list[EpisodeData], gamma: float) -> None:
         float
     ] = []  # the joint reward of each step that follows an agent's exit (first 25 steps)
     gaps = links = 0
+    joint_total = own_total = 0.0
     for e in data:
         if not len(e):
             continue
@@ -99,6 +100,8 @@ def horizon_audit(data: list[EpisodeData], gamma: float) -> None:
         joint = np.zeros(step[-1] + 1)
         joint[step] = e.joint_reward
         team_return = discounted_tail(joint, gamma)
+        joint_total += float(joint.sum())
+        own_total += float(e.reward.sum())
         for a in range(agent.max() + 1):
             rows = np.flatnonzero(agent == a)
             own = discounted_tail(e.joint_reward[rows].astype(np.float64), gamma)
@@ -110,6 +113,9 @@ def horizon_audit(data: list[EpisodeData], gamma: float) -> None:
             if t >= 0:
                 links += 1
                 gaps += int(not np.isin(agent[step == step[last] + 1], agent[step == step[last]]).any())
+    print(
+        f"joint reward, once per step: {joint_total:.1f} = own rewards {own_total:.1f} + flow {joint_total - own_total:.1f}"
+    )
     print("Q's target with q_horizon 'agent': the discounted joint reward after its agent left (team - own):")
     for end, values in missing.items():
         v = np.asarray(values)
