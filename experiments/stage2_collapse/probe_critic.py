@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from probe_signal import RECIPE, collect
 
 from idas_sumo.agents.learner import Learner
 from idas_sumo.agents.rollout import batch_from_episodes
@@ -22,8 +23,6 @@ from idas_sumo.env.layout import ACCEL_SCALE_MPS2, SPEED_SCALE_MPS
 from idas_sumo.training.checkpoint import load_checkpoint
 from idas_sumo.training.config import load_train_config
 from idas_sumo.training.curriculum import plan_stages
-
-from probe_signal import RECIPE, collect  # noqa: I001 (the sibling script)
 
 
 def main() -> None:
