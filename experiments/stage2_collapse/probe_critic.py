@@ -30,6 +30,9 @@ def main() -> None:
     parser.add_argument("checkpoint", type=Path)
     parser.add_argument("--episodes", type=int, default=32)
     parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument(
+        "--horizon", choices=("episode", "agent"), default="episode", help="the return Q is compared with"
+    )
     args = parser.parse_args()
     data, _ = collect(args.checkpoint, args.episodes, args.seed)
     batch = batch_from_episodes(data, central=True)
@@ -60,13 +63,14 @@ def main() -> None:
             "    taken share       "
             + " ".join(f"{x:6.3f}" for x in np.bincount(batch.action.numpy()[rows], minlength=7) / rows.sum())
         )
-    confounding(batch, q, a2_all, learner.config.gamma)
+    confounding(batch, q, a2_all, learner.config.gamma, args.horizon)
 
 
-def team_returns(batch, gamma: float) -> np.ndarray:
-    """Each row's discounted joint return to the episode's end (own next row, else the episode's next step)."""
+def team_returns(batch, gamma: float, horizon: str) -> np.ndarray:
+    """Each row's discounted joint return to the episode's end (own next row, else the episode's next step), or
+    with ``horizon`` 'agent' to its agent's last row."""
     own, team = batch.next_row.numpy(), batch.team_next_row.numpy()
-    link = np.where(own >= 0, own, team)
+    link = np.where(own >= 0, own, team) if horizon == "episode" else own
     joint = batch.joint_reward.numpy().astype(np.float64)
     g = np.zeros(len(link))
     for i in range(len(link) - 1, -1, -1):
@@ -74,16 +78,16 @@ def team_returns(batch, gamma: float) -> np.ndarray:
     return g
 
 
-def confounding(batch, q: torch.Tensor, a2_all: torch.Tensor, gamma: float) -> None:
+def confounding(batch, q: torch.Tensor, a2_all: torch.Tensor, gamma: float, horizon: str) -> None:
     """Does A2 say what an action does, or where the policy takes it? Per action taken: the mean A2 handed to
     the actor, against the mean return of the rows that took it less the mean return of all rows."""
-    g = team_returns(batch, gamma)
+    g = team_returns(batch, gamma, horizon)
     act = batch.action.numpy()
     q_taken = q.gather(1, batch.action.long().unsqueeze(1)).squeeze(1).numpy()
     a2_taken = a2_all.gather(1, batch.action.long().unsqueeze(1)).squeeze(1).numpy()
     r2 = 1.0 - np.var(g - q_taken) / np.var(g)
     print(
-        f"  Q(s, a) against the measured joint return to the episode's end: R² {r2:.2f}, corr {np.corrcoef(q_taken, g)[0, 1]:.2f}"
+        f"  Q(s, a) against the measured joint return ({horizon} horizon): R² {r2:.2f}, corr {np.corrcoef(q_taken, g)[0, 1]:.2f}"
     )
     print(
         "    per action taken:  mean A2       "
