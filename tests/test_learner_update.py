@@ -265,6 +265,76 @@ def test_lambda_targets_hand_worked() -> None:
     assert floats(record.central.target) == approx(g_q)
 
 
+# Agent A finishes at step 1 (row 2) while B drives on to step 2 (row 4): rows A0 B0 A1 B1 B2.
+LEFT_ACTION = [2, 1, 3, 2, 4]
+LEFT_JOINT = [0.0, 0.0, 12.5, -5.0, 12.5]  # A's finish at step 1; an impede, then B's finish later
+LEFT_NEXT_ROW = [2, 3, -1, 4, -1]
+LEFT_TEAM_ROW = [2, 2, 4, 4, -1]  # the first row of the episode's next step
+LEFT_DONE = [0.0, 0.0, 1.0, 0.0, 1.0]
+
+
+def left_early_batch() -> Batch:
+    g = torch.Generator().manual_seed(5)
+    n = len(LEFT_ACTION)
+    nxt = torch.tensor(LEFT_NEXT_ROW)
+    has = nxt >= 0
+    state = torch.rand(n, STATE_DIM, generator=g)
+    others = torch.zeros(n, STATE_SLOTS * N_ACTIONS)
+    slot = torch.tensor([0, 1, 0, 1, 1])
+    action = torch.tensor(LEFT_ACTION)
+    return Batch(
+        obs=torch.rand(n, OBS_DIM, generator=g),
+        mask=torch.ones(n, N_ACTIONS, dtype=torch.bool),
+        action=action,
+        reward=torch.zeros(n),
+        next_obs=None,
+        done=torch.tensor(LEFT_DONE),
+        state=state,
+        others_actions=others,
+        slot=slot,
+        joint_reward=torch.tensor(LEFT_JOINT),
+        next_state=torch.where(has[:, None], state[nxt.clamp(min=0)], torch.zeros_like(state)),
+        next_others_actions=others.clone(),
+        next_slot=torch.where(has, slot[nxt.clamp(min=0)], 0),
+        next_action=torch.where(has, action[nxt.clamp(min=0)], 0),
+        next_valid=has.float(),
+        next_row=nxt,
+        bootstrap_obs=torch.zeros(0, OBS_DIM),
+        team_next_row=torch.tensor(LEFT_TEAM_ROW),
+    )
+
+
+@pytest.mark.parametrize("q_lambda", [0.0, 0.8])
+def test_q_sums_the_joint_reward_to_the_episodes_end_after_its_agent_left(q_lambda: float) -> None:
+    """The paper's Q (L160) is the joint return to the episode's end: when A has finished, its last row's
+    target goes on with the episode's next step (B's row), not with nothing. The 'agent' horizon (every
+    shipped policy's) stops there; it is kept as an option."""
+    targets = {}
+    for horizon in ("episode", "agent"):
+        learner = pinned_learner(True, q_lambda=q_lambda)
+        learner.config = dataclasses.replace(learner.config, q_horizon=horizon)
+        learner.update(left_early_batch())
+        assert learner.last_update is not None and learner.last_update.central is not None
+        targets[horizon] = floats(learner.last_update.central.target)
+    lam = q_lambda
+
+    def returns(links: list[int]) -> list[float]:
+        g = [0.0] * len(links)
+        for i in reversed(range(len(links))):
+            j = links[i]
+            tail = 0.0 if j < 0 else (1 - lam) * Q_TARGET[LEFT_ACTION[j]] + lam * g[j]
+            g[i] = LEFT_JOINT[i] + GAMMA * tail
+        return g
+
+    episode_links = [j if j >= 0 else t for j, t in zip(LEFT_NEXT_ROW, LEFT_TEAM_ROW, strict=True)]
+    assert targets["episode"] == approx(returns(episode_links))
+    assert targets["agent"] == approx(returns(LEFT_NEXT_ROW))
+    # A's last row: 12.5 + 0.9·Q̂(s2, B's action 4) = 12.5 + 0.9·1.5 at λ = 0, against 12.5 alone.
+    if lam == 0.0:
+        assert targets["episode"][2] == pytest.approx(12.5 + GAMMA * Q_TARGET[4])
+    assert targets["agent"][2] == pytest.approx(12.5)
+
+
 # --- the paper's path with networks at their initial weights -----------------------------------------
 
 

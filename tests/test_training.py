@@ -292,7 +292,15 @@ def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
             all(r == "finished" for r in e.stats.end_reasons.values()) and e.stats.agents == 6
         )
         assert e.stats.success == (e.stats.collisions == 0 and every_car_finished)
+        # Q's link past an agent's last step: the first row of the episode's next step, where the same
+        # (per-step) state was recorded as at the agent's own next row; -1 only in the last step.
+        team = e.team_next_row
+        assert team is not None and (team[team >= 0] > np.flatnonzero(team >= 0)).all()
+        assert (team[-1] == -1) and (team == -1).sum() == (e.state == e.state[-1]).all(axis=1).sum()
+        own = e.next_row >= 0
+        assert (e.state[team[own]] == e.state[e.next_row[own]]).all()
     batch = batch_from_episodes(episodes)
+    assert batch.team_next_row is not None and len(batch.team_next_row) == len(batch.action)
     assert batch.obs.shape[0] == sum(len(e) for e in episodes)
     assert learner.update(batch)["q_loss"] > 0.0
 

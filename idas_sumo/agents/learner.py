@@ -16,7 +16,7 @@ import copy
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar, get_args
 
 import numpy as np
 import numpy.typing as npt
@@ -37,6 +37,10 @@ from idas_sumo.errors import InputError
 __all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "UpdateRecord"]
 
 CHECKPOINT_FORMAT = 1
+
+QHorizon = Literal["episode", "agent"]
+"""What the centralised critic's target sums (``LearnerConfig.q_horizon``)."""
+Q_HORIZONS: tuple[str, ...] = get_args(QHorizon)
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,12 @@ class LearnerConfig:
     q_lambda: float = 0.0
     """λ of the centralised critic's target (ours): 0 is the paper's one-step SARSA target; > 0 gives Q
     the λ-return of the joint reward along each agent's own steps (needs ``Batch.next_row``)."""
+    q_horizon: QHorizon = "episode"
+    """How far Q(s, a)'s target sums the joint reward. 'episode' (the paper, L160: to the episode's end T):
+    after its agent has finished or collided the target goes on along the agents still driving (it bootstraps
+    from Q̂ at the episode's next step). 'agent': only along the agent's own steps, as every shipped policy
+    was trained (before 2026-11-27): Q then leaves out the joint reward that comes after its agent has left,
+    and credits an agent for staying on the road while others finish (experiments/stage2_collapse)."""
     normalize_advantages: bool = False
     """Standardise A1 and A2 over each batch before the policy gradient (ours; the paper does not)."""
     central_critic: str = DEFAULT_CENTRAL_CRITIC
@@ -104,6 +114,8 @@ class LearnerConfig:
         for name in ("entropy_coef", "anchor_coef"):
             if getattr(self, name) < 0.0:
                 raise InputError(f"{name} must be non-negative, got {getattr(self, name)}")
+        if self.q_horizon not in Q_HORIZONS:
+            raise InputError(f"q_horizon must be one of {', '.join(Q_HORIZONS)}, got {self.q_horizon!r}")
         check_central_critic(self.central_critic)
 
     @property
@@ -141,6 +153,7 @@ class Batch:
     next_action: torch.Tensor | None = None  # (B,) int64, any value where next_valid is 0
     next_valid: torch.Tensor | None = None  # (B,) float32
     next_row: torch.Tensor | None = None  # (B,) int64 row of the same agent's next step, -1: none
+    team_next_row: torch.Tensor | None = None  # (B,) int64 first row of the episode's next step, -1: none
     bootstrap_obs: torch.Tensor | None = None  # (cut-off rows, OBS_DIM): o' where next_row is -1, done 0
 
     def to(self, device: torch.device | str) -> Batch:
@@ -239,6 +252,19 @@ class _CentralForward:
     """Q(s, ·) (B, N_ACTIONS), with gradient."""
     advantage: torch.Tensor
     """A2 (the critic's ``advantage``, COMA's) from this Q and the policy before the actor's step."""
+
+
+@dataclass(frozen=True)
+class _QNext:
+    """Per row, what Q's target bootstraps from: s', the others' and the own action a' there, the slot, and
+    whether there is one (1) or the return ends (0); ``row``: the row it is, for λ-returns (None: unknown)."""
+
+    state: torch.Tensor
+    others: torch.Tensor
+    slot: torch.Tensor
+    action: torch.Tensor
+    bootstrap: torch.Tensor
+    row: torch.Tensor | None
 
 
 @dataclass(frozen=True)
@@ -527,33 +553,27 @@ class Learner:
         )
 
     def _step_central_critic(self, b: Batch, forward: _CentralForward) -> CriticStep:
-        """L(φ2): Q(s, a) regressed to R + γ·Q̂(s', a')·(1 - done), a' the action taken at t+1 (SARSA),
-        or to the λ-return along each agent's steps."""
+        """L(φ2): Q(s, a) regressed to R + γ·Q̂(s', a'), a' the joint action taken at t+1 (SARSA), or to the
+        λ-return; s' the agent's own next step, or with ``q_horizon`` 'episode' after its last one the episode's
+        next step (``_q_next``)."""
         cfg = self.config
         action = b.action.long()
-        done = b.done.float()
         state = _require(b.state, "state")
         others = _require(b.others_actions, "others_actions")
         slot = _require(b.slot, "slot").long()
         joint_reward = _require(b.joint_reward, "joint_reward").float()
-        next_valid = _require(b.next_valid, "next_valid").float()
+        nxt = self._q_next(b)
         with torch.no_grad():
             # Rows without a next step carry arbitrary slot/action; clamp so gather stays in range,
-            # the factor next_valid then zeroes them.
-            next_q = self.central_target(
-                _require(b.next_state, "next_state"),
-                _require(b.next_others_actions, "next_others_actions"),
-                _require(b.next_slot, "next_slot").long().clamp(0, STATE_SLOTS - 1),
-            )
-            next_a = _require(b.next_action, "next_action").long().clamp(0, N_ACTIONS - 1)
+            # the factor ``bootstrap`` then zeroes them.
+            next_q = self.central_target(nxt.state, nxt.others, nxt.slot.long().clamp(0, STATE_SLOTS - 1))
+            next_a = nxt.action.long().clamp(0, N_ACTIONS - 1)
             next_q_taken = next_q.gather(1, next_a.unsqueeze(1)).squeeze(1)
-            target = joint_reward + cfg.gamma * next_valid * (1.0 - done) * next_q_taken
+            target = joint_reward + cfg.gamma * nxt.bootstrap * next_q_taken
         if cfg.q_lambda > 0.0:
             with torch.no_grad():
                 q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
-                target = lambda_targets(
-                    target, q_now, _require(b.next_row, "next_row"), cfg.gamma, cfg.q_lambda
-                )
+                target = lambda_targets(target, q_now, _require(nxt.row, "next_row"), cfg.gamma, cfg.q_lambda)
         loss, q_taken = self.central.loss(forward.q_all, action, target)
         self.opt_central.zero_grad(set_to_none=True)
         loss.backward()
@@ -561,6 +581,33 @@ class Learner:
         self.opt_central.step()
         return CriticStep(
             prediction=q_taken.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
+        )
+
+    def _q_next(self, b: Batch) -> _QNext:
+        """Where Q's target bootstraps from. 'agent' horizon (or a batch without ``team_next_row``): the agent's
+        own next step, none after it finished or collided. 'episode': the same while the agent drives on; after
+        its last step the episode's next step (any agent's row there: Q̂(s', a') estimates the same joint
+        return from every agent's slot), none only once the episode is over."""
+        next_valid = _require(b.next_valid, "next_valid").float()
+        if self.config.q_horizon == "agent" or b.team_next_row is None:
+            return _QNext(
+                state=_require(b.next_state, "next_state"),
+                others=_require(b.next_others_actions, "next_others_actions"),
+                slot=_require(b.next_slot, "next_slot"),
+                action=_require(b.next_action, "next_action"),
+                bootstrap=next_valid * (1.0 - b.done.float()),
+                row=b.next_row,
+            )
+        own = _require(b.next_row, "next_row").long()
+        row = torch.where(own >= 0, own, b.team_next_row.long())
+        at = row.clamp(min=0)
+        return _QNext(
+            state=_require(b.state, "state")[at],
+            others=_require(b.others_actions, "others_actions")[at],
+            slot=_require(b.slot, "slot")[at],
+            action=b.action[at],
+            bootstrap=(row >= 0).float(),
+            row=row,
         )
 
     def _policy(self, b: Batch, obs: ObsWindows) -> _Policy:

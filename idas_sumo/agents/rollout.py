@@ -93,6 +93,9 @@ class EpisodeData:
     next_valid: npt.NDArray[np.float32]  # (N,)
     next_row: npt.NDArray[np.int64]  # (N,) row of the same agent's next step, -1 when none
     stats: EpisodeStats
+    team_next_row: npt.NDArray[np.int64] | None = None
+    """(N,) the first row of the episode's next step, -1 at its last step: where the joint return goes on
+    after an agent has left (``LearnerConfig.q_horizon``). None: no agent leaves before the episode ends."""
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
@@ -123,11 +126,13 @@ class EpisodeData:
         return out
 
 
-def _global_next_rows(episodes: list[EpisodeData]) -> npt.NDArray[np.int64]:
-    """Each episode's ``next_row`` shifted to the row numbering of the concatenated batch."""
+def _global_next_rows(episodes: list[EpisodeData], column: str = "next_row") -> npt.NDArray[np.int64]:
+    """Each episode's ``next_row`` (or another row-link ``column``) shifted to the row numbering of the
+    concatenated batch."""
     rows, offset = [], 0
     for e in episodes:
-        rows.append(np.where(e.next_row >= 0, e.next_row + offset, -1))
+        link = getattr(e, column)
+        rows.append(np.where(link >= 0, link + offset, -1))
         offset += len(e)
     return np.concatenate(rows).astype(np.int64) if rows else np.zeros(0, dtype=np.int64)
 
@@ -158,6 +163,8 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
         batch.next_slot = cat("next_slot")
         batch.next_action = cat("next_action")
         batch.next_valid = cat("next_valid")
+        if all(e.team_next_row is not None for e in episodes):
+            batch.team_next_row = torch.from_numpy(_global_next_rows(episodes, "team_next_row"))
     return batch
 
 
@@ -321,7 +328,17 @@ def _episode_data(
         next_valid=has_next.astype(np.float32),
         next_row=nxt,
         stats=_episode_stats(rec, rows, reward_arr, time_s, timed_out, outcome),
+        team_next_row=_first_row_of_next_step(per_step),
     )
+
+
+def _first_row_of_next_step(per_step: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """Each row's first row of the episode's next recorded step (-1 in the last step). A step in which no
+    agent of the episode acted is not recorded: across such a gap the link skips the idle steps, whose joint
+    reward is 0 (nobody acts, nobody brakes: ``scoring.py``)."""
+    first = np.cumsum(per_step) - per_step
+    following = np.append(first[1:], -1).astype(np.int64)
+    return np.repeat(following, per_step)
 
 
 _Column = TypeVar("_Column", bound=np.generic)

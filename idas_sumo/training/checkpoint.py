@@ -48,6 +48,17 @@ class TrainingCheckpoint(PolicyCheckpoint):
     validation: ValidationScore | None = None
     """For a ``<stage>_best.pt``: the held-out score that made these the best weights."""
 
+    @classmethod
+    def from_dict(cls, data: Any, path: Path) -> TrainingCheckpoint:
+        """As ``PolicyCheckpoint.from_dict``; a run saved before ``[learner] q_horizon`` existed trained Q along
+        each agent's own steps, so its config reads as 'agent' (a resumed run goes on as it ran)."""
+        config = data.get("config") if isinstance(data, dict) else None
+        if isinstance(config, dict):
+            learner = config.get("learner")
+            if isinstance(learner, dict) and "q_horizon" not in learner:
+                data = {**data, "config": {**config, "learner": {**learner, "q_horizon": "agent"}}}
+        return super().from_dict(data, path)
+
 
 def save_checkpoint(path: Path, checkpoint: PolicyCheckpoint) -> None:
     """Write ``checkpoint`` to ``path`` atomically: temp file in the same directory, fsync, rename.
