@@ -27,7 +27,7 @@ from torch.distributions import kl_divergence
 from idas_sumo.agents.coma import ALPHA, combined_policy_loss
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
 from idas_sumo.agents.critics import DEFAULT_CENTRAL_CRITIC, build_central_critic, check_central_critic
-from idas_sumo.agents.networks import Actor, ObsWindows, ValueCritic
+from idas_sumo.agents.networks import MASKED_LOGIT, Actor, ObsWindows, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
@@ -406,8 +406,13 @@ class Learner:
         if not bool(allowed.any(dim=1).all()):
             raise ValueError("every agent needs at least one allowed action (hard brake is never masked)")
         with torch.inference_mode():
-            obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
-            logits = self.actor.masked_logits(obs_t, allowed.to(self.device)).cpu()
+            if self.device.type == "cpu":  # compiled loops: a rollout step's rows are few
+                logits = torch.from_numpy(self.actor.inference_logits(obs)).masked_fill(
+                    ~allowed, MASKED_LOGIT
+                )
+            else:
+                obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
+                logits = self.actor.masked_logits(obs_t, allowed.to(self.device)).cpu()
             if deterministic:
                 actions = logits.argmax(dim=1)
             else:
