@@ -65,7 +65,7 @@ def test_bad_values_name_the_key(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="robot_episodes"):
         TrainConfig(robot_episodes=0)
     with pytest.raises(InputError, match="workers"):
-        TrainConfig().with_overrides(workers=0)
+        TrainConfig().with_overrides(workers=-1)
     bad = tmp_path / "bad.toml"
     bad.write_text("episodes_per_updat = 3\n")
     with pytest.raises(InputError, match=r"bad\.toml.*episodes_per_updat.*did you mean"):

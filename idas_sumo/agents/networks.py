@@ -340,6 +340,7 @@ class Actor(nn.Module):
         with torch.no_grad():
             self.head.bias.copy_(torch.tensor(INITIAL_ACTION_BIAS))
         self._inference: tuple[tuple[object, ...], tuple[Any, ...]] | None = None
+        self._params: list[nn.Parameter] | None = None
 
     def inference_logits(self, obs: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
         """Unmasked logits (B, N_ACTIONS) of ``forward``, without autograd, as one compiled loop per row
@@ -347,7 +348,11 @@ class Actor(nn.Module):
         times over). The same function; floats differ from ``forward``'s in the last bits (another summation
         order), and a row's logits do not depend on the other rows. The weights' operands are rebuilt when a
         weight changes (an optimiser step or ``load_state_dict`` bumps its version)."""
-        key = tuple((p.data_ptr(), p._version) for p in self.parameters())
+        if (
+            self._params is None
+        ):  # the module's own tensors: an optimiser step or load_state_dict changes them in place
+            self._params = list(self.parameters())
+        key = tuple((p.data_ptr(), p._version) for p in self._params)
         if self._inference is None or self._inference[0] != key:
             self._inference = (key, _InferenceOperands.of(self).kernel_args())
         x = np.ascontiguousarray(obs, dtype=np.float32)
