@@ -11,10 +11,8 @@ results do not vary from run to run.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -23,8 +21,6 @@ import torch
 from idas_sumo.env.jit import kernel
 
 __all__ = ["RunConv", "RunPieces", "actor_logits"]
-
-_T = TypeVar("_T")
 
 
 def _runs(
@@ -58,31 +54,31 @@ def _runs(
 
 
 def _forward(
-    out: npt.NDArray[np.float32],
     table: npt.NDArray[np.float32],
     bias: npt.NDArray[np.float32],
     table_row: npt.NDArray[np.int64],
     value: npt.NDArray[np.float32],
     grid_row: npt.NDArray[np.int64],
     start: npt.NDArray[np.int64],
-    row0: int,
+    rows: int,
+    cells: int,
     lead: int,
-) -> None:
-    """``out`` (rows, cells, outs) = ReLU(bias + Σ pieces) of batch rows row0, row0 + 1, ...: piece j (of those
-    rows) adds value[j] · table[table_row[j], (t, o)] at cell start[j] - lead + t of its grid row."""
-    rows, cells, outs = out.shape
+) -> npt.NDArray[np.float32]:
+    """ReLU(bias + Σ pieces) (rows, cells, outs): piece j adds value[j] · table[table_row[j], (t, o)] at cell
+    start[j] - lead + t of its grid row."""
+    outs = bias.shape[0]
     reach = table.shape[1] // outs
-    summed = out.reshape(-1)
-    summed[:] = 0.0
+    summed = np.zeros(rows * cells * outs, dtype=np.float32)
     for j in range(table_row.shape[0]):
         r, v, first = table_row[j], value[j], start[j] - lead
-        at = ((grid_row[j] - row0) * cells + first) * outs
+        at = (grid_row[j] * cells + first) * outs
         for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
             summed[at + k] += v * table[r, k]
     zero = np.float32(0.0)
     for i in range(rows * cells):
         for o in range(outs):
             summed[i * outs + o] = max(summed[i * outs + o] + bias[o], zero)
+    return summed.reshape(rows, cells, outs)
 
 
 def _backward(
@@ -93,12 +89,10 @@ def _backward(
     value: npt.NDArray[np.float32],
     grid_row: npt.NDArray[np.int64],
     start: npt.NDArray[np.int64],
-    row0: int,
     reach: int,
     lead: int,
-) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """The gradients of the table and the bias (float64 sums) from batch rows row0, row0 + 1, ..., given their
-    output's ``grad`` and their output (ReLU's mask)."""
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """The gradients of the table and the bias, given the output's ``grad`` and the output (ReLU's mask)."""
     rows, cells, outs = out.shape
     flat_grad, flat_out = grad.reshape(-1), out.reshape(-1)
     live = np.empty_like(flat_grad)
@@ -111,10 +105,10 @@ def _backward(
     grad_table = np.zeros((table_rows, reach * outs))
     for j in range(table_row.shape[0]):
         r, v, first = table_row[j], value[j], start[j] - lead
-        at = ((grid_row[j] - row0) * cells + first) * outs
+        at = (grid_row[j] * cells + first) * outs
         for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
             grad_table[r, k] += v * live[at + k]
-    return grad_table, grad_bias
+    return grad_table.astype(np.float32), grad_bias.astype(np.float32)
 
 
 def _dense(
@@ -257,32 +251,6 @@ class RunPieces:
         return cls(table_row=table_row, value=value, grid_row=grid_row, start=start)
 
 
-SPLIT_ROWS = 256
-"""A batch of at least this many rows is cut in two halves of rows, which two threads compute at once (the
-kernels release the GIL) when torch may use two; the cut depends on the row count only, so the results do not
-depend on the threads: the forward's bit for bit, the gradients as the two halves' float64 sums added."""
-_threads: ThreadPoolExecutor | None = None
-
-
-def _halves(pieces: RunPieces, rows: int) -> list[tuple[int, int, slice]]:
-    """(first row, end row, their pieces) of each part of a batch of ``rows``: pieces run in row order."""
-    if rows < SPLIT_ROWS:
-        return [(0, rows, slice(0, len(pieces.grid_row)))]
-    mid = rows // 2
-    cut = int(np.searchsorted(pieces.grid_row, mid))
-    return [(0, mid, slice(0, cut)), (mid, rows, slice(cut, len(pieces.grid_row)))]
-
-
-def _each(calls: list[Callable[[], _T]]) -> list[_T]:
-    """The calls' results in order; at once on two threads when there are two and torch may use two."""
-    global _threads
-    if len(calls) == 1 or torch.get_num_threads() < 2:
-        return [call() for call in calls]
-    if _threads is None:
-        _threads = ThreadPoolExecutor(max_workers=2, thread_name_prefix="run-conv")
-    return list(_threads.map(lambda call: call(), calls))
-
-
 class RunConv(torch.autograd.Function):
     """ReLU(conv) from the pieces of a batch's runs: ``apply(table, bias, pieces, rows, cells, lead)`` gives
     (rows, cells, outs); gradients reach ``table`` and ``bias`` (float32)."""
@@ -297,46 +265,41 @@ class RunConv(torch.autograd.Function):
         cells: int,
         lead: int,
     ) -> torch.Tensor:
-        table_np = np.ascontiguousarray(table.detach().cpu().numpy())
-        bias_np = np.ascontiguousarray(bias.detach().cpu().numpy())
-        out = np.empty((rows, cells, bias_np.shape[0]), dtype=np.float32)
-        parts = _halves(pieces, rows)
-
-        def part(a: int, b: int, p: slice) -> Callable[[], None]:
-            arrays = (pieces.table_row[p], pieces.value[p], pieces.grid_row[p], pieces.start[p])
-            return lambda: _forward_kernel(out[a:b], table_np, bias_np, *arrays, a, lead)
-
-        _each([part(*x) for x in parts])
-        result = torch.from_numpy(out).to(table.device)
-        ctx.pieces, ctx.parts, ctx.table_shape, ctx.lead = pieces, parts, table.shape, lead
-        ctx.save_for_backward(result)
-        return result
+        arrays = (pieces.table_row, pieces.value, pieces.grid_row, pieces.start)
+        out = torch.from_numpy(
+            _forward_kernel(
+                np.ascontiguousarray(table.detach().cpu().numpy()),
+                bias.detach().cpu().numpy(),
+                *arrays,
+                rows,
+                cells,
+                lead,
+            )
+        ).to(table.device)
+        ctx.arrays, ctx.table_shape, ctx.lead = arrays, table.shape, lead
+        ctx.save_for_backward(out)
+        return out
 
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         (out,) = ctx.saved_tensors
-        table_rows, reach_outs = ctx.table_shape
-        pieces: RunPieces = ctx.pieces
-        grad_np = np.ascontiguousarray(grad.detach().cpu().numpy())
-        out_np = out.detach().cpu().numpy()
-        reach = reach_outs // out.shape[2]
-
-        def part(
-            a: int, b: int, p: slice
-        ) -> Callable[[], tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]]:
-            arrays = (pieces.table_row[p], pieces.value[p], pieces.grid_row[p], pieces.start[p])
-            return lambda: _backward_kernel(
-                grad_np[a:b], out_np[a:b], table_rows, *arrays, a, reach, ctx.lead
-            )
-
-        sums = _each([part(*x) for x in ctx.parts])
-        grad_table, grad_bias = sums[0]
-        for more_table, more_bias in sums[1:]:
-            grad_table, grad_bias = grad_table + more_table, grad_bias + more_bias
+        rows, reach_outs = ctx.table_shape
+        table_row, value, grid_row, start = ctx.arrays
+        grad_table, grad_bias = _backward_kernel(
+            np.ascontiguousarray(grad.detach().cpu().numpy()),
+            out.detach().cpu().numpy(),
+            rows,
+            table_row,
+            value,
+            grid_row,
+            start,
+            reach_outs // out.shape[2],
+            ctx.lead,
+        )
         device = grad.device
         return (
-            torch.from_numpy(grad_table.astype(np.float32)).to(device),
-            torch.from_numpy(grad_bias.astype(np.float32)).to(device),
+            torch.from_numpy(grad_table).to(device),
+            torch.from_numpy(grad_bias).to(device),
             None,
             None,
             None,
