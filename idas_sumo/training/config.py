@@ -21,6 +21,12 @@ from idas_sumo.sim.multinet import MAX_COPIES
 from idas_sumo.sim.processes import max_workers
 from idas_sumo.training.geometry import GeometryConfig
 
+EPISODES_PER_WORKER = 8
+"""With ``workers = 0``, a round's episodes per rollout process at least: a step's fixed costs (the engine's
+Python, SUMO's step, the actor's call) are shared by the episodes a process runs side by side, so a process
+with fewer would not earn its start (8 episodes of a stage-2 round took 0.6 of the CPU time of 16 in one
+process, docs/performance.md)."""
+
 __all__ = [
     "RESUME_FIELDS",
     "STAGES",
@@ -102,7 +108,8 @@ class TrainConfig:
     """Write ``checkpoint.pt`` every this many episodes (also at every stage end and on Ctrl-C)."""
     workers: int = 0
     """Rollout processes; 1 collects in the training process; 0 (the default): one per CPU this process may use,
-    at most one per episode of a round (``rollout_workers``). Results do not depend on it."""
+    at most one per ``EPISODES_PER_WORKER`` episodes of a round (``rollout_workers``). Results do not depend on
+    it."""
     copies: int = 16
     """Episodes a rollout worker runs side by side in one SUMO run (1 to MAX_COPIES). Results do not
     depend on it."""
@@ -179,11 +186,11 @@ class TrainConfig:
 
     def rollout_workers(self, gui: bool = False) -> int:
         """The rollout processes a run starts: ``workers``, or for 0 one per CPU this process may use
-        (``sim.processes.max_workers``), at most ``episodes_per_update`` (a worker gets a share of a round's
-        episodes); 1 with ``gui`` (the rollouts show in one window)."""
+        (``sim.processes.max_workers``) and per ``EPISODES_PER_WORKER`` episodes of a round, at least one;
+        1 with ``gui`` (the rollouts show in one window)."""
         if self.workers:
             return self.workers
-        return 1 if gui else max(1, min(max_workers(), self.episodes_per_update))
+        return 1 if gui else max(1, min(max_workers(), self.episodes_per_update // EPISODES_PER_WORKER))
 
     def with_overrides(
         self,
