@@ -67,6 +67,7 @@ def test_default_workers_are_the_cpus_per_eight_episodes_of_a_round() -> None:
     assert TrainConfig().workers == 0
     assert TrainConfig().rollout_workers() == max(1, min(max_workers(), 2))  # 16 episodes a round
     assert TrainConfig(episodes_per_update=7).rollout_workers() == 1
+    assert TrainConfig().with_overrides(episodes=3).rollout_workers() == 1  # rounds of 3 episodes
     assert TrainConfig(episodes_per_update=64).rollout_workers(gui=True) == 1
     assert TrainConfig(workers=3, episodes_per_update=1).rollout_workers() == 3  # as asked
 

@@ -186,11 +186,14 @@ class TrainConfig:
 
     def rollout_workers(self, gui: bool = False) -> int:
         """The rollout processes a run starts: ``workers``, or for 0 one per CPU this process may use
-        (``sim.processes.max_workers``) and per ``EPISODES_PER_WORKER`` episodes of a round, at least one;
-        1 with ``gui`` (the rollouts show in one window)."""
+        (``sim.processes.max_workers``) and per ``EPISODES_PER_WORKER`` episodes of a round (the stages'
+        budgets may be shorter than ``episodes_per_update``), at least one; 1 with ``gui`` (the rollouts show
+        in one window)."""
         if self.workers:
             return self.workers
-        return 1 if gui else max(1, min(max_workers(), self.episodes_per_update // EPISODES_PER_WORKER))
+        budget = max(self.robot_episodes, self.intelligent_episodes, self.direct_episodes)
+        round_size = min(self.episodes_per_update, budget)
+        return 1 if gui else max(1, min(max_workers(), round_size // EPISODES_PER_WORKER))
 
     def with_overrides(
         self,
