@@ -277,6 +277,45 @@ def test_frozen_conv_operands_follow_every_weight_change() -> None:
     assert torch.equal(loaded, fresh(other))
 
 
+def test_inference_logits_match_the_plain_forward_and_follow_weight_changes() -> None:
+    """``Actor.inference_logits`` (the rollout's compiled forward) is the plain conv2d forward to float
+    rounding: cars as runs, runs longer than a piece, cells at both edges, every cell its own run, empty road;
+    after an optimiser step or a load_state_dict it gives the new weights' logits."""
+    torch.manual_seed(2)
+    actor, other = Actor(), Actor()
+    with torch.no_grad():
+        for p in [*actor.parameters(), *other.parameters()]:
+            p.normal_(0.0, 0.3)
+    obs = torch.zeros(6, OBS_DIM)
+    obs[:, :N_SCALARS] = torch.randn(6, N_SCALARS)
+    obs[0, N_SCALARS : N_SCALARS + 11] = 1.0  # a car at the left edge of obs_cl
+    obs[0, N_SCALARS + GRID_CELLS : N_SCALARS + GRID_CELLS + 11] = 0.3  # its relative speed
+    obs[1, N_SCALARS + 3 * GRID_CELLS + 360 :] = -0.4  # a 40-cell run to the right edge of obs_ol
+    obs[2, N_SCALARS:] = torch.randn(4 * GRID_CELLS)  # every cell its own run
+    obs[3, N_SCALARS + 2 * GRID_CELLS + 100 : N_SCALARS + 2 * GRID_CELLS + 120] = 1.0
+    # rows 4 and 5: empty road
+
+    def plain(net: Actor) -> torch.Tensor:
+        with torch.no_grad():
+            return net.head(net.encoder.reference_forward(obs))
+
+    def close(net: Actor, expected: torch.Tensor) -> None:  # 1,484 terms summed in another order
+        got = torch.from_numpy(net.inference_logits(obs.numpy()))
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5 * float(expected.abs().max()))
+
+    close(actor, plain(actor))
+    one_by_one = np.concatenate([actor.inference_logits(obs[i : i + 1].numpy()) for i in range(6)])
+    assert np.array_equal(one_by_one, actor.inference_logits(obs.numpy()))  # a row does not see the others
+    opt = torch.optim.SGD(actor.parameters(), lr=0.1)
+    for param in actor.parameters():
+        param.grad = torch.full_like(param, 0.01)
+    opt.step()
+    close(actor, plain(actor))
+    actor.load_state_dict(other.state_dict())
+    close(actor, plain(other))
+    assert actor.inference_logits(np.zeros((0, OBS_DIM), np.float32)).shape == (0, N_ACTIONS)
+
+
 def test_masked_probabilities_are_exactly_zero() -> None:
     torch.manual_seed(0)
     mask = torch.tensor([[0, 0, 0, 0, 0, 1, 0], [1, 0, 0, 0, 0, 1, 1]], dtype=torch.int8)
@@ -447,6 +486,28 @@ def test_others_actions_onehot() -> None:
     assert np.flatnonzero(rows[0]).tolist() == [3 * N_ACTIONS + 2]
     assert np.flatnonzero(rows[3]).tolist() == [HARD_BRAKE]
     assert np.flatnonzero(rows[5]).tolist() == [HARD_BRAKE, 3 * N_ACTIONS + 2]
+
+
+def test_rollout_others_actions_are_the_onehot_rows() -> None:
+    """The rollout's per-agent rows of the others' actions are ``others_actions_onehot``'s rows, bit for bit."""
+    from idas_sumo.agents.rollout import _others_actions
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        n = int(rng.integers(0, 9))
+        slots = rng.permutation(STATE_SLOTS)[:n].astype(np.int64)
+        slots[rng.random(n) < 0.2] = -1  # agents without a slot
+        applied = rng.integers(0, N_ACTIONS, n).astype(np.int64)
+        actions = np.zeros(STATE_SLOTS, dtype=np.int64)
+        acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
+        actions[slots[slots >= 0]] = applied[slots >= 0]
+        acting[slots[slots >= 0]] = True
+        table = np.vstack(
+            [others_actions_onehot(actions, acting), np.zeros((1, OTHERS_ACTIONS_DIM), np.float32)]
+        )
+        expected = table[np.where(slots >= 0, slots, STATE_SLOTS)]
+        got = _others_actions(slots, applied)
+        assert got.dtype == np.float32 and got.tobytes() == expected.tobytes()
 
 
 def test_normalised_advantages_change_the_step_but_not_the_direction_of_a_single_sample() -> None:

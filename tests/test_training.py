@@ -61,11 +61,22 @@ def test_defaults_are_the_papers_and_the_shipped_toml_matches() -> None:
     assert load_train_config(DEFAULT_TRAIN_CONFIG) == c
 
 
+def test_default_workers_are_the_cpus_per_eight_episodes_of_a_round() -> None:
+    from idas_sumo.sim.processes import max_workers
+
+    assert TrainConfig().workers == 0
+    assert TrainConfig().rollout_workers() == max(1, min(max_workers(), 2))  # 16 episodes a round
+    assert TrainConfig(episodes_per_update=7).rollout_workers() == 1
+    assert TrainConfig().with_overrides(episodes=3).rollout_workers() == 1  # rounds of 3 episodes
+    assert TrainConfig(episodes_per_update=64).rollout_workers(gui=True) == 1
+    assert TrainConfig(workers=3, episodes_per_update=1).rollout_workers() == 3  # as asked
+
+
 def test_bad_values_name_the_key(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="robot_episodes"):
         TrainConfig(robot_episodes=0)
     with pytest.raises(InputError, match="workers"):
-        TrainConfig().with_overrides(workers=0)
+        TrainConfig().with_overrides(workers=-1)
     bad = tmp_path / "bad.toml"
     bad.write_text("episodes_per_updat = 3\n")
     with pytest.raises(InputError, match=r"bad\.toml.*episodes_per_updat.*did you mean"):

@@ -27,7 +27,7 @@ from torch.distributions import kl_divergence
 from idas_sumo.agents.coma import ALPHA, combined_policy_loss
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
 from idas_sumo.agents.critics import DEFAULT_CENTRAL_CRITIC, build_central_critic, check_central_critic
-from idas_sumo.agents.networks import Actor, ObsWindows, ValueCritic
+from idas_sumo.agents.networks import MASKED_LOGIT, Actor, ObsWindows, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
@@ -412,8 +412,12 @@ class Learner:
         generator: torch.Generator,
         deterministic: bool = False,
     ) -> npt.NDArray[np.int64]:
-        """Actions (B,) for B agents; never a masked one. ``generator`` must be a CPU generator."""
-        return self.act_grouped(obs, mask, [(np.arange(obs.shape[0]), generator)], deterministic)
+        """Actions (B,) for B agents; never a masked one. ``generator`` must be a CPU generator. The actor runs
+        as torch's modules (what evaluation, co-simulation and the envs' ``others`` call: their outputs stay
+        the same bit for bit)."""
+        return self.act_grouped(
+            obs, mask, [(np.arange(obs.shape[0]), generator)], deterministic, compiled=False
+        )
 
     def act_grouped(
         self,
@@ -421,9 +425,14 @@ class Learner:
         mask: npt.NDArray[np.int8],
         groups: Sequence[tuple[npt.NDArray[np.int64], torch.Generator]],
         deterministic: bool = False,
+        compiled: bool = True,
     ) -> npt.NDArray[np.int64]:
         """``act`` for agents of several episodes in one forward pass; each episode's rows (``groups``:
-        rows, that episode's CPU generator) sample with their own generator, as they would alone."""
+        rows, that episode's CPU generator) sample with their own generator, as they would alone.
+
+        ``compiled`` (training's rollouts): on the CPU the actor's logits come from ``Actor.inference_logits``
+        (compiled loops, several times faster on a rollout step's rows; the same function to float rounding,
+        so a near-tie between two actions may go the other way than through torch's modules)."""
         if obs.ndim != 2 or obs.shape[1] != OBS_DIM or mask.shape != (obs.shape[0], N_ACTIONS):
             raise ValueError(
                 f"expected obs (B, {OBS_DIM}) and mask (B, {N_ACTIONS}), got {obs.shape} and {mask.shape}"
@@ -432,8 +441,13 @@ class Learner:
         if not bool(allowed.any(dim=1).all()):
             raise ValueError("every agent needs at least one allowed action (hard brake is never masked)")
         with torch.inference_mode():
-            obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
-            logits = self.actor.masked_logits(obs_t, allowed.to(self.device)).cpu()
+            if compiled and self.device.type == "cpu":
+                logits = torch.from_numpy(self.actor.inference_logits(obs)).masked_fill(
+                    ~allowed, MASKED_LOGIT
+                )
+            else:
+                obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
+                logits = self.actor.masked_logits(obs_t, allowed.to(self.device)).cpu()
             if deterministic:
                 actions = logits.argmax(dim=1)
             else:

@@ -9,14 +9,17 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 import torch
 from torch import nn
 from torch.distributions import Categorical
 
 from idas_sumo.agents.coma import coma_advantage
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
-from idas_sumo.agents.run_conv import RunConv, RunPieces
+from idas_sumo.agents.run_conv import RunConv, RunPieces, actor_logits
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import GRID_CELLS, N_CHANNELS, N_LANES, N_SCALARS, OBS_DIM
 from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS
@@ -271,6 +274,61 @@ class GridEncoder(nn.Module):
 INITIAL_ACTION_BIAS: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, -3.0, 3.0)
 
 
+def _linears(seq: nn.Sequential) -> list[nn.Linear]:
+    return [m for m in seq if isinstance(m, nn.Linear)]
+
+
+@dataclass(frozen=True)
+class _InferenceOperands:
+    """An actor's weights as float32 numpy arrays for ``Actor.inference_logits`` (weights transposed)."""
+
+    scalars: tuple[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]], ...]
+    conv: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]
+    """The run table, the conv bias and the first joint layer's conv columns (``conv_joint``'s)."""
+    joint_scalars: npt.NDArray[np.float32]
+    joint_base: npt.NDArray[np.float32]
+    """The first joint layer's bias plus what the conv outputs no run reaches (ReLU(bias)) add to it."""
+    layers: tuple[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]], ...]
+    """The later joint layers (ReLU after each) and the head (none)."""
+
+    @classmethod
+    def of(cls, actor: Actor) -> _InferenceOperands:
+        encoder = actor.encoder
+
+        def arr(t: torch.Tensor) -> npt.NDArray[np.float32]:
+            return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
+
+        def pairs(
+            layers: list[nn.Linear],
+        ) -> tuple[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]], ...]:
+            return tuple((arr(m.weight.t()), arr(m.bias)) for m in layers)
+
+        with torch.no_grad():
+            conv = encoder._operands()
+            first, *later = [m for m in encoder.joint if isinstance(m, nn.Linear)]
+            idle = conv.bias.clamp(min=0.0).repeat(CONV_OUT_CELLS) @ conv.joint_conv_weight
+            return cls(
+                scalars=pairs([m for m in encoder.scalars if isinstance(m, nn.Linear)]),
+                conv=(arr(conv.run_table), arr(conv.bias), arr(conv.joint_conv_weight)),
+                joint_scalars=arr(first.weight[:, :SCALAR_HIDDEN].t()),
+                joint_base=arr(first.bias + idle),
+                layers=pairs([*later, actor.head]),
+            )
+
+    def kernel_args(self) -> tuple[Any, ...]:
+        """``run_conv.actor_logits``'s arguments after the observations."""
+        return (
+            tuple(w for w, _ in self.scalars),
+            tuple(b for _, b in self.scalars),
+            self.conv,
+            self.joint_scalars,
+            self.joint_base,
+            tuple(w for w, _ in self.layers),
+            tuple(b for _, b in self.layers),
+            (_ROWS_IN, GRID_CELLS, RUN_PIECE),
+        )
+
+
 class Actor(nn.Module):
     """π(a | o, b): GridEncoder then a linear head of N_ACTIONS logits, masked before the softmax."""
 
@@ -281,6 +339,27 @@ class Actor(nn.Module):
         nn.init.orthogonal_(self.head.weight, gain=ACTOR_HEAD_GAIN)
         with torch.no_grad():
             self.head.bias.copy_(torch.tensor(INITIAL_ACTION_BIAS))
+        self._inference: tuple[tuple[object, ...], tuple[Any, ...]] | None = None
+        self._params: list[nn.Parameter] | None = None
+
+    def inference_logits(self, obs: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """Unmasked logits (B, N_ACTIONS) of ``forward``, without autograd, as one compiled loop per row
+        (``run_conv.actor_logits``: a rollout step's few dozen rows cost torch's fixed cost per op dozens of
+        times over). The same function; floats differ from ``forward``'s in the last bits (another summation
+        order), and a row's logits do not depend on the other rows. The weights' operands are rebuilt when a
+        weight changes (an optimiser step or ``load_state_dict`` bumps its version)."""
+        if (
+            self._params is None
+        ):  # the module's own tensors: an optimiser step or load_state_dict changes them in place
+            self._params = list(self.parameters())
+        key = tuple((p.data_ptr(), p._version) for p in self._params)
+        if self._inference is None or self._inference[0] != key:
+            self._inference = (key, _InferenceOperands.of(self).kernel_args())
+        x = np.ascontiguousarray(obs, dtype=np.float32)
+        if x.ndim != 2 or x.shape[1] != OBS_DIM:
+            raise ValueError(f"observation must have {OBS_DIM} features, got {x.shape}")
+        out: npt.NDArray[np.float32] = actor_logits(x, *self._inference[1])
+        return out
 
     def forward(self, obs: torch.Tensor | ObsWindows) -> torch.Tensor:
         """Unmasked logits (B, N_ACTIONS)."""

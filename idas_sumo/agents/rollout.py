@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_onehot
+from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
 from idas_sumo.agents.learner import Batch
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.engine import AgentBatch, EpisodeOutcome, MergeEngine, Policy, StepResult
@@ -29,7 +29,7 @@ from idas_sumo.env.episodes import run_episodes
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.scenario import Scenario
-from idas_sumo.env.state_layout import STATE_DIM, STATE_SLOTS
+from idas_sumo.env.state_layout import STATE_DIM
 
 __all__ = [
     "EpisodeData",
@@ -205,15 +205,7 @@ class _EpisodeRecorder:
         collisions: int,
     ) -> None:
         assert self.state is not None, "the state is taken before the step"
-        slot_actions = np.zeros(STATE_SLOTS, dtype=np.int64)
-        acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
-        in_range = agent_slots >= 0
-        slot_actions[agent_slots[in_range]] = applied[in_range]
-        acting[agent_slots[in_range]] = True
-        # Row n of the one-hot is slot n's view; an agent without a slot sees no one (zeros).
-        onehot = np.vstack(
-            [others_actions_onehot(slot_actions, acting), np.zeros((1, OTHERS_ACTIONS_DIM), np.float32)]
-        )
+        self.others.append(_others_actions(agent_slots, applied))
         self.obs_rows.append(obs)
         self.ids.extend(ids)
         self.masks.append(mask)
@@ -222,7 +214,6 @@ class _EpisodeRecorder:
         self.parts.append(np.asarray(parts, dtype=np.float64))
         self.reasons.extend(reasons)
         self.states.append(self.state)
-        self.others.append(onehot[np.where(in_range, agent_slots, STATE_SLOTS)])
         self.slots.append(np.asarray(agent_slots, dtype=np.int64))
         self.joints.append(joint)
         self.agents_per_step.append(len(ids))
@@ -239,6 +230,20 @@ class _EpisodeRecorder:
             next_obs_index[[r for _, r in cut]] = len(self.ids) + np.arange(len(cut))
         timed_out = bool(any(r == "timeout" for r in rows.end_reasons.values()) or cut)
         return _episode_data(self, rows, bank, next_obs_index, engine.time_s, timed_out, outcome)
+
+
+def _others_actions(
+    agent_slots: npt.NDArray[np.int64], applied: npt.NDArray[np.int64]
+) -> npt.NDArray[np.float32]:
+    """Each agent's row of ``others_actions_onehot`` for one step (every agent with a slot acted): the step's
+    joint action one-hot with the agent's own entry cleared (its block then holds nothing, as COMA wants); an
+    agent without a slot sees no one (zeros). The same 0/1 floats, built without the slots × slots table."""
+    in_range = np.flatnonzero(agent_slots >= 0)
+    hot = agent_slots[in_range] * N_ACTIONS + applied[in_range]
+    out = np.zeros((len(agent_slots), OTHERS_ACTIONS_DIM), dtype=np.float32)
+    out[in_range[:, None], hot[None, :]] = 1.0
+    out[in_range, hot] = 0.0
+    return out
 
 
 @dataclass(frozen=True)

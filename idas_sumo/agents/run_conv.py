@@ -20,7 +20,7 @@ import torch
 
 from idas_sumo.env.jit import kernel
 
-__all__ = ["RunConv", "RunPieces"]
+__all__ = ["RunConv", "RunPieces", "actor_logits"]
 
 
 def _runs(
@@ -111,9 +111,121 @@ def _backward(
     return grad_table.astype(np.float32), grad_bias.astype(np.float32)
 
 
+def _dense(
+    x: npt.NDArray[np.float32], w_t: npt.NDArray[np.float32], b: npt.NDArray[np.float32], relu: bool
+) -> npt.NDArray[np.float32]:
+    """x · w_t + b (w_t: the weight transposed, (in, out)), then ReLU if ``relu``; one row, float32. Each
+    output sums its terms in input order; the loop over the outputs is the inner one, so it vectorises."""
+    out = b.copy()
+    for i in range(w_t.shape[0]):
+        xi = x[i]
+        for j in range(w_t.shape[1]):
+            out[j] += xi * w_t[i, j]
+    if relu:
+        for j in range(out.shape[0]):
+            out[j] = max(out[j], np.float32(0.0))
+    return out
+
+
+_dense_kernel = kernel(_dense)
+
+
+def _add_conv_row(
+    grids: npt.NDArray[np.float32],
+    table: npt.NDArray[np.float32],
+    bias: npt.NDArray[np.float32],
+    joint_conv: npt.NDArray[np.float32],
+    shape: tuple[int, int, int],
+    conv: npt.NDArray[np.float32],
+    reached: npt.NDArray[np.bool_],
+    h: npt.NDArray[np.float32],
+) -> None:
+    """Add to ``h`` one row's Σ over conv outputs k of (ReLU(conv)_k - ReLU(bias)) · joint_conv[k], from the
+    runs of its ``grids`` (rows_in · cells_in cells). ``conv`` and ``reached``: zeroed scratch, left zeroed."""
+    rows_in, cells_in, piece = shape[0], shape[1], shape[2]
+    lead = table.shape[1] // bias.shape[0] - piece
+    outs = bias.shape[0]
+    cells_out = reached.shape[0]
+    reach = table.shape[1] // outs
+    zero = np.float32(0.0)
+    for i in range(rows_in):
+        c = 0
+        while c < cells_in:
+            v = grids[i * cells_in + c]
+            if v == 0.0:
+                c += 1
+                continue
+            e = c + 1
+            while e < cells_in and grids[i * cells_in + e] == v:
+                e += 1
+            for start in range(c, e, piece):
+                r = (min(piece, e - start) - 1) * rows_in + i
+                first = start - lead
+                for t in range(max(0, -first), min(reach, cells_out - first)):
+                    reached[first + t] = True
+                    for o in range(outs):
+                        conv[(first + t) * outs + o] += v * table[r, t * outs + o]
+            c = e
+    for p in range(cells_out):
+        if not reached[p]:
+            continue
+        reached[p] = False
+        for o in range(outs):
+            k = p * outs + o
+            d = max(conv[k] + bias[o], zero) - max(bias[o], zero)
+            conv[k] = zero
+            if d != zero:
+                for j in range(h.shape[0]):
+                    h[j] += d * joint_conv[k, j]
+
+
+_add_conv_row_kernel = kernel(_add_conv_row)
+
+
+def _actor_logits(
+    obs: npt.NDArray[np.float32],
+    scalar_weights: tuple[npt.NDArray[np.float32], ...],
+    scalar_biases: tuple[npt.NDArray[np.float32], ...],
+    conv_operands: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]],
+    joint_scalars: npt.NDArray[np.float32],
+    joint_base: npt.NDArray[np.float32],
+    joint_weights: tuple[npt.NDArray[np.float32], ...],
+    joint_biases: tuple[npt.NDArray[np.float32], ...],
+    shape: tuple[int, int, int],
+) -> npt.NDArray[np.float32]:
+    """The actor's logits (B, actions) for inference, one row at a time (so a row's logits do not depend on
+    the others): the scalar MLP, the conv from the grids' runs fused with the first joint layer, the later
+    joint layers and the head. ``*_weights``: each layer's weight transposed (in, out); ReLU after every
+    layer but the head. ``conv_operands``: the run table, the conv bias and the first joint layer's conv
+    columns ((cell, filter·row), hidden).
+
+    A conv output that no run reaches is ReLU(bias) exactly, so its share of the first joint layer is one
+    constant for every row, folded into ``joint_base`` with that layer's bias; a row adds only the difference
+    at the cells its runs reach (a car reaches ~40 of 371) instead of the product over all 1,484 conv outputs.
+    ``shape``: (grid rows, cells per grid row, run piece); the scalars come first in a row."""
+    table, bias, joint_conv = conv_operands
+    n_scalars = scalar_weights[0].shape[0]
+    logits = np.empty((obs.shape[0], joint_biases[-1].shape[0]), dtype=np.float32)
+    conv = np.zeros(joint_conv.shape[0], dtype=np.float32)
+    reached = np.zeros(joint_conv.shape[0] // bias.shape[0], dtype=np.bool_)
+    for b in range(obs.shape[0]):
+        s = obs[b, :n_scalars].copy()
+        for layer in range(len(scalar_weights)):
+            s = _dense_kernel(s, scalar_weights[layer], scalar_biases[layer], True)
+        h = _dense_kernel(s, joint_scalars, joint_base, False)
+        _add_conv_row_kernel(obs[b, n_scalars:], table, bias, joint_conv, shape, conv, reached, h)
+        for j in range(h.shape[0]):
+            h[j] = max(h[j], np.float32(0.0))
+        for layer in range(len(joint_weights)):
+            h = _dense_kernel(h, joint_weights[layer], joint_biases[layer], layer < len(joint_weights) - 1)
+        logits[b] = h
+    return logits
+
+
 _runs_kernel = kernel(_runs)
 _forward_kernel = kernel(_forward)
 _backward_kernel = kernel(_backward)
+actor_logits = kernel(_actor_logits)
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,9 @@ def _add_config_flags(train: argparse.ArgumentParser) -> None:
         f"({from_config('robot_episodes', 'intelligent_episodes', 'direct_episodes')} for robot / "
         "intelligent / direct)",
     )
-    add_worker_flags(train, "rollout workers", "rollout processes", from_config("workers"))
+    add_worker_flags(
+        train, "rollout workers", "rollout processes", f"{from_config('workers')}; 0: one per CPU"
+    )
     train.add_argument(
         "--copies",
         type=copies,

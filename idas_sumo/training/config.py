@@ -18,7 +18,14 @@ from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 from idas_sumo.sim.multinet import MAX_COPIES
+from idas_sumo.sim.processes import max_workers
 from idas_sumo.training.geometry import GeometryConfig
+
+EPISODES_PER_WORKER = 8
+"""With ``workers = 0``, a round's episodes per rollout process at least: a step's fixed costs (the engine's
+Python, SUMO's step, the actor's call) are shared by the episodes a process runs side by side, so a process
+with fewer would not earn its start (8 episodes of a stage-2 round took 0.6 of the CPU time of 16 in one
+process, docs/performance.md)."""
 
 __all__ = [
     "RESUME_FIELDS",
@@ -99,8 +106,10 @@ class TrainConfig:
     paper gives no batch size. Every shipped recipe uses 16: with 4, stage 2 drifted within 150 episodes)."""
     checkpoint_every: int = 1000
     """Write ``checkpoint.pt`` every this many episodes (also at every stage end and on Ctrl-C)."""
-    workers: int = 1
-    """Rollout processes; 1 collects in the training process. Results do not depend on it."""
+    workers: int = 0
+    """Rollout processes; 1 collects in the training process; 0 (the default): one per CPU this process may use,
+    at most one per ``EPISODES_PER_WORKER`` episodes of a round (``rollout_workers``). Results do not depend on
+    it."""
     copies: int = 16
     """Episodes a rollout worker runs side by side in one SUMO run (1 to MAX_COPIES). Results do not
     depend on it."""
@@ -130,7 +139,6 @@ class TrainConfig:
             "direct_episodes",
             "episodes_per_update",
             "checkpoint_every",
-            "workers",
             "validation_scenarios",
         ):
             if getattr(self, name) < 1:
@@ -153,7 +161,7 @@ class TrainConfig:
                 f"geometry.validation_geometries ({self.geometry.validation_geometries}) must be at most "
                 f"validation_scenarios ({self.validation_scenarios}): each validation merge needs a scenario"
             )
-        for name in ("seed", "validate_every", "validation_seed"):
+        for name in ("seed", "validate_every", "validation_seed", "workers"):
             if getattr(self, name) < 0:
                 raise ConfigValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if not 1 <= self.copies <= MAX_COPIES:
@@ -175,6 +183,17 @@ class TrainConfig:
                     f"{name}: {what} must be at most {STATE_SLOTS} "
                     f"(the critic's state has {STATE_SLOTS} vehicle slots)"
                 )
+
+    def rollout_workers(self, gui: bool = False) -> int:
+        """The rollout processes a run starts: ``workers``, or for 0 one per CPU this process may use
+        (``sim.processes.max_workers``) and per ``EPISODES_PER_WORKER`` episodes of a round (the stages'
+        budgets may be shorter than ``episodes_per_update``), at least one; 1 with ``gui`` (the rollouts show
+        in one window)."""
+        if self.workers:
+            return self.workers
+        budget = max(self.robot_episodes, self.intelligent_episodes, self.direct_episodes)
+        round_size = min(self.episodes_per_update, budget)
+        return 1 if gui else max(1, min(max_workers(), round_size // EPISODES_PER_WORKER))
 
     def with_overrides(
         self,

@@ -85,7 +85,7 @@ def run_training(
     (workers, copies, the stage budgets) from ``config``: a larger budget extends a finished run. Without
     ``resume``, an ``out_dir`` that holds files is refused unless ``force``, which first removes the
     files earlier runs recorded there (io_utils.output_directory); two runs never share it. ``gui`` shows the rollouts in sumo-gui (one worker only). ``ray_address``: the
-    rollout workers are ``config.workers`` Ray actors on that cluster (distributed/ray_pool.py; the
+    rollout workers are ``config.rollout_workers()`` Ray actors on that cluster (distributed/ray_pool.py; the
     learner stays here); the run is the same as with local workers. Ctrl-C saves a checkpoint of the
     completed rounds, then re-raises KeyboardInterrupt.
     """
@@ -127,7 +127,7 @@ def _train_in(
             site,
             config.env,
             config.seed,
-            config.workers,
+            config.rollout_workers(gui),
             config.copies,
             gui=gui,
             ray_address=ray_address,

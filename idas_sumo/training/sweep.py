@@ -259,7 +259,7 @@ def run_sweep(
     else:
         from idas_sumo.distributed.ray_pool import map_tasks, ray_session
 
-        cpus = max(run.config.workers for run in runs)
+        cpus = max(run.config.rollout_workers() for run in runs)
         done = None if on_run is None else (lambda i, row: on_run(row))
         with ray_session(ray_address, num_cpus=max(cpus, _local_cpus())):
             rows = map_tasks(_run_one, jobs, num_cpus=cpus, on_done=done)
