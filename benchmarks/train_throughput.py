@@ -56,6 +56,9 @@ def _config_text(init_from: str) -> str:
     a number any version reads (the flag sets it)."""
     default = DEFAULT_TRAIN_CONFIG.read_text(encoding="utf-8")
     default = re.sub(r"(?m)^workers = \d+", "workers = 1", default)
+    # q_horizon is newer than the baselines: both sides run the old code's Q target ("agent"), which the old
+    # code takes as given and the new one is told.
+    default = re.sub(r"(?m)^q_horizon = .*\n", "", default)
     return default.replace('init_from = ""', f"init_from = {json.dumps(init_from)}").replace(
         "checkpoint_every = 1000",
         f"checkpoint_every = {MAX_EPISODES}",  # never within a measurement
@@ -79,7 +82,10 @@ def run_train(
         env["PYTHONPATH"] = os.pathsep.join([str(code), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     with tempfile.TemporaryDirectory() as tmp:
         toml = Path(tmp) / "config.toml"
-        toml.write_text(_config_text(init_from), encoding="utf-8")
+        text = _config_text(init_from)
+        if code is not None and Path(code).resolve() == HERE:  # the new side of --against
+            text = text.replace("[learner]\n", '[learner]\nq_horizon = "agent"\n', 1)
+        toml.write_text(text, encoding="utf-8")
         run = Path(tmp) / "run"
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         subprocess.run(
