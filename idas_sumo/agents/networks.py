@@ -305,10 +305,10 @@ class _InferenceOperands:
 
         with torch.no_grad():
             conv = encoder._operands()
-            first, *later = [m for m in encoder.joint if isinstance(m, nn.Linear)]
+            first, *later = _linears(encoder.joint)
             idle = conv.bias.clamp(min=0.0).repeat(CONV_OUT_CELLS) @ conv.joint_conv_weight
             return cls(
-                scalars=pairs([m for m in encoder.scalars if isinstance(m, nn.Linear)]),
+                scalars=pairs(_linears(encoder.scalars)),
                 conv=(arr(conv.run_table), arr(conv.bias), arr(conv.joint_conv_weight)),
                 joint_scalars=arr(first.weight[:, :SCALAR_HIDDEN].t()),
                 joint_base=arr(first.bias + idle),
@@ -348,9 +348,8 @@ class Actor(nn.Module):
         times over). The same function; floats differ from ``forward``'s in the last bits (another summation
         order), and a row's logits do not depend on the other rows. The weights' operands are rebuilt when a
         weight changes (an optimiser step or ``load_state_dict`` bumps its version)."""
-        if (
-            self._params is None
-        ):  # the module's own tensors: an optimiser step or load_state_dict changes them in place
+        # The module's own tensors: optimiser steps and load_state_dict write into them in place.
+        if self._params is None:
             self._params = list(self.parameters())
         key = tuple((p.data_ptr(), p._version) for p in self._params)
         if self._inference is None or self._inference[0] != key:

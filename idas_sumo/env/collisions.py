@@ -36,7 +36,7 @@ def geometric_collisions(
     if n < 2:
         return []
     d = snap.dist_to_merge_m
-    copy = snap.copy if snap.copy is not None else _zeros(n)
+    copy = snap.copy if snap.copy is not None else np.zeros(n, dtype=np.int64)
     order = snap.by_distance.order  # by (copy, distance), shared with the step's relations and grids
     joined_past = np.asarray(joined_past_m, dtype=np.float64)
     if joined_past.shape != d.shape:  # one value for every car
@@ -60,10 +60,6 @@ def _contiguous(a: npt.NDArray[np.generic], dtype: type) -> npt.NDArray[np.gener
     if a.dtype == dtype and a.flags.c_contiguous:
         return a
     return np.ascontiguousarray(a, dtype=dtype)
-
-
-def _zeros(n: int) -> IntArray:
-    return np.zeros(n, dtype=np.int64)
 
 
 @kernel

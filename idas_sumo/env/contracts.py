@@ -63,22 +63,15 @@ class AgentBatch:
         """The observations of ``rows`` (None: every row), checked finite."""
         if not len(self.ids) or (rows is not None and not len(rows)):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
-        if rows is None:
-            egos, prev, b_prio, b_type = self.egos, self.prev_accel, self.b_prio, self.b_type
-        else:
-            egos, prev, b_prio, b_type = (
-                self.egos[rows],
-                self.prev_accel[rows],
-                self.b_prio[rows],
-                self.b_type[rows],
-            )
-        obs, scalars_finite = build_observations_checked(self.snapshot, egos, prev, b_prio, b_type)
+        sel = slice(None) if rows is None else rows  # a slice takes views: every row costs no copy
+        obs, scalars_finite = build_observations_checked(
+            self.snapshot, self.egos[sel], self.prev_accel[sel], self.b_prio[sel], self.b_type[sel]
+        )
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
         # scalars or the speeds are not is every entry tested.
         speed = self.snapshot.speed_mps
-        spread = (
-            float(speed.max() - speed.min()) if len(speed) else 0.0
-        )  # np.ptp's value, without its wrappers
+        # np.ptp's value, without its wrappers.
+        spread = float(speed.max() - speed.min()) if len(speed) else 0.0
         if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -77,6 +78,19 @@ from idas_sumo.sim.processes import SEED_LIMIT
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 _IMPEDE = REWARD_PART_NAMES.index("impede")
+
+
+class _RoadLayout(NamedTuple):
+    """``_read_snapshot``'s arrays for the cars on the road, kept while the same cars drive."""
+
+    vehicle: IntArray
+    """The backend's ``vehicle`` array they came from (the same object while the same cars drive)."""
+    cars: _Cars
+    car: IntArray
+    row: IntArray
+    origin: IntArray
+    controlled: npt.NDArray[np.bool_]
+    length_m: FloatArray
 
 
 class MergeEngine:
@@ -139,11 +153,7 @@ class MergeEngine:
         self._cars = _Cars.of((), lambda k, vid: vid)
         self._car = np.zeros(0, dtype=np.int64)
         """Each snapshot row's car (``_Cars``)."""
-        self._layout: (
-            tuple[IntArray, _Cars, IntArray, IntArray, IntArray, npt.NDArray[np.bool_], FloatArray] | None
-        ) = None
-        """``_read_snapshot``'s arrays for the cars on the road: (the backend's ``vehicle`` array they came
-        from, the ``_Cars`` of the episodes, car, row per car, origin, controlled, length)."""
+        self._layout: _RoadLayout | None = None
         self._agents: _Agents | None = None
         """``observe``'s agents while they stay the same (None: gather them again)."""
         self._batch: AgentBatch | None = None
@@ -368,7 +378,7 @@ class MergeEngine:
         layout = self._layout
         # What depends only on which cars are on the road is kept while they stay the same (a backend hands
         # out the same ``vehicle`` array then): most steps only read new positions and speeds.
-        if layout is None or layout[0] is not states.vehicle or layout[1] is not cars:
+        if layout is None or layout.vehicle is not states.vehicle or layout.cars is not cars:
             if n and int(states.vehicle.min()) < 0:
                 bad = states.ids[int(np.argmin(states.vehicle))]
                 raise SimulationError(f"vehicle {bad!r} on the road is from no scenario of the engine")
@@ -378,21 +388,14 @@ class MergeEngine:
             length = np.full(n, VEHICLE_LENGTH_M)
             for a in (car, row, length):
                 a.flags.writeable = False
-            layout = self._layout = (
-                states.vehicle,
-                cars,
-                car,
-                row,
-                cars.origin[car],
-                cars.controlled[car],
-                length,
+            layout = self._layout = _RoadLayout(
+                states.vehicle, cars, car, row, cars.origin[car], cars.controlled[car], length
             )
-        _, _, car, row, origin, controlled, length = layout
-        cars.row = row
-        self._car = car
-        origin, road, dist, limit = self._routes.place(states, origin)
+        cars.row = layout.row
+        self._car = layout.car
+        origin, road, dist, limit = self._routes.place(states, layout.origin)
         self._bounds = bounds
-        self._controlled = controlled
+        self._controlled = layout.controlled
         self._origin = origin
         self.snapshot = TrafficSnapshot(
             ids=states.ids,
@@ -400,7 +403,7 @@ class MergeEngine:
             dist_to_merge_m=dist,
             speed_mps=states.speed_mps,  # (fresh arrays of each read: nobody else holds them)
             accel_mps2=states.accel_mps2,
-            length_m=length,
+            length_m=layout.length_m,
             speed_limit_mps=limit,
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
