@@ -1,6 +1,6 @@
 """How many paper-suite scenarios hold a hard brake that a car's own mask forces on it before it could choose
 (issue 36, item 2), for each way of drawing later entries (``[traffic] entries``: "as_drawn", the shipped
-results' and the default; "feasible").
+results'; "feasible", the default).
 
 Runs ``idas-sumo evaluate`` on the paper suite (100 scenarios, seed 2019, the own-lane mask unless
 ``--safety-mask`` says otherwise) with ``--trajectories`` once per option, then reads every car's decisions:

@@ -7,7 +7,8 @@
 set -euo pipefail
 out=${1:-results}
 here=$(cd "$(dirname "$0")" && pwd)
-ev() { idas-sumo evaluate --force --no-progress "$@"; }
+# The generator these were drawn with (the default is now "feasible").
+ev() { idas-sumo evaluate --force --no-progress --config scenarios/eval_paper_as_drawn.toml "$@"; }
 # The labelled hypothesis idas_cooperative (r_finish falling in b_type): the driver-type sweep (diary, "Declared: a
 # reward that makes cooperativeness explicit"; docs/results.md, "Driver types").
 ev --baseline idas --policy "$here/policies/idas_cooperative.pt" --suite driver-types --seed 2019 \

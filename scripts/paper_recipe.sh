@@ -8,14 +8,15 @@
 # Every run continues with --resume where a checkpoint exists, so the script can be stopped (Ctrl-C saves a
 # checkpoint) and started again in another session; a finished run is left as it is. EPISODES (per stage)
 # shortens every run, for a smoke test: `bash scripts/paper_recipe.sh /tmp/paper_smoke 100`. SEEDS="0" runs
-# fewer seeds. All six runs: about 15-30 h on 2 cores (estimated: the shipped stage 2 ran 50,000 episodes in
-# 100 min; from random weights a 100-episode smoke ran 3-5 episodes/s on a shared machine, most of them timeouts).
+# fewer seeds; WORKERS=1 leaves the machine's other cores free. All six runs: about 15-30 h on 2 cores
+# (seed 0's curriculum ran 20,000 episodes in ~13 min, then stage 2 at ~16 episodes/s with one worker).
 set -euo pipefail
 out=${1:-runs/paper}
 episodes=${2:-}
 seeds=${SEEDS:-0 1 2}
 budget=()
 if [[ -n "$episodes" ]]; then budget=(--episodes "$episodes"); fi
+if [[ -n "${WORKERS:-}" ]]; then budget+=(--workers "$WORKERS"); fi
 
 train() { # STAGE SEED
   local dir="$out/$1_seed$2"

@@ -161,6 +161,10 @@ def test_a_replay_record_written_before_still_replays(tmp_path: Path) -> None:
 def test_a_new_replay_record_keeps_the_keys_of_the_old(tmp_path: Path, net_path: Path) -> None:
     out = tmp_path / "new"
     argv = ["evaluate", "--net", str(net_path), "--baseline", "idm", "--others", "idm", "--scenarios", "2"]
+    argv += [
+        "--config",
+        str(SCENARIO_DIR / "eval_paper_as_drawn.toml"),
+    ]  # the generator the record was drawn with
     assert (
         main([*argv, "--seed", "5", "--safety-mask", "merge_aware", "--out", str(out), "--no-progress"]) == 0
     )

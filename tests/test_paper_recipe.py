@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from idas_sumo.errors import InputError
-from idas_sumo.evaluation.protocol import load_eval_config
+from idas_sumo.evaluation.protocol import EvalConfig, load_eval_config
 from idas_sumo.resources import SCENARIO_DIR
 from idas_sumo.training.config import load_train_config
 
@@ -47,12 +47,13 @@ def test_the_recipe_is_the_papers_settings() -> None:
     assert config.validate_every > 0
 
 
-def test_the_feasible_evaluation_config_changes_only_the_entries() -> None:
+def test_the_default_draws_feasible_entries_and_as_drawn_is_a_named_config() -> None:
     paper = load_eval_config(SCENARIO_DIR / "eval_paper.toml")
-    feasible = load_eval_config(SCENARIO_DIR / "eval_paper_feasible.toml")
-    assert feasible.traffic.entries == "feasible" != paper.traffic.entries
+    as_drawn = load_eval_config(SCENARIO_DIR / "eval_paper_as_drawn.toml")
+    assert paper == EvalConfig()  # eval_paper.toml is the built-in defaults
+    assert paper.traffic.entries == "feasible" != as_drawn.traffic.entries
     assert (
-        dataclasses.replace(feasible, traffic=dataclasses.replace(feasible.traffic, entries="as_drawn"))
+        dataclasses.replace(as_drawn, traffic=dataclasses.replace(as_drawn.traffic, entries="feasible"))
         == paper
     )
 

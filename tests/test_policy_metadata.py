@@ -18,6 +18,7 @@ import torch
 from idas_sumo.evaluation.policies import LEARNED_METHODS
 from idas_sumo.io_utils import file_digest
 from idas_sumo.resources import POLICY_DIR, SCENARIO_DIR
+from idas_sumo.training.checkpoint import config_as_it_ran
 from idas_sumo.training.config import TrainConfig, train_config_from_dict
 
 SHIPPED = sorted(LEARNED_METHODS)
@@ -40,10 +41,11 @@ def test_the_package_ships_exactly_the_learned_methods_policies() -> None:
 
 
 def _stated_config(meta: dict[str, Any], ckpt: dict[str, Any]) -> tuple[TrainConfig, TrainConfig]:
-    """The config the JSON states and the one the checkpoint stores, both read as a recipe is (a key the
-    checkpoint lacks is its default; a retired key is accepted only at its old default). The central critic is
+    """The config the JSON states and the one the checkpoint stores, the latter read as ``--resume`` reads it (a
+    key the checkpoint lacks is the value the run used before the key existed, else its default; a retired key
+    is accepted only at its old default). The central critic is
     the stage's (training/curriculum.py), so the JSON records what the learner ran with."""
-    stored = train_config_from_dict(ckpt["config"], "checkpoint")
+    stored = train_config_from_dict(config_as_it_ran(ckpt["config"]), "checkpoint")
     ran_with = ckpt["learner"]["config"]["use_central_critic"]
     stored = dataclasses.replace(
         stored, learner=dataclasses.replace(stored.learner, use_central_critic=ran_with)
@@ -82,6 +84,21 @@ def test_metadata_agrees_with_its_checkpoint(name: str) -> None:
     # The learner's own state: what the weights were trained with (the imitation overrides the learning rates).
     for field in ("gamma", "alpha", "entropy_coef", "gae_lambda", "q_lambda", "normalize_advantages"):
         assert getattr(stated.learner, field) == ckpt["learner"]["config"][field], field
+
+
+def test_a_checkpoint_older_than_a_default_reads_as_it_ran() -> None:
+    """idas.pt predates ``q_horizon`` and ``entries``: it trained Q along its agent's steps, drew entries as drawn."""
+    ckpt = _checkpoint("idas")
+    assert (
+        "q_horizon" not in ckpt["config"]["learner"]
+        and "entries" not in ckpt["config"]["intelligent_traffic"]
+    )
+    stored = train_config_from_dict(config_as_it_ran(ckpt["config"]), "checkpoint")
+    assert stored.learner.q_horizon == "agent" and TrainConfig().learner.q_horizon == "episode"
+    assert stored.robot_traffic.entries == stored.intelligent_traffic.entries == "as_drawn"
+    assert TrainConfig().intelligent_traffic.entries == "feasible"
+    written = {**ckpt["config"], "learner": {**ckpt["config"]["learner"], "q_horizon": "episode"}}
+    assert config_as_it_ran(written)["learner"]["q_horizon"] == "episode"  # a written value stands
 
 
 def test_the_metadata_check_fails_on_a_wrong_claim() -> None:

@@ -26,17 +26,20 @@ from idas_sumo.evaluation.replay import (
     vehicle_colour,
     write_animation,
 )
+from idas_sumo.resources import SCENARIO_DIR
 
 SEED = 10
 SCENARIOS = 8
 """Seed 10's first 8 paper scenarios with IDM as the method and the shipped IDAS as the others hold
 both a collision and a perfect episode (the test below checks that they still do; each shipped IDAS changes
-the others' driving: seed 7 did for the smooth recipe's first pick, 6 for the FSM+IDM-start IDAS)."""
+the others' driving: seed 7 did for the smooth recipe's first pick, 6 for the FSM+IDM-start IDAS). Drawn with
+the "as_drawn" entries, which also checks that a replay keeps a non-default generator."""
 GIF_MAGIC = (b"GIF87a", b"GIF89a")
 
 
 def evaluate(out: Path, net: Path, *extra: str) -> None:
     args = ["evaluate", "--net", str(net), "--out", str(out), "--no-progress", "--seed", str(SEED)]
+    args += ["--config", str(SCENARIO_DIR / "eval_paper_as_drawn.toml")]
     assert main([*args, "--scenarios", str(SCENARIOS), *extra]) == 0
 
 
@@ -279,6 +282,7 @@ def test_replay_on_a_sample_net(tmp_path: Path, sample: str, junction: str | Non
     net = build_sample_net(sample, tmp_path / f"{sample}.net.xml")
     out = tmp_path / "out"
     args = ["evaluate", "--net", str(net), "--out", str(out), "--no-progress", "--seed", str(SEED)]
+    args += ["--config", str(SCENARIO_DIR / "eval_paper_as_drawn.toml")]
     args += ["--scenarios", "3", "--baseline", "idm", "--others", "idm"]
     if junction is not None:
         args += ["--junction", junction]

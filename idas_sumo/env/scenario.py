@@ -167,14 +167,14 @@ class TrafficConfig:
     its leader. Otherwise a car can start inside the safety mask's braking region: with the 15 m minimum
     gap, 25 of the first 40 paper-suite scenarios forced a hard brake in their first step, whatever the
     method (docs/design-notes.md). False: speeds as drawn."""
-    entries: Entries = "as_drawn"
-    """Ours. "as_drawn": a later entry is spaced and its speed capped against the car ahead assumed at constant
-    speed since its own start; when that car slowed, the entering car can start inside its own mask's braking
-    region and meet a forced hard brake before it has chosen anything (issue 36). "feasible": the car ahead is
-    assumed to have slowed as hard as it may without a hard brake (MIN_ACCEL_MPS2, down to
-    FEASIBLE_LEADER_FLOOR_MPS) since its start; the entry waits until that car would be
-    ``min_start_gap_m`` ahead, and enters no faster than IDM allows behind it. The shipped results were drawn
-    "as_drawn"."""
+    entries: Entries = "feasible"
+    """Ours (issue 36: an entering car must not start in a brake its own mask forces). "feasible": the car ahead
+    is assumed to have slowed as hard as it may without a hard brake (MIN_ACCEL_MPS2, down to
+    FEASIBLE_LEADER_FLOOR_MPS) since its start; the entry waits until that car would be ``min_start_gap_m``
+    ahead, and enters no faster than IDM allows behind it. "as_drawn" (the generator before issue 36, with
+    which the shipped policies were trained and most tables of docs/results.md drawn): the car ahead assumed
+    at constant speed since its own start; when it slowed, the entering car can start inside its own mask's
+    braking region and meet a forced hard brake before it has chosen anything."""
     p_main_priority: float = 0.8
     """Probability of priorities (main 1, merge 0); otherwise both roads share one priority, 1 or 0 with
     equal probability (paper L64, L275: equal priority is possible)."""

@@ -24,7 +24,7 @@ from idas_sumo.io_utils import atomic_open
 from idas_sumo.training.config import TrainConfig
 from idas_sumo.training.validation import ValidationScore
 
-__all__ = ["TrainingCheckpoint", "load_checkpoint", "save_checkpoint"]
+__all__ = ["TrainingCheckpoint", "config_as_it_ran", "load_checkpoint", "save_checkpoint"]
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True, eq=False)
@@ -50,14 +50,25 @@ class TrainingCheckpoint(PolicyCheckpoint):
 
     @classmethod
     def from_dict(cls, data: Any, path: Path) -> TrainingCheckpoint:
-        """As ``PolicyCheckpoint.from_dict``; a run saved before ``[learner] q_horizon`` existed trained Q along
-        each agent's own steps, so its config reads as 'agent' (a resumed run goes on as it ran)."""
+        """As ``PolicyCheckpoint.from_dict``; a run saved before a default changed reads as it ran, so a resumed
+        run goes on as it did: before ``[learner] q_horizon`` existed Q was trained along each agent's own steps
+        ('agent'), before ``entries`` existed later entries were drawn 'as_drawn'."""
         config = data.get("config") if isinstance(data, dict) else None
         if isinstance(config, dict):
-            learner = config.get("learner")
-            if isinstance(learner, dict) and "q_horizon" not in learner:
-                data = {**data, "config": {**config, "learner": {**learner, "q_horizon": "agent"}}}
+            data = {**data, "config": config_as_it_ran(config)}
         return super().from_dict(data, path)
+
+
+def config_as_it_ran(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` with the values of settings it predates: what the run used before they existed."""
+    legacy = {"learner": ("q_horizon", "agent"), "robot_traffic": ("entries", "as_drawn")}
+    legacy["intelligent_traffic"] = legacy["robot_traffic"]
+    config = dict(config)
+    for section, (key, value) in legacy.items():
+        table = config.get(section)
+        if isinstance(table, dict) and key not in table:
+            config[section] = {**table, key: value}
+    return config
 
 
 def save_checkpoint(path: Path, checkpoint: PolicyCheckpoint) -> None:
