@@ -2,7 +2,7 @@
 
     python scripts/training_blocks.py runs/idas_smooth_s2_anchor_seed0 runs/idas_smooth_s2_full_seed0 --block 5000
 
-One table per run: per block of ``--block`` episodes (by stage episode) the share of episodes in which every agent
+One pair of tables per run and stage: per block of ``--block`` episodes (by stage episode) the share of episodes in which every agent
 succeeded, that were perfect, that held a collision and that timed out, and the mean policy entropy; then every
 validation (success %, perfect %, joint return) with the run's best marked. What docs/results.md quotes for the
 stage-2 runs.
@@ -66,15 +66,18 @@ def main(argv: list[str] | None = None) -> int:
         if not metrics_path.is_file():
             print(f"training_blocks: {metrics_path}: no such file", file=sys.stderr)
             return 2
-        print(f"\n## {run}\n")
-        print(markdown(block_table(pd.read_csv(metrics_path), args.block)))
+        metrics = pd.read_csv(metrics_path)
         validation_path = run / VALIDATION_NAME
-        if validation_path.is_file():
-            v = pd.read_csv(validation_path)
-            v = v.assign(success=v["success_rate"] * 100, perfect=v["perfect_rate"] * 100)
-            cols = ["episode", "success", "perfect", "joint_return", "best"]
-            print()
-            print(markdown(v[cols]))
+        validation = pd.read_csv(validation_path) if validation_path.is_file() else None
+        # A curriculum run's stages count their episodes from 0 each: one pair of tables per stage.
+        for stage in metrics["stage"].unique():
+            print(f"\n## {run}: {stage}\n")
+            print(markdown(block_table(metrics[metrics["stage"] == stage], args.block)))
+            if validation is not None:
+                v = validation[validation["stage"] == stage]
+                v = v.assign(success=v["success_rate"] * 100, perfect=v["perfect_rate"] * 100)
+                print()
+                print(markdown(v[["episode", "success", "perfect", "joint_return", "best"]]))
     return 0
 
 
