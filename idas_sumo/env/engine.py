@@ -284,6 +284,15 @@ class MergeEngine:
         lo, hi = self._bounds[k], self._bounds[k + 1]
         return slice(int(lo), int(hi))
 
+    def car_index(self, k: int, vehicle_id: str) -> int:
+        """Slot k's ``vehicle_id`` as a car of this episode's cars (for ``car_rows``; KeyError: not in its
+        scenario)."""
+        return self._car_of(k, vehicle_id)
+
+    def car_rows(self, cars: IntArray) -> IntArray:
+        """Each car's row in ``snapshot`` (-1: not on the road): ``row`` for many cars at once."""
+        return self._cars.row[cars]
+
     def row(self, k: int, vehicle_id: str) -> int | None:
         """``vehicle_id``'s row in ``snapshot`` (None: not on the road)."""
         i = self.slots[k].order.get(vehicle_id)

@@ -54,6 +54,8 @@ next wave (its ego ended, or never got to act)."""
 
 Obs = npt.NDArray[np.float32]
 _ROAD_NAMES = np.array(ROAD_NAMES, dtype=object)
+_PLACEHOLDER = placeholder_mask()
+_PLACEHOLDER.flags.writeable = False
 
 
 class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
@@ -116,6 +118,8 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         self._last_obs = np.zeros((num_envs, OBS_DIM), dtype=np.float32)
         self._batch: AgentBatch | None = None
         self._ego_row = np.full(num_envs, -1, dtype=np.int64)
+        self._ego_car = np.zeros(num_envs, dtype=np.int64)
+        """Each world's ego as the engine's car (``MergeEngine.car_rows``), fixed for a wave."""
         self._released = np.ones(num_envs, dtype=np.bool_)
 
     # -- episodes ----------------------------------------------------------------------------------
@@ -160,22 +164,24 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         drawn = [self._draw(k) for k in range(self.num_envs)]
         self.egos = [ego for _, ego in drawn]
         self.engine.reset([s for s, _ in drawn])
+        self._ego_car = np.array([self.engine.car_index(k, ego) for k, ego in enumerate(self.egos)], np.int64)
         self._phase[:] = _PRE
         self._released[:] = False
 
     def _observe(self) -> list[int]:
         """Read the engine's agents; returns the worlds whose ego entered now (their reset step)."""
         batch = self._batch = self.engine.observe()
-        self._ego_row[:] = -1
+        ego_row = self._ego_row
+        ego_row[:] = -1
         if self.others is None:  # only the egos are agents
-            self._ego_row[batch.copy] = np.arange(len(batch))
+            ego_row[batch.copy] = np.arange(len(batch))
         elif len(batch):
-            index = np.full(len(batch.snapshot), -1, dtype=np.int64)  # snapshot row -> batch row
+            index = np.empty(len(batch.snapshot), dtype=np.int64)  # snapshot row -> batch row
+            index.fill(-1)
             index[batch.egos] = np.arange(len(batch))
-            for k in range(self.num_envs):
-                row = self.engine.row(k, self.egos[k]) if self._phase[k] != _DONE else None
-                if row is not None:
-                    self._ego_row[k] = index[row]
+            rows = self.engine.car_rows(self._ego_car)  # each ego's snapshot row (-1: not on the road)
+            on = (rows >= 0) & (self._phase != _DONE)
+            ego_row[on] = index[rows[on]]
         started = []
         for k in np.flatnonzero(self._phase == _PRE).tolist():
             if self._ego_row[k] >= 0:
@@ -204,8 +210,8 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     def _release_over(self) -> None:
         """Over slots leave SUMO, so that they cost nothing until the next wave."""
-        for k in range(len(self.engine.slots)):
-            if not self._released[k] and self.engine.over(k):
+        for k in np.flatnonzero(~self._released[: len(self.engine.slots)]).tolist():
+            if self.engine.over(k):
                 self.engine.release_slot(k)
                 self._released[k] = True
 
@@ -271,44 +277,58 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         """The step's five outputs. ``stepped``: (world, its ego's row in ``result``) for the worlds whose
         ego acted; ``started``: the worlds whose ego entered (their reset step)."""
         n = self.num_envs
-        obs = np.zeros((n, OBS_DIM), dtype=np.float32)
-        rewards = np.zeros(n, dtype=np.float64)
-        reasons = np.full(n, "", dtype=object)
-        self._masks[:] = placeholder_mask()
         batch = self._batch
         assert batch is not None
-        live = [k for k, _ in stepped if self._phase[k] == _ACTING] + started
+        phase = self._phase.tolist()
+        worlds = [k for k, _ in stepped]
+        live = [k for k in worlds if phase[k] == _ACTING] + started
+        obs = np.zeros((n, OBS_DIM), dtype=np.float32)
+        masks = self._masks
+        masks[:] = _PLACEHOLDER
         if live:
             rows = self._ego_row[live]
-            obs[live] = self._ego_observations(batch, rows)
-            self._masks[live] = batch.masks[rows]
-        worlds = np.array([k for k, _ in stepped], dtype=np.int64)
+            new = self._ego_observations(batch, rows)
+            obs[live] = new
+            self._last_obs[live] = new  # (an ended world is never live: it kept its last one)
+            masks[live] = batch.masks[rows]
+        rewards = np.zeros(n, dtype=np.float64)
         parts = np.zeros((n, len(result.part_names) if result is not None else 0))
-        if result is not None and len(worlds):
-            ego_rows = np.array([r for _, r in stepped], dtype=np.int64)
+        reasons = [""] * n
+        ended: list[int] = []
+        if result is not None and worlds:
+            ego_rows = [r for _, r in stepped]
             rewards[worlds] = result.rewards[ego_rows]
             parts[worlds] = result.reward_parts[ego_rows]
-            reasons[worlds] = [result.end_reason[r] for r in ego_rows.tolist()]
-        ended = reasons != ""
-        obs[ended] = self._last_obs[ended]  # as MergeEnv: the observation the ego last acted on
-        self._last_obs[live] = obs[live]
-        terminated = ended & (reasons != "timeout")
-        truncated = reasons == "timeout"
+            end_reason = result.end_reason
+            for k, r in stepped:
+                if end_reason[r]:
+                    reasons[k] = end_reason[r]
+                    ended.append(k)
+        terminated = np.zeros(n, dtype=np.bool_)
+        truncated = np.zeros(n, dtype=np.bool_)
+        if ended:
+            obs[ended] = self._last_obs[ended]  # as MergeEnv: the observation the ego last acted on
+            for k in ended:
+                (truncated if reasons[k] == "timeout" else terminated)[k] = True
         idle = np.ones(n, dtype=np.bool_)
         idle[live] = False
         idle[ended] = False
-        infos = self._infos(idle, worlds, parts, reasons, result)
+        infos = self._infos(idle, live, ended, worlds, parts, reasons, result)
         return obs, rewards, terminated, truncated, infos
 
     def _infos(
         self,
         idle: npt.NDArray[np.bool_],
-        stepped: npt.NDArray[np.int64],
+        live: list[int],
+        ended: list[int],
+        stepped: list[int],
         parts: npt.NDArray[np.float64],
-        reasons: npt.NDArray[Any],
+        reasons: list[str],
         result: StepResult | None,
     ) -> dict[str, Any]:
-        """MergeEnv's info of each world, batched as Gymnasium's vector envs do (``_key``: who has ``key``)."""
+        """MergeEnv's info of each world, batched as Gymnasium's vector envs do (``_key``: who has ``key``).
+        ``live``: the worlds whose ego acts now, ``ended``: those whose episode ended in this step (the
+        others are idle)."""
         n = self.num_envs
         everyone = np.ones(n, dtype=np.bool_)
         infos: dict[str, Any] = {
@@ -319,14 +339,13 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         }
         acting = ~idle
         values: dict[str, npt.NDArray[Any]] = {
-            "ego": np.full(n, None, dtype=object),
+            "ego": np.empty(n, dtype=object),  # (None where unset)
             "speed_mps": np.zeros(n),
             "accel_mps2": np.zeros(n),
             "dist_to_merge_m": np.zeros(n),
-            "road": np.full(n, None, dtype=object),
+            "road": np.empty(n, dtype=object),
         }
-        live = acting & (self._phase == _ACTING)  # on the road and acting: read from the batch
-        if live.any():
+        if live:  # on the road and acting: read from the batch
             batch = self._batch
             assert batch is not None
             rows = self._ego_row[live]
@@ -336,24 +355,29 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             values["accel_mps2"][live] = batch.prev_accel[rows]
             values["dist_to_merge_m"][live] = snap.dist_to_merge_m[egos]
             values["road"][live] = _ROAD_NAMES[snap.road[egos]]
-        for k in np.flatnonzero(acting).tolist():
-            values["ego"][k] = self.egos[k]
-            if not live[k]:  # its episode ended in this step (agent_info: also when it left the road)
-                for key, v in agent_info(self.engine, k, self.egos[k]).items():
-                    values[key][k] = v
+        ego = values["ego"]
+        for k in (*live, *ended):
+            ego[k] = self.egos[k]
+        for k in ended:  # its episode ended in this step (agent_info: also when it left the road)
+            for key, v in agent_info(self.engine, k, self.egos[k]).items():
+                values[key][k] = v
         for key, v in values.items():
             infos[key], infos[f"_{key}"] = v, acting
-        if result is not None and len(stepped):
+        if result is not None and stepped:
             has = np.zeros(n, dtype=np.bool_)
             has[stepped] = True
             named: dict[str, Any] = {}
+            columns = np.ascontiguousarray(parts.T)  # (one copy: each part's column a row of it)
             for j, name in enumerate(result.part_names):
-                named[name], named[f"_{name}"] = parts[:, j].copy(), has
+                named[name], named[f"_{name}"] = columns[j], has
             infos["reward_parts"], infos["_reward_parts"] = named, has
-            ended = reasons != ""
-            if ended.any():
-                infos["end_reason"] = np.where(ended, reasons, np.full(len(reasons), None, dtype=object))
-                infos["_end_reason"] = ended
+            if ended:
+                end_reason = np.empty(n, dtype=object)
+                for k in ended:
+                    end_reason[k] = reasons[k]
+                has_end = np.zeros(n, dtype=np.bool_)
+                has_end[ended] = True
+                infos["end_reason"], infos["_end_reason"] = end_reason, has_end
         return infos
 
     def _ego_observations(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> Obs:
