@@ -39,7 +39,7 @@ from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_sn
 from idas_sumo.env.collisions import geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.front_cars import front_cars
+from idas_sumo.env.front_cars import front_cars, own_lane_action_masks
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
@@ -483,6 +483,8 @@ class MergeEngine:
         if len(egos) == 0:
             return np.zeros((0, N_ACTIONS), dtype=np.int8)
         snap = self.snapshot
+        if self.config.safety_mask == "own_lane":  # (the default: one compiled call)
+            return own_lane_action_masks(snap, egos, prev)
         gap, leader_speed, ease_in = self.front_cars(egos)
         return action_masks(
             MaskInputs(
@@ -628,9 +630,12 @@ class MergeEngine:
     def _terminate(self, batch: AgentBatch, agents: _Agents, code: IntArray) -> tuple[str, ...]:
         """End the agents whose code says so: their outcome's end reason, and a finished car leaves our
         control (SUMO drives it off). Returns every agent's end reason ('' while it goes on)."""
-        reasons = tuple(_REASON_BY_CODE[c] for c in code.tolist())
+        codes = code.tolist()
+        reasons = tuple(map(_REASON_BY_CODE.__getitem__, codes))
+        if not any(codes):  # (nearly every step)
+            return reasons
         copies = batch.copy.tolist()
-        for i in np.flatnonzero(code).tolist():
+        for i in [i for i, c in enumerate(codes) if c]:
             a, k, reason = batch.ids[i], copies[i], reasons[i]
             out = self.slots[k].outcome
             out.end_reasons[a] = reason
