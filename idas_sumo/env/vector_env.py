@@ -119,6 +119,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         self._batch: AgentBatch | None = None
         self._ego_row = np.full(num_envs, -1, dtype=np.int64)
         self._ego_car = np.zeros(num_envs, dtype=np.int64)
+        self._worlds = list(range(num_envs))
         """Each world's ego as the engine's car (``MergeEngine.car_rows``), fixed for a wave."""
         self._released = np.ones(num_envs, dtype=np.bool_)
 
@@ -210,6 +211,8 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     def _release_over(self) -> None:
         """Over slots leave SUMO, so that they cost nothing until the next wave."""
+        if self._released[: len(self.engine.slots)].all():  # (every step once the wave's worlds left)
+            return
         for k in np.flatnonzero(~self._released[: len(self.engine.slots)]).tolist():
             if self.engine.over(k):
                 self.engine.release_slot(k)
@@ -233,10 +236,11 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         assert batch is not None
         self._release_over()
         actions = np.zeros(len(batch), dtype=np.int64)
-        acting = np.flatnonzero(self._phase == _ACTING)
+        acting = self._phase == _ACTING
+        ego_rows = self._ego_row[acting]
         is_ego = np.zeros(len(batch), dtype=np.bool_)
-        is_ego[self._ego_row[acting]] = True
-        actions[self._ego_row[acting]] = ego_actions[acting]
+        is_ego[ego_rows] = True
+        actions[ego_rows] = ego_actions[acting]
         rows = np.flatnonzero(~is_ego)
         if len(rows):
             assert self.others is not None
@@ -282,15 +286,21 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         phase = self._phase.tolist()
         worlds = [k for k, _ in stepped]
         live = [k for k in worlds if phase[k] == _ACTING] + started
-        obs = np.zeros((n, OBS_DIM), dtype=np.float32)
         masks = self._masks
-        masks[:] = _PLACEHOLDER
-        if live:
-            rows = self._ego_row[live]
-            new = self._ego_observations(batch, rows)
-            obs[live] = new
-            self._last_obs[live] = new  # (an ended world is never live: it kept its last one)
-            masks[live] = batch.masks[rows]
+        if live == self._worlds:  # every world's ego acts (most steps): the egos' observations are obs
+            rows = self._ego_row
+            obs = self._ego_observations(batch, rows)
+            self._last_obs[:] = obs
+            masks[:] = batch.masks[rows]
+        else:
+            obs = np.zeros((n, OBS_DIM), dtype=np.float32)
+            masks[:] = _PLACEHOLDER
+            if live:
+                rows = self._ego_row[live]
+                new = self._ego_observations(batch, rows)
+                obs[live] = new
+                self._last_obs[live] = new  # (an ended world is never live: it kept its last one)
+                masks[live] = batch.masks[rows]
         rewards = np.zeros(n, dtype=np.float64)
         parts = np.zeros((n, len(result.part_names) if result is not None else 0))
         reasons = [""] * n
