@@ -661,10 +661,10 @@ class MergeEngine:
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
         first_action = ~cars.scored[agents.car]
-        scored = np.flatnonzero(scores.rewards)
+        scored = scores.rewards.nonzero()[0]
         if first_action.any() or len(scored):
             copies = batch.copy.tolist()
-            for i in np.flatnonzero(first_action).tolist():
+            for i in first_action.nonzero()[0].tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
             cars.scored[agents.car] = True
             for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):

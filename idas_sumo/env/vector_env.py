@@ -121,7 +121,8 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         self._ego_car = np.zeros(num_envs, dtype=np.int64)
         self._worlds = list(range(num_envs))
         """Each world's ego as the engine's car (``MergeEngine.car_rows``), fixed for a wave."""
-        self._released = np.ones(num_envs, dtype=np.bool_)
+        self._unreleased: list[int] = []
+        """The worlds whose slot is still in SUMO (``_release_over``), in order."""
 
     # -- episodes ----------------------------------------------------------------------------------
     def reset(
@@ -167,7 +168,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         self.engine.reset([s for s, _ in drawn])
         self._ego_car = np.array([self.engine.car_index(k, ego) for k, ego in enumerate(self.egos)], np.int64)
         self._phase[:] = _PRE
-        self._released[:] = False
+        self._unreleased = list(range(len(self.engine.slots)))
 
     def _observe(self) -> list[int]:
         """Read the engine's agents; returns the worlds whose ego entered now (their reset step)."""
@@ -184,7 +185,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             on = (rows >= 0) & (self._phase != _DONE)
             ego_row[on] = index[rows[on]]
         started = []
-        for k in np.flatnonzero(self._phase == _PRE).tolist():
+        for k in (self._phase == _PRE).nonzero()[0].tolist():
             if self._ego_row[k] >= 0:
                 self._phase[k] = _ACTING
                 self._attempts[k] = 0
@@ -211,12 +212,12 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     def _release_over(self) -> None:
         """Over slots leave SUMO, so that they cost nothing until the next wave."""
-        if self._released[: len(self.engine.slots)].all():  # (every step once the wave's worlds left)
+        if not self._unreleased:  # (every step once the wave's worlds left)
             return
-        for k in np.flatnonzero(~self._released[: len(self.engine.slots)]).tolist():
-            if self.engine.over(k):
-                self.engine.release_slot(k)
-                self._released[k] = True
+        slots = self.engine.slots
+        for k in [k for k in self._unreleased if slots[k].over]:
+            self.engine.release_slot(k)
+            self._unreleased.remove(k)
 
     def _advance(self) -> list[int]:
         """No world acts: let time run (the others drive) until an ego enters; a new wave once every
@@ -241,7 +242,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         is_ego = np.zeros(len(batch), dtype=np.bool_)
         is_ego[ego_rows] = True
         actions[ego_rows] = ego_actions[acting]
-        rows = np.flatnonzero(~is_ego)
+        rows = (~is_ego).nonzero()[0]
         if len(rows):
             assert self.others is not None
             actions[rows] = self.others.act(batch, rows)
@@ -258,7 +259,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             raise ValueError(
                 f"actions of shape {acts.shape} for {self.num_envs} worlds: expected ({self.num_envs},)"
             )
-        acting = np.flatnonzero(self._phase == _ACTING).tolist()
+        acting = (self._phase == _ACTING).nonzero()[0].tolist()
         if not acting:
             return self._outputs([], self._advance(), None)
         batch = self._batch

@@ -59,6 +59,15 @@ ROBOT_DECEL_MPS2 = 2.0  # comfortable; a robot braking harder than HARD_BRAKE_DE
 VEHICLE_LENGTH_M = 5.0  # every car, controlled or not (the route file's vTypes)
 
 
+def _swig() -> Any:
+    """``libsumo._libsumo`` (libsumo's SWIG functions): ``import libsumo`` costs a dictionary lookup once
+    loaded, where ``from libsumo import _libsumo`` inside a function goes through importlib every call
+    (about 1 µs, twice a step)."""
+    import libsumo
+
+    return libsumo._libsumo
+
+
 class RouteVehicle(Protocol):
     """What the route file needs of one vehicle (``env.scenario.VehicleSpec`` has it)."""
 
@@ -405,7 +414,8 @@ class SumoBackend:
     def set_speed_list(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
         """``set_speeds`` with the ids and their speeds as two lists (what the engine has at hand)."""
         import libsumo
-        from libsumo import _libsumo
+
+        _libsumo = _swig()
 
         for vid, speed in zip(vehicle_ids, speeds_mps, strict=True):
             if not math.isfinite(speed) or speed < 0:
@@ -466,7 +476,7 @@ class SumoBackend:
     def vehicle_states(self) -> VehicleStates:
         """Every vehicle's edge, lane position, speed and acceleration: the plain getters through libsumo's
         SWIG functions, ``map`` into ``np.fromiter`` (``BatchBackend.vehicle_states``' reader)."""
-        from libsumo import _libsumo
+        _libsumo = _swig()
 
         ids = _libsumo.vehicle_getIDList()
         n = len(ids)
