@@ -675,19 +675,23 @@ class MergeEngine:
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
         timed_out = self.timed_out()
-        for k, slot in enumerate(self.slots):
+        copy_events = events.copies
+        for k, slot in enumerate(self.slots):  # (counts that are 0 are not added: most are, most steps)
             if slot.over:
                 continue
-            ev = events.copies[k]
+            ev = copy_events[k]
             # Collisions count in every running episode, also while it waits for its next car to enter.
             out = slot.outcome
-            out.collisions += len(ev.collision_pairs)
+            if ev.collision_pairs:
+                out.collisions += len(ev.collision_pairs)
             if acting_list[k]:
-                out.hard_brakes += hard_brakes[k]
-                out.hard_brakes_merge_zone += zone_brakes[k]
+                if hard_brakes[k]:  # (the merging zone's are some of them)
+                    out.hard_brakes += hard_brakes[k]
+                    out.hard_brakes_merge_zone += zone_brakes[k]
                 out.decision_steps += 1
                 out.agent_steps += agents_per_copy[k]
-                out.impedes += impedes[k]
+                if impedes[k]:
+                    out.impedes += impedes[k]
             added = self._admit(k, ev) if ev.departed else 0
             active = active_per_copy[k] + added > 0
             if timed_out or not active or not slot.started:  # (else _settle has nothing to do)

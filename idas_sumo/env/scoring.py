@@ -146,8 +146,8 @@ def _quiet(n: int, copies: int) -> Scores:
     """``score`` of the paper's four terms in a step where no agent ended, no hard brake had a car ahead
     and none was in the merging zone (most steps): what the terms give then, bit for bit (impede and flow
     are -5·0 and -1·0, i.e. -0.0; every sum 0.0), without calling them."""
-    parts = np.zeros((n, len(REWARD_PART_NAMES)))
-    parts[:, _SIGNED_ZERO_PARTS] = -0.0
+    parts = np.empty((n, len(REWARD_PART_NAMES)))
+    parts[:] = _QUIET_PARTS
     return Scores(parts, np.zeros(n), np.zeros(copies))
 
 
@@ -200,4 +200,5 @@ register_reward_term("collide", _collide)
 register_reward_term("impede", _impede)
 register_reward_term("flow", _flow, shared=True)
 assert tuple(_TERMS) == REWARD_PART_NAMES
-_SIGNED_ZERO_PARTS = [REWARD_PART_NAMES.index("impede"), REWARD_PART_NAMES.index("flow")]
+_QUIET_PARTS = np.array([-0.0 if name in ("impede", "flow") else 0.0 for name in REWARD_PART_NAMES])
+_QUIET_PARTS.flags.writeable = False

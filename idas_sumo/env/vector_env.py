@@ -55,6 +55,7 @@ next wave (its ego ended, or never got to act)."""
 Obs = npt.NDArray[np.float32]
 _ROAD_NAMES = np.array(ROAD_NAMES, dtype=object)
 _PLACEHOLDER = placeholder_mask()
+_NO_ROWS = np.zeros(0, dtype=np.int64)
 _PLACEHOLDER.flags.writeable = False
 
 
@@ -146,7 +147,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         started = self._observe()
         if not started:
             started = self._advance()
-        obs, _, _, _, infos = self._outputs([], started, None)
+        obs, _, _, _, infos = self._outputs([], _NO_ROWS, started, None)
         return obs, infos
 
     def _draw(self, k: int) -> tuple[Scenario, str]:
@@ -261,7 +262,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             )
         acting = (self._phase == _ACTING).nonzero()[0].tolist()
         if not acting:
-            return self._outputs([], self._advance(), None)
+            return self._outputs([], _NO_ROWS, self._advance(), None)
         batch = self._batch
         ego_actions = np.zeros(self.num_envs, dtype=np.int64)
         if acts.dtype.kind in "iu" and ((acts >= 0) & (acts < N_ACTIONS)).all():
@@ -274,21 +275,25 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         ended = [k for k, r in zip(acting, rows.tolist(), strict=True) if result.end_reason[r]]
         self._phase[ended] = _DONE
         started = self._observe()
-        return self._outputs(list(zip(acting, rows.tolist(), strict=True)), started, result)
+        return self._outputs(acting, rows, started, result)
 
     def _outputs(
-        self, stepped: list[tuple[int, int]], started: list[int], result: StepResult | None
+        self,
+        worlds: list[int],
+        ego_rows: npt.NDArray[np.int64],
+        started: list[int],
+        result: StepResult | None,
     ) -> tuple[Obs, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]]:
-        """The step's five outputs. ``stepped``: (world, its ego's row in ``result``) for the worlds whose
-        ego acted; ``started``: the worlds whose ego entered (their reset step)."""
+        """The step's five outputs. ``worlds``: those whose ego acted, ``ego_rows``: their egos' rows in
+        ``result``; ``started``: the worlds whose ego entered (their reset step)."""
         n = self.num_envs
         batch = self._batch
         assert batch is not None
         phase = self._phase.tolist()
-        worlds = [k for k, _ in stepped]
         live = [k for k in worlds if phase[k] == _ACTING] + started
+        everyone_lives = live == self._worlds  # every world's ego acts (most steps): no scatter anywhere
         masks = self._masks
-        if live == self._worlds:  # every world's ego acts (most steps): the egos' observations are obs
+        if everyone_lives:
             rows = self._ego_row
             obs = self._ego_observations(batch, rows)
             self._last_obs[:] = obs
@@ -302,28 +307,36 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
                 obs[live] = new
                 self._last_obs[live] = new  # (an ended world is never live: it kept its last one)
                 masks[live] = batch.masks[rows]
-        rewards = np.zeros(n, dtype=np.float64)
-        parts = np.zeros((n, len(result.part_names) if result is not None else 0))
         reasons = [""] * n
         ended: list[int] = []
-        if result is not None and worlds:
-            ego_rows = [r for _, r in stepped]
-            rewards[worlds] = result.rewards[ego_rows]
-            parts[worlds] = result.reward_parts[ego_rows]
+        if result is None or not worlds:
+            rewards = np.zeros(n, dtype=np.float64)
+            parts = np.zeros((n, len(result.part_names) if result is not None else 0))
+        else:
+            if worlds == self._worlds:
+                rewards, parts = result.rewards[ego_rows], result.reward_parts[ego_rows]
+            else:
+                rewards = np.zeros(n, dtype=np.float64)
+                parts = np.zeros((n, len(result.part_names)))
+                rewards[worlds] = result.rewards[ego_rows]
+                parts[worlds] = result.reward_parts[ego_rows]
             end_reason = result.end_reason
-            for k, r in stepped:
+            for k, r in zip(worlds, ego_rows.tolist(), strict=True):
                 if end_reason[r]:
                     reasons[k] = end_reason[r]
                     ended.append(k)
         terminated = np.zeros(n, dtype=np.bool_)
         truncated = np.zeros(n, dtype=np.bool_)
-        if ended:
-            obs[ended] = self._last_obs[ended]  # as MergeEnv: the observation the ego last acted on
-            for k in ended:
-                (truncated if reasons[k] == "timeout" else terminated)[k] = True
-        idle = np.ones(n, dtype=np.bool_)
-        idle[live] = False
-        idle[ended] = False
+        if everyone_lives:  # (and so nobody ended)
+            idle = np.zeros(n, dtype=np.bool_)
+        else:
+            if ended:
+                obs[ended] = self._last_obs[ended]  # as MergeEnv: the observation the ego last acted on
+                for k in ended:
+                    (truncated if reasons[k] == "timeout" else terminated)[k] = True
+            idle = np.ones(n, dtype=np.bool_)
+            idle[live] = False
+            idle[ended] = False
         infos = self._infos(idle, live, ended, worlds, parts, reasons, result)
         return obs, rewards, terminated, truncated, infos
 
@@ -349,31 +362,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             "_idle": everyone,
         }
         acting = ~idle
-        values: dict[str, npt.NDArray[Any]] = {
-            "ego": np.empty(n, dtype=object),  # (None where unset)
-            "speed_mps": np.zeros(n),
-            "accel_mps2": np.zeros(n),
-            "dist_to_merge_m": np.zeros(n),
-            "road": np.empty(n, dtype=object),
-        }
-        if live:  # on the road and acting: read from the batch
-            batch = self._batch
-            assert batch is not None
-            rows = self._ego_row[live]
-            egos = batch.egos[rows]
-            snap = batch.snapshot
-            values["speed_mps"][live] = snap.speed_mps[egos]
-            values["accel_mps2"][live] = batch.prev_accel[rows]
-            values["dist_to_merge_m"][live] = snap.dist_to_merge_m[egos]
-            values["road"][live] = _ROAD_NAMES[snap.road[egos]]
-        ego = values["ego"]
-        for k in (*live, *ended):
-            ego[k] = self.egos[k]
-        for k in ended:  # its episode ended in this step (agent_info: also when it left the road)
-            for key, v in agent_info(self.engine, k, self.egos[k]).items():
-                values[key][k] = v
-        for key, v in values.items():
-            infos[key], infos[f"_{key}"] = v, acting
+        infos.update(self._ego_values(live, ended, acting))
         if result is not None and stepped:
             has = np.zeros(n, dtype=np.bool_)
             has[stepped] = True
@@ -384,12 +373,55 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             infos["reward_parts"], infos["_reward_parts"] = named, has
             if ended:
                 end_reason = np.empty(n, dtype=object)
+                has_end = np.zeros(n, dtype=np.bool_)
                 for k in ended:
                     end_reason[k] = reasons[k]
-                has_end = np.zeros(n, dtype=np.bool_)
-                has_end[ended] = True
+                    has_end[k] = True
                 infos["end_reason"], infos["_end_reason"] = end_reason, has_end
         return infos
+
+    def _ego_values(self, live: list[int], ended: list[int], acting: npt.NDArray[np.bool_]) -> dict[str, Any]:
+        """The info's ego, speed, acceleration, distance and road of the acting worlds (``agent_info``'s
+        values), each with its ``_key`` (``acting``)."""
+        n = self.num_envs
+        batch = self._batch
+        assert batch is not None
+        snap = batch.snapshot
+        if live == self._worlds:  # every world's ego on the road and acting (most steps)
+            rows = self._ego_row
+            egos = batch.egos[rows]
+            values: dict[str, npt.NDArray[Any]] = {
+                "ego": np.array(self.egos, dtype=object),
+                "speed_mps": snap.speed_mps[egos],
+                "accel_mps2": batch.prev_accel[rows],
+                "dist_to_merge_m": snap.dist_to_merge_m[egos],
+                "road": _ROAD_NAMES[snap.road[egos]],
+            }
+        else:
+            values = {
+                "ego": np.empty(n, dtype=object),  # (None where unset)
+                "speed_mps": np.zeros(n),
+                "accel_mps2": np.zeros(n),
+                "dist_to_merge_m": np.zeros(n),
+                "road": np.empty(n, dtype=object),
+            }
+            if live:  # on the road and acting: read from the batch
+                rows = self._ego_row[live]
+                egos = batch.egos[rows]
+                values["speed_mps"][live] = snap.speed_mps[egos]
+                values["accel_mps2"][live] = batch.prev_accel[rows]
+                values["dist_to_merge_m"][live] = snap.dist_to_merge_m[egos]
+                values["road"][live] = _ROAD_NAMES[snap.road[egos]]
+            ego = values["ego"]
+            for k in (*live, *ended):
+                ego[k] = self.egos[k]
+            for k in ended:  # its episode ended in this step (agent_info: also when it left the road)
+                for key, v in agent_info(self.engine, k, self.egos[k]).items():
+                    values[key][k] = v
+        out: dict[str, Any] = {}
+        for key, v in values.items():
+            out[key], out[f"_{key}"] = v, acting
+        return out
 
     def _ego_observations(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> Obs:
         """The egos' observations: only theirs are built when other agents share the batch."""
