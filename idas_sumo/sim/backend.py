@@ -417,11 +417,16 @@ class SumoBackend:
 
         _libsumo = _swig()
 
-        for vid, speed in zip(vehicle_ids, speeds_mps, strict=True):
-            if not math.isfinite(speed) or speed < 0:
-                raise SimulationError(
-                    f"invalid speed command {speed!r} for vehicle {vid!r} (a bug, not an input)"
-                )
+        # A finite sum has no NaN or inf, and then the minimum is >= 0 (-0.0 too) exactly when every speed
+        # is; only otherwise is each speed looked at, to name the bad one.
+        if len(speeds_mps) != len(vehicle_ids) or (
+            speeds_mps and not (math.isfinite(sum(speeds_mps)) and min(speeds_mps) >= 0)
+        ):
+            for vid, speed in zip(vehicle_ids, speeds_mps, strict=True):
+                if not math.isfinite(speed) or speed < 0:
+                    raise SimulationError(
+                        f"invalid speed command {speed!r} for vehicle {vid!r} (a bug, not an input)"
+                    )
         try:  # the common case in one pass, through libsumo's SWIG function (as BatchBackend does)
             deque(map(_libsumo.vehicle_setSpeed, vehicle_ids, speeds_mps), maxlen=0)
         except libsumo.TraCIException:
