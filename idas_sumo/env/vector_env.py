@@ -265,8 +265,11 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             return self._outputs([], _NO_ROWS, self._advance(), None)
         batch = self._batch
         ego_actions = np.zeros(self.num_envs, dtype=np.int64)
-        if acts.dtype.kind in "iu" and ((acts >= 0) & (acts < N_ACTIONS)).all():
-            ego_actions[acting] = acts[acting]
+        if acts.dtype.kind in "iu" and acts.min() >= 0 and acts.max() < N_ACTIONS:
+            if acting == self._worlds:
+                ego_actions[:] = acts
+            else:
+                ego_actions[acting] = acts[acting]
         else:  # an error names the world's ego (MergeEnv's message)
             for k in acting:
                 ego_actions[k] = _checked_action(self.egos[k], acts[k].item(), batch.time_s)
