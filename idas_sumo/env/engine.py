@@ -449,7 +449,10 @@ class MergeEngine:
         picked = car.tolist()
         copy = cars.copy[car]
         b_type = cars.b_type[car]
-        for a in (car, copy, b_type):
+        origin_prio = self._prio_by_road[copy, cars.origin[car]]
+        acting = np.zeros(len(self.slots), dtype=np.bool_)
+        acting[copy] = True
+        for a in (car, copy, b_type, origin_prio):  # (``acting`` stays writeable: a kernel reads it)
             a.flags.writeable = False  # shared by every batch until the agents change
         return _Agents(
             car=car,
@@ -457,6 +460,9 @@ class MergeEngine:
             global_ids=tuple(map(cars.global_ids.__getitem__, picked)),
             copy=copy,
             b_type=b_type,
+            origin_prio=origin_prio,
+            acting=acting,
+            per_copy=np.bincount(copy, minlength=len(self.slots)).tolist(),
         )
 
     def observe_agents(self, k: int, agent_ids: Sequence[str]) -> npt.NDArray[np.float32]:
@@ -513,8 +519,7 @@ class MergeEngine:
         batch, agents = self._take_batch()
         before, rows_before = self.snapshot, self._cars.row
         applied, events = self._simulate(batch, agents, actions)
-        acting = np.zeros(len(self.slots), dtype=np.bool_)
-        acting[batch.copy] = True
+        acting = agents.acting
         brakes = self._observe_brakes(batch, applied, before, rows_before, acting)
         code = self._observe_ends(batch, agents, events)
         scores = score(
@@ -523,7 +528,7 @@ class MergeEngine:
                 copies=len(self.slots),
                 copy=batch.copy,
                 b_type=batch.b_type,
-                b_prio=self._prio_by_road[batch.copy, self._cars.origin[agents.car]],
+                b_prio=agents.origin_prio,
                 egos=batch.egos,
                 end_code=code,
                 before=before,
@@ -670,7 +675,7 @@ class MergeEngine:
             for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
         impedes = np.bincount(batch.copy[scores.parts[:, _IMPEDE] < 0], minlength=k_count).tolist()
-        agents_per_copy = np.bincount(batch.copy, minlength=k_count).tolist()
+        agents_per_copy = agents.per_copy
         active_per_copy = np.bincount(cars.copy[cars.state == ACTIVE], minlength=k_count).tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
