@@ -104,6 +104,12 @@ class _Agents:
     global_ids: tuple[str, ...]
     copy: IntArray
     b_type: FloatArray
+    origin_prio: FloatArray
+    """Each agent's b_prio of the road it started on (the reward's collision term)."""
+    acting: BoolArray
+    """Per slot: whether it has an agent."""
+    per_copy: list[int]
+    """Per slot: how many agents."""
 
 
 def _empty_snapshot() -> TrafficSnapshot:

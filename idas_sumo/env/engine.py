@@ -39,7 +39,7 @@ from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_sn
 from idas_sumo.env.collisions import geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.front_cars import front_cars
+from idas_sumo.env.front_cars import front_cars, own_lane_action_masks
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
@@ -284,6 +284,15 @@ class MergeEngine:
         lo, hi = self._bounds[k], self._bounds[k + 1]
         return slice(int(lo), int(hi))
 
+    def car_index(self, k: int, vehicle_id: str) -> int:
+        """Slot k's ``vehicle_id`` as a car of this episode's cars (for ``car_rows``; KeyError: not in its
+        scenario)."""
+        return self._car_of(k, vehicle_id)
+
+    def car_rows(self, cars: IntArray) -> IntArray:
+        """Each car's row in ``snapshot`` (-1: not on the road): ``row`` for many cars at once."""
+        return self._cars.row[cars]
+
     def row(self, k: int, vehicle_id: str) -> int | None:
         """``vehicle_id``'s row in ``snapshot`` (None: not on the road)."""
         i = self.slots[k].order.get(vehicle_id)
@@ -440,7 +449,10 @@ class MergeEngine:
         picked = car.tolist()
         copy = cars.copy[car]
         b_type = cars.b_type[car]
-        for a in (car, copy, b_type):
+        origin_prio = self._prio_by_road[copy, cars.origin[car]]
+        acting = np.zeros(len(self.slots), dtype=np.bool_)
+        acting[copy] = True
+        for a in (car, copy, b_type, origin_prio):  # (``acting`` stays writeable: a kernel reads it)
             a.flags.writeable = False  # shared by every batch until the agents change
         return _Agents(
             car=car,
@@ -448,6 +460,9 @@ class MergeEngine:
             global_ids=tuple(map(cars.global_ids.__getitem__, picked)),
             copy=copy,
             b_type=b_type,
+            origin_prio=origin_prio,
+            acting=acting,
+            per_copy=np.bincount(copy, minlength=len(self.slots)).tolist(),
         )
 
     def observe_agents(self, k: int, agent_ids: Sequence[str]) -> npt.NDArray[np.float32]:
@@ -474,6 +489,8 @@ class MergeEngine:
         if len(egos) == 0:
             return np.zeros((0, N_ACTIONS), dtype=np.int8)
         snap = self.snapshot
+        if self.config.safety_mask == "own_lane":  # (the default: one compiled call)
+            return own_lane_action_masks(snap, egos, prev)
         gap, leader_speed, ease_in = self.front_cars(egos)
         return action_masks(
             MaskInputs(
@@ -502,8 +519,7 @@ class MergeEngine:
         batch, agents = self._take_batch()
         before, rows_before = self.snapshot, self._cars.row
         applied, events = self._simulate(batch, agents, actions)
-        acting = np.zeros(len(self.slots), dtype=np.bool_)
-        acting[batch.copy] = True
+        acting = agents.acting
         brakes = self._observe_brakes(batch, applied, before, rows_before, acting)
         code = self._observe_ends(batch, agents, events)
         scores = score(
@@ -512,7 +528,7 @@ class MergeEngine:
                 copies=len(self.slots),
                 copy=batch.copy,
                 b_type=batch.b_type,
-                b_prio=self._prio_by_road[batch.copy, self._cars.origin[agents.car]],
+                b_prio=agents.origin_prio,
                 egos=batch.egos,
                 end_code=code,
                 before=before,
@@ -619,9 +635,12 @@ class MergeEngine:
     def _terminate(self, batch: AgentBatch, agents: _Agents, code: IntArray) -> tuple[str, ...]:
         """End the agents whose code says so: their outcome's end reason, and a finished car leaves our
         control (SUMO drives it off). Returns every agent's end reason ('' while it goes on)."""
-        reasons = tuple(_REASON_BY_CODE[c] for c in code.tolist())
+        codes = code.tolist()
+        reasons = tuple(map(_REASON_BY_CODE.__getitem__, codes))
+        if not any(codes):  # (nearly every step)
+            return reasons
         copies = batch.copy.tolist()
-        for i in np.flatnonzero(code).tolist():
+        for i in [i for i, c in enumerate(codes) if c]:
             a, k, reason = batch.ids[i], copies[i], reasons[i]
             out = self.slots[k].outcome
             out.end_reasons[a] = reason
@@ -647,33 +666,37 @@ class MergeEngine:
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
         first_action = ~cars.scored[agents.car]
-        scored = np.flatnonzero(scores.rewards)
+        scored = scores.rewards.nonzero()[0]
         if first_action.any() or len(scored):
             copies = batch.copy.tolist()
-            for i in np.flatnonzero(first_action).tolist():
+            for i in first_action.nonzero()[0].tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
             cars.scored[agents.car] = True
             for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
         impedes = np.bincount(batch.copy[scores.parts[:, _IMPEDE] < 0], minlength=k_count).tolist()
-        agents_per_copy = np.bincount(batch.copy, minlength=k_count).tolist()
+        agents_per_copy = agents.per_copy
         active_per_copy = np.bincount(cars.copy[cars.state == ACTIVE], minlength=k_count).tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
         timed_out = self.timed_out()
-        for k, slot in enumerate(self.slots):
+        copy_events = events.copies
+        for k, slot in enumerate(self.slots):  # (counts that are 0 are not added: most are, most steps)
             if slot.over:
                 continue
-            ev = events.copies[k]
+            ev = copy_events[k]
             # Collisions count in every running episode, also while it waits for its next car to enter.
             out = slot.outcome
-            out.collisions += len(ev.collision_pairs)
+            if ev.collision_pairs:
+                out.collisions += len(ev.collision_pairs)
             if acting_list[k]:
-                out.hard_brakes += hard_brakes[k]
-                out.hard_brakes_merge_zone += zone_brakes[k]
+                if hard_brakes[k]:  # (the merging zone's are some of them)
+                    out.hard_brakes += hard_brakes[k]
+                    out.hard_brakes_merge_zone += zone_brakes[k]
                 out.decision_steps += 1
                 out.agent_steps += agents_per_copy[k]
-                out.impedes += impedes[k]
+                if impedes[k]:
+                    out.impedes += impedes[k]
             added = self._admit(k, ev) if ev.departed else 0
             active = active_per_copy[k] + added > 0
             if timed_out or not active or not slot.started:  # (else _settle has nothing to do)

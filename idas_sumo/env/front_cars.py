@@ -5,17 +5,20 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.env.actions import SafetyMask, safety_bound
+from idas_sumo.env.actions import SafetyMask, _action_masks_kernel, safety_bound
+from idas_sumo.env.jit import kernel
 from idas_sumo.env.layout import VISIBILITY_M
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.env.snapshot import (
     MERGE,
     TrafficSnapshot,
+    _leaders_kernel,
     leader_speeds,
     leaders_and_speeds,
     other_road_leaders,
+    walk_start,
 )
-from idas_sumo.physics.idm import DEFAULT_IDM
+from idas_sumo.physics.idm import DEFAULT_IDM, IDMParams
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -61,3 +64,73 @@ def front_cars(
         & (own_lane_bound >= -DEFAULT_IDM.comfortable_decel_mps2)
     )
     return np.where(other_road, merge_gap, gap), np.where(other_road, merge_speed, leader_speed), ease_in
+
+
+def own_lane_action_masks(
+    snap: TrafficSnapshot, egos: IntArray, prev_accel: FloatArray, params: IDMParams = DEFAULT_IDM
+) -> npt.NDArray[np.int8]:
+    """``action_masks`` with the 'own_lane' front cars (``front_cars``), in one compiled call: the engine's
+    masks every step, without the numpy between the leader walk and the masks (the same kernels)."""
+    egos, by_dist, lo, hi = walk_start(snap, egos)
+    return np.asarray(
+        _own_lane_masks_kernel(
+            snap.road,
+            snap.dist_to_merge_m,
+            snap.length_m,
+            snap.speed_mps,
+            snap.speed_limit_mps,
+            by_dist.order,
+            by_dist.sorted_dist,
+            lo,
+            hi,
+            egos,
+            np.ascontiguousarray(prev_accel, dtype=np.float64),
+            params.max_accel_mps2,
+            params.comfortable_decel_mps2,
+            params.min_gap_m,
+            params.time_headway_s,
+            params.delta,
+        )
+    )
+
+
+@kernel
+def _own_lane_masks_kernel(
+    road,
+    dist,
+    length,
+    speed,
+    limit,
+    order,
+    sorted_dist,
+    lo,
+    hi,
+    egos,
+    prev,
+    max_accel,
+    comfortable_decel,
+    min_gap,
+    time_headway,
+    delta,
+):
+    """``leaders_and_speeds`` then ``action_masks`` of its gaps (no ease-in), as the engine called them."""
+    _, gap, leader_speed = _leaders_kernel(road, dist, length, speed, order, sorted_dist, lo, hi, egos)
+    n = egos.shape[0]
+    ego_speed = np.empty(n)
+    ego_limit = np.empty(n)
+    for i in range(n):
+        ego_speed[i] = speed[egos[i]]
+        ego_limit[i] = limit[egos[i]]
+    return _action_masks_kernel(
+        prev,
+        ego_speed,
+        ego_limit,
+        gap,
+        leader_speed,
+        np.zeros(n, dtype=np.bool_),
+        max_accel,
+        comfortable_decel,
+        min_gap,
+        time_headway,
+        delta,
+    )

@@ -137,10 +137,14 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         actions = np.zeros(len(batch), dtype=np.int64)
         rows = np.arange(len(batch), dtype=np.int64)
         if ego_row >= 0:
-            rows = np.delete(rows, ego_row)
+            rows = np.concatenate((rows[:ego_row], rows[ego_row + 1 :]))  # (np.delete's, without its checks)
         if len(rows):
             assert self.others is not None
-            actions[rows] = [int(a) for a in self.others.act(batch, rows).tolist()]
+            chosen = self.others.act(batch, rows)
+            if isinstance(chosen, np.ndarray) and chosen.dtype == np.int64:
+                actions[rows] = chosen
+            else:
+                actions[rows] = [int(a) for a in chosen.tolist()]
         return actions
 
     def action_masks(self) -> npt.NDArray[np.bool_]:

@@ -6,8 +6,9 @@ processes only load it. Where it can write neither (a read-only install and no w
 fails as the module is imported; ``kernel`` then compiles without a disk cache, once per process.
 
 numba tells a stale cache by the kernel's own source file only. A kernel that calls a kernel of another module
-(the masks call ``physics/idm.py``'s ``idm_acceleration_one``; the grids call ``snapshot.same_lane``) keeps the
-old machine code when only that other module changes: after editing such a callee, delete the ``*.nbi`` and
+(the masks call ``physics/idm.py``'s ``idm_acceleration_one``; the grids call ``snapshot.same_lane``; the
+engine's own-lane masks, in ``front_cars.py``, call ``snapshot.py``'s leader walk and ``actions.py``'s mask
+kernel) keeps the old machine code when only that other module changes: after editing such a callee, delete the ``*.nbi`` and
 ``*.nbc`` files under ``idas_sumo/`` (a fresh checkout or install has none).
 """
 

@@ -36,11 +36,15 @@ class Routes:
         """The edge codes of the last read's edges (``place`` without numbered edges)."""
         self._code_by_edge_index: IntArray | None = None
         """The edge codes by ``BatchStates.edge_index``, where the backend numbers its edges."""
+        self._last_edge_index: IntArray | None = None
+        self._index_code = np.zeros(0, dtype=np.int64)
+        """The edge codes of ``_last_edge_index``."""
 
     def number_edges(self, edge_ids: Sequence[str]) -> None:
         """The backend numbers its edges so (``BatchStates.edge_index``, -1: none of the net's): the codes by
         that number, the last entry for -1, spare a dictionary lookup per car and step."""
         unknown = self._start_by.shape[1] - 1
+        self._last_edge_index = None
         self._code_by_edge_index = np.array(
             [*(self._edge_code.get(e, unknown) for e in edge_ids), unknown], dtype=np.int64
         )
@@ -53,7 +57,10 @@ class Routes:
         as MAIN)."""
         n = len(states.ids)
         if self._code_by_edge_index is not None:
-            code = self._code_by_edge_index[states.edge_index]
+            if states.edge_index is not self._last_edge_index:  # (the backend hands out the same array
+                self._last_edge_index = states.edge_index  # while every car stays on its edge)
+                self._index_code = self._code_by_edge_index[states.edge_index]
+            code = self._index_code
         elif states.edge == self._last_edges:  # the same edges as the last read (most steps of one world)
             code = self._last_code
         else:

@@ -116,6 +116,10 @@ class Scores:
 def score(ctx: StepContext) -> Scores:
     """Every term of ``ctx.config`` over every agent of the step."""
     names = ctx.config.part_names
+    if names == REWARD_PART_NAMES and not ctx.end_code.any():
+        if not (len(ctx.impeded_by) or ctx.zone_brakes.any()):
+            return _quiet(len(ctx.copy), ctx.copies)
+        return _nobody_ended(ctx)
     n = len(ctx.copy)
     parts = np.zeros((n, len(names)))
     shared: list[FloatArray] = []
@@ -135,6 +139,28 @@ def score(ctx: StepContext) -> Scores:
     joint: FloatArray = np.bincount(ctx.copy, weights=rewards, minlength=ctx.copies).astype(np.float64)
     for per_copy in shared:
         joint = joint + per_copy
+    return Scores(parts, rewards, joint)
+
+
+def _quiet(n: int, copies: int) -> Scores:
+    """``score`` of the paper's four terms in a step where no agent ended, no hard brake had a car ahead
+    and none was in the merging zone (most steps): what the terms give then, bit for bit (impede and flow
+    are -5·0 and -1·0, i.e. -0.0; every sum 0.0), without calling them."""
+    parts = np.empty((n, len(REWARD_PART_NAMES)))
+    parts[:] = _QUIET_PARTS
+    return Scores(parts, np.zeros(n), np.zeros(copies))
+
+
+def _nobody_ended(ctx: StepContext) -> Scores:
+    """``score`` of the paper's four terms in a step where no agent ended: finish and collide are 0.0
+    everywhere, so only impede and flow are computed; an agent's reward (0.0 + 0.0) + impede is impede + 0.0,
+    bit for bit."""
+    parts = np.zeros((len(ctx.copy), len(REWARD_PART_NAMES)))
+    impede, per_copy = _impede(ctx), _flow(ctx)
+    parts[:, _IMPEDE_COLUMN] = impede
+    parts[:, _FLOW_COLUMN] = per_copy[ctx.copy]
+    rewards = impede + 0.0
+    joint = np.bincount(ctx.copy, weights=rewards, minlength=ctx.copies).astype(np.float64) + per_copy
     return Scores(parts, rewards, joint)
 
 
@@ -187,3 +213,6 @@ register_reward_term("collide", _collide)
 register_reward_term("impede", _impede)
 register_reward_term("flow", _flow, shared=True)
 assert tuple(_TERMS) == REWARD_PART_NAMES
+_IMPEDE_COLUMN, _FLOW_COLUMN = REWARD_PART_NAMES.index("impede"), REWARD_PART_NAMES.index("flow")
+_QUIET_PARTS = np.array([-0.0 if name in ("impede", "flow") else 0.0 for name in REWARD_PART_NAMES])
+_QUIET_PARTS.flags.writeable = False

@@ -51,6 +51,8 @@ class StepOutcome:
         self.result = result
         self._requested = requested
         self._row: dict[str, int] | None = None
+        self._first: tuple[str, int] = ("", -1)
+        """The first agent ``row`` was asked for, and its row (-1: none yet)."""
         self.joint_reward = float(result.joint_reward[0])
         """Sum of the agents' rewards plus the shared flow penalty (the centralised critic's reward)."""
         self.hard_brakes = int(result.hard_brakes[0])
@@ -60,6 +62,15 @@ class StepOutcome:
     def row(self, agent: str) -> int:
         """``agent``'s row in the step (KeyError: it did not act)."""
         if self._row is None:
+            first, row = self._first
+            if row >= 0 and agent == first:  # (a single-ego env asks for its ego three times a step)
+                return row
+            if row < 0:  # the first agent asked for: looked up without a dictionary of all
+                try:
+                    self._first = (agent, self.acting.index(agent))
+                except ValueError:
+                    raise KeyError(agent) from None
+                return self._first[1]
             self._row = {a: i for i, a in enumerate(self.acting)}
         return self._row[agent]
 

@@ -217,7 +217,9 @@ class DistanceOrder:
     def spans(self, snapshot: TrafficSnapshot, egos: IntArray) -> tuple[IntArray, IntArray]:
         """Per ego, where its copy's vehicles lie in ``order``: [lo, hi)."""
         if snapshot.copy is None:
-            return np.zeros(len(egos), dtype=np.int64), np.full(len(egos), len(self.order), dtype=np.int64)
+            hi = np.empty(len(egos), dtype=np.int64)
+            hi.fill(len(self.order))  # (np.full's value, without its Python wrapper)
+            return np.zeros(len(egos), dtype=np.int64), hi
         ego_copy = np.asarray(snapshot.copy, dtype=np.int64)[egos]
         return self.starts[ego_copy], self.starts[ego_copy + 1]
 

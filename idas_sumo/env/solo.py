@@ -26,6 +26,8 @@ class _SoloBackend:
         """Vehicle id -> its index in the scenario."""
         self._read_ids: tuple[str, ...] | None = None
         self._read_vehicle = np.zeros(0, dtype=np.int64)
+        self._read_zeros = np.zeros(0, dtype=np.int64)
+        self._read_bounds = np.array([0, 0])
         """Each car's index in the scenario for the id list ``_read_ids`` (kept while the same cars drive)."""
 
     def reset(self, scenarios: Sequence[Scenario], extra_args: Sequence[str] = ()) -> None:
@@ -45,11 +47,14 @@ class _SoloBackend:
     def vehicle_states(self) -> BatchStates:
         s = self._backend.vehicle_states()
         n = len(s.ids)
-        zeros = np.zeros(n, dtype=np.int64)
         if s.ids != self._read_ids:  # cars entered or left since the last read
             self._read_vehicle = np.fromiter(map(self._index.get, s.ids, itertools.repeat(-1)), np.int64, n)
-            self._read_vehicle.flags.writeable = False
+            self._read_zeros = np.zeros(n, dtype=np.int64)
+            self._read_bounds = np.array([0, n])
+            for a in (self._read_vehicle, self._read_zeros, self._read_bounds):
+                a.flags.writeable = False  # handed out with every read of the same cars
             self._read_ids = s.ids
+        zeros = self._read_zeros
         return BatchStates(
             s.ids,
             zeros,
@@ -59,7 +64,7 @@ class _SoloBackend:
             s.lane_pos_m,
             s.speed_mps,
             s.accel_mps2,
-            np.array([0, n]),
+            self._read_bounds,
             s.lane_index,
         )
 

@@ -54,6 +54,9 @@ next wave (its ego ended, or never got to act)."""
 
 Obs = npt.NDArray[np.float32]
 _ROAD_NAMES = np.array(ROAD_NAMES, dtype=object)
+_PLACEHOLDER = placeholder_mask()
+_NO_ROWS = np.zeros(0, dtype=np.int64)
+_PLACEHOLDER.flags.writeable = False
 
 
 class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
@@ -116,7 +119,11 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         self._last_obs = np.zeros((num_envs, OBS_DIM), dtype=np.float32)
         self._batch: AgentBatch | None = None
         self._ego_row = np.full(num_envs, -1, dtype=np.int64)
-        self._released = np.ones(num_envs, dtype=np.bool_)
+        self._ego_car = np.zeros(num_envs, dtype=np.int64)
+        self._worlds = list(range(num_envs))
+        """Each world's ego as the engine's car (``MergeEngine.car_rows``), fixed for a wave."""
+        self._unreleased: list[int] = []
+        """The worlds whose slot is still in SUMO (``_release_over``), in order."""
 
     # -- episodes ----------------------------------------------------------------------------------
     def reset(
@@ -140,7 +147,7 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         started = self._observe()
         if not started:
             started = self._advance()
-        obs, _, _, _, infos = self._outputs([], started, None)
+        obs, _, _, _, infos = self._outputs([], _NO_ROWS, started, None)
         return obs, infos
 
     def _draw(self, k: int) -> tuple[Scenario, str]:
@@ -160,24 +167,26 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         drawn = [self._draw(k) for k in range(self.num_envs)]
         self.egos = [ego for _, ego in drawn]
         self.engine.reset([s for s, _ in drawn])
+        self._ego_car = np.array([self.engine.car_index(k, ego) for k, ego in enumerate(self.egos)], np.int64)
         self._phase[:] = _PRE
-        self._released[:] = False
+        self._unreleased = list(range(len(self.engine.slots)))
 
     def _observe(self) -> list[int]:
         """Read the engine's agents; returns the worlds whose ego entered now (their reset step)."""
         batch = self._batch = self.engine.observe()
-        self._ego_row[:] = -1
+        ego_row = self._ego_row
+        ego_row[:] = -1
         if self.others is None:  # only the egos are agents
-            self._ego_row[batch.copy] = np.arange(len(batch))
+            ego_row[batch.copy] = np.arange(len(batch))
         elif len(batch):
-            index = np.full(len(batch.snapshot), -1, dtype=np.int64)  # snapshot row -> batch row
+            index = np.empty(len(batch.snapshot), dtype=np.int64)  # snapshot row -> batch row
+            index.fill(-1)
             index[batch.egos] = np.arange(len(batch))
-            for k in range(self.num_envs):
-                row = self.engine.row(k, self.egos[k]) if self._phase[k] != _DONE else None
-                if row is not None:
-                    self._ego_row[k] = index[row]
+            rows = self.engine.car_rows(self._ego_car)  # each ego's snapshot row (-1: not on the road)
+            on = (rows >= 0) & (self._phase != _DONE)
+            ego_row[on] = index[rows[on]]
         started = []
-        for k in np.flatnonzero(self._phase == _PRE).tolist():
+        for k in (self._phase == _PRE).nonzero()[0].tolist():
             if self._ego_row[k] >= 0:
                 self._phase[k] = _ACTING
                 self._attempts[k] = 0
@@ -204,10 +213,12 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
 
     def _release_over(self) -> None:
         """Over slots leave SUMO, so that they cost nothing until the next wave."""
-        for k in range(len(self.engine.slots)):
-            if not self._released[k] and self.engine.over(k):
-                self.engine.release_slot(k)
-                self._released[k] = True
+        if not self._unreleased:  # (every step once the wave's worlds left)
+            return
+        slots = self.engine.slots
+        for k in [k for k in self._unreleased if slots[k].over]:
+            self.engine.release_slot(k)
+            self._unreleased.remove(k)
 
     def _advance(self) -> list[int]:
         """No world acts: let time run (the others drive) until an ego enters; a new wave once every
@@ -227,11 +238,12 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         assert batch is not None
         self._release_over()
         actions = np.zeros(len(batch), dtype=np.int64)
-        acting = np.flatnonzero(self._phase == _ACTING)
+        acting = self._phase == _ACTING
+        ego_rows = self._ego_row[acting]
         is_ego = np.zeros(len(batch), dtype=np.bool_)
-        is_ego[self._ego_row[acting]] = True
-        actions[self._ego_row[acting]] = ego_actions[acting]
-        rows = np.flatnonzero(~is_ego)
+        is_ego[ego_rows] = True
+        actions[ego_rows] = ego_actions[acting]
+        rows = (~is_ego).nonzero()[0]
         if len(rows):
             assert self.others is not None
             actions[rows] = self.others.act(batch, rows)
@@ -248,13 +260,16 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             raise ValueError(
                 f"actions of shape {acts.shape} for {self.num_envs} worlds: expected ({self.num_envs},)"
             )
-        acting = np.flatnonzero(self._phase == _ACTING).tolist()
+        acting = (self._phase == _ACTING).nonzero()[0].tolist()
         if not acting:
-            return self._outputs([], self._advance(), None)
+            return self._outputs([], _NO_ROWS, self._advance(), None)
         batch = self._batch
         ego_actions = np.zeros(self.num_envs, dtype=np.int64)
-        if acts.dtype.kind in "iu" and ((acts >= 0) & (acts < N_ACTIONS)).all():
-            ego_actions[acting] = acts[acting]
+        if acts.dtype.kind in "iu" and acts.min() >= 0 and acts.max() < N_ACTIONS:
+            if acting == self._worlds:
+                ego_actions[:] = acts
+            else:
+                ego_actions[acting] = acts[acting]
         else:  # an error names the world's ego (MergeEnv's message)
             for k in acting:
                 ego_actions[k] = _checked_action(self.egos[k], acts[k].item(), batch.time_s)
@@ -263,52 +278,84 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
         ended = [k for k, r in zip(acting, rows.tolist(), strict=True) if result.end_reason[r]]
         self._phase[ended] = _DONE
         started = self._observe()
-        return self._outputs(list(zip(acting, rows.tolist(), strict=True)), started, result)
+        return self._outputs(acting, rows, started, result)
 
     def _outputs(
-        self, stepped: list[tuple[int, int]], started: list[int], result: StepResult | None
+        self,
+        worlds: list[int],
+        ego_rows: npt.NDArray[np.int64],
+        started: list[int],
+        result: StepResult | None,
     ) -> tuple[Obs, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]]:
-        """The step's five outputs. ``stepped``: (world, its ego's row in ``result``) for the worlds whose
-        ego acted; ``started``: the worlds whose ego entered (their reset step)."""
+        """The step's five outputs. ``worlds``: those whose ego acted, ``ego_rows``: their egos' rows in
+        ``result``; ``started``: the worlds whose ego entered (their reset step)."""
         n = self.num_envs
-        obs = np.zeros((n, OBS_DIM), dtype=np.float32)
-        rewards = np.zeros(n, dtype=np.float64)
-        reasons = np.full(n, "", dtype=object)
-        self._masks[:] = placeholder_mask()
         batch = self._batch
         assert batch is not None
-        live = [k for k, _ in stepped if self._phase[k] == _ACTING] + started
-        if live:
-            rows = self._ego_row[live]
-            obs[live] = self._ego_observations(batch, rows)
-            self._masks[live] = batch.masks[rows]
-        worlds = np.array([k for k, _ in stepped], dtype=np.int64)
-        parts = np.zeros((n, len(result.part_names) if result is not None else 0))
-        if result is not None and len(worlds):
-            ego_rows = np.array([r for _, r in stepped], dtype=np.int64)
-            rewards[worlds] = result.rewards[ego_rows]
-            parts[worlds] = result.reward_parts[ego_rows]
-            reasons[worlds] = [result.end_reason[r] for r in ego_rows.tolist()]
-        ended = reasons != ""
-        obs[ended] = self._last_obs[ended]  # as MergeEnv: the observation the ego last acted on
-        self._last_obs[live] = obs[live]
-        terminated = ended & (reasons != "timeout")
-        truncated = reasons == "timeout"
-        idle = np.ones(n, dtype=np.bool_)
-        idle[live] = False
-        idle[ended] = False
-        infos = self._infos(idle, worlds, parts, reasons, result)
+        phase = self._phase.tolist()
+        live = [k for k in worlds if phase[k] == _ACTING] + started
+        everyone_lives = live == self._worlds  # every world's ego acts (most steps): no scatter anywhere
+        masks = self._masks
+        if everyone_lives:
+            rows = self._ego_row
+            obs = self._ego_observations(batch, rows)
+            self._last_obs[:] = obs
+            masks[:] = batch.masks[rows]
+        else:
+            obs = np.zeros((n, OBS_DIM), dtype=np.float32)
+            masks[:] = _PLACEHOLDER
+            if live:
+                rows = self._ego_row[live]
+                new = self._ego_observations(batch, rows)
+                obs[live] = new
+                self._last_obs[live] = new  # (an ended world is never live: it kept its last one)
+                masks[live] = batch.masks[rows]
+        reasons = [""] * n
+        ended: list[int] = []
+        if result is None or not worlds:
+            rewards = np.zeros(n, dtype=np.float64)
+            parts = np.zeros((n, len(result.part_names) if result is not None else 0))
+        else:
+            if worlds == self._worlds:
+                rewards, parts = result.rewards[ego_rows], result.reward_parts[ego_rows]
+            else:
+                rewards = np.zeros(n, dtype=np.float64)
+                parts = np.zeros((n, len(result.part_names)))
+                rewards[worlds] = result.rewards[ego_rows]
+                parts[worlds] = result.reward_parts[ego_rows]
+            end_reason = result.end_reason
+            for k, r in zip(worlds, ego_rows.tolist(), strict=True):
+                if end_reason[r]:
+                    reasons[k] = end_reason[r]
+                    ended.append(k)
+        terminated = np.zeros(n, dtype=np.bool_)
+        truncated = np.zeros(n, dtype=np.bool_)
+        if everyone_lives:  # (and so nobody ended)
+            idle = np.zeros(n, dtype=np.bool_)
+        else:
+            if ended:
+                obs[ended] = self._last_obs[ended]  # as MergeEnv: the observation the ego last acted on
+                for k in ended:
+                    (truncated if reasons[k] == "timeout" else terminated)[k] = True
+            idle = np.ones(n, dtype=np.bool_)
+            idle[live] = False
+            idle[ended] = False
+        infos = self._infos(idle, live, ended, worlds, parts, reasons, result)
         return obs, rewards, terminated, truncated, infos
 
     def _infos(
         self,
         idle: npt.NDArray[np.bool_],
-        stepped: npt.NDArray[np.int64],
+        live: list[int],
+        ended: list[int],
+        stepped: list[int],
         parts: npt.NDArray[np.float64],
-        reasons: npt.NDArray[Any],
+        reasons: list[str],
         result: StepResult | None,
     ) -> dict[str, Any]:
-        """MergeEnv's info of each world, batched as Gymnasium's vector envs do (``_key``: who has ``key``)."""
+        """MergeEnv's info of each world, batched as Gymnasium's vector envs do (``_key``: who has ``key``).
+        ``live``: the worlds whose ego acts now, ``ended``: those whose episode ended in this step (the
+        others are idle)."""
         n = self.num_envs
         everyone = np.ones(n, dtype=np.bool_)
         infos: dict[str, Any] = {
@@ -318,43 +365,66 @@ class MergeVectorEnv(VectorEnv[Obs, npt.NDArray[np.int64], npt.NDArray[Any]]):
             "_idle": everyone,
         }
         acting = ~idle
-        values: dict[str, npt.NDArray[Any]] = {
-            "ego": np.full(n, None, dtype=object),
-            "speed_mps": np.zeros(n),
-            "accel_mps2": np.zeros(n),
-            "dist_to_merge_m": np.zeros(n),
-            "road": np.full(n, None, dtype=object),
-        }
-        live = acting & (self._phase == _ACTING)  # on the road and acting: read from the batch
-        if live.any():
-            batch = self._batch
-            assert batch is not None
-            rows = self._ego_row[live]
-            egos = batch.egos[rows]
-            snap = batch.snapshot
-            values["speed_mps"][live] = snap.speed_mps[egos]
-            values["accel_mps2"][live] = batch.prev_accel[rows]
-            values["dist_to_merge_m"][live] = snap.dist_to_merge_m[egos]
-            values["road"][live] = _ROAD_NAMES[snap.road[egos]]
-        for k in np.flatnonzero(acting).tolist():
-            values["ego"][k] = self.egos[k]
-            if not live[k]:  # its episode ended in this step (agent_info: also when it left the road)
-                for key, v in agent_info(self.engine, k, self.egos[k]).items():
-                    values[key][k] = v
-        for key, v in values.items():
-            infos[key], infos[f"_{key}"] = v, acting
-        if result is not None and len(stepped):
+        infos.update(self._ego_values(live, ended, acting))
+        if result is not None and stepped:
             has = np.zeros(n, dtype=np.bool_)
             has[stepped] = True
             named: dict[str, Any] = {}
+            columns = np.ascontiguousarray(parts.T)  # (one copy: each part's column a row of it)
             for j, name in enumerate(result.part_names):
-                named[name], named[f"_{name}"] = parts[:, j].copy(), has
+                named[name], named[f"_{name}"] = columns[j], has
             infos["reward_parts"], infos["_reward_parts"] = named, has
-            ended = reasons != ""
-            if ended.any():
-                infos["end_reason"] = np.where(ended, reasons, np.full(len(reasons), None, dtype=object))
-                infos["_end_reason"] = ended
+            if ended:
+                end_reason = np.empty(n, dtype=object)
+                has_end = np.zeros(n, dtype=np.bool_)
+                for k in ended:
+                    end_reason[k] = reasons[k]
+                    has_end[k] = True
+                infos["end_reason"], infos["_end_reason"] = end_reason, has_end
         return infos
+
+    def _ego_values(self, live: list[int], ended: list[int], acting: npt.NDArray[np.bool_]) -> dict[str, Any]:
+        """The info's ego, speed, acceleration, distance and road of the acting worlds (``agent_info``'s
+        values), each with its ``_key`` (``acting``)."""
+        n = self.num_envs
+        batch = self._batch
+        assert batch is not None
+        snap = batch.snapshot
+        if live == self._worlds:  # every world's ego on the road and acting (most steps)
+            rows = self._ego_row
+            egos = batch.egos[rows]
+            values: dict[str, npt.NDArray[Any]] = {
+                "ego": np.array(self.egos, dtype=object),
+                "speed_mps": snap.speed_mps[egos],
+                "accel_mps2": batch.prev_accel[rows],
+                "dist_to_merge_m": snap.dist_to_merge_m[egos],
+                "road": _ROAD_NAMES[snap.road[egos]],
+            }
+        else:
+            values = {
+                "ego": np.empty(n, dtype=object),  # (None where unset)
+                "speed_mps": np.zeros(n),
+                "accel_mps2": np.zeros(n),
+                "dist_to_merge_m": np.zeros(n),
+                "road": np.empty(n, dtype=object),
+            }
+            if live:  # on the road and acting: read from the batch
+                rows = self._ego_row[live]
+                egos = batch.egos[rows]
+                values["speed_mps"][live] = snap.speed_mps[egos]
+                values["accel_mps2"][live] = batch.prev_accel[rows]
+                values["dist_to_merge_m"][live] = snap.dist_to_merge_m[egos]
+                values["road"][live] = _ROAD_NAMES[snap.road[egos]]
+            ego = values["ego"]
+            for k in (*live, *ended):
+                ego[k] = self.egos[k]
+            for k in ended:  # its episode ended in this step (agent_info: also when it left the road)
+                for key, v in agent_info(self.engine, k, self.egos[k]).items():
+                    values[key][k] = v
+        out: dict[str, Any] = {}
+        for key, v in values.items():
+            out[key], out[f"_{key}"] = v, acting
+        return out
 
     def _ego_observations(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> Obs:
         """The egos' observations: only theirs are built when other agents share the batch."""

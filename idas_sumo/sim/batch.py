@@ -35,6 +35,7 @@ from idas_sumo.sim.backend import (
     SumoBackend,
     VehicleStates,
     _route_lines,
+    _swig,
     _vehicle_lines,
     _vtype_lines,
     controlled_top_speed,
@@ -283,7 +284,13 @@ class BatchBackend:
         except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
             raise SimulationError(f"SUMO failed during a step: {err}") from None
         time_s = float(simulation.getTime())
-        events = [StepEvents(time_s=time_s) for _ in range(self._active_copies)]
+        # (every field given: StepEvents' default factories cost more, once per copy and step)
+        events = [
+            StepEvents(
+                collided=set(), collision_pairs=[], departed=[], arrived=[], teleported=[], time_s=time_s
+            )
+            for _ in range(self._active_copies)
+        ]
         cleared = self._cleared
         departed = simulation.getDepartedIDList()
         for vid in departed:
@@ -332,7 +339,7 @@ class BatchBackend:
         the same (most steps: only an entry or an exit changes it), so a step pays one tuple comparison
         for it instead of a dictionary lookup per vehicle.
         """
-        from libsumo import _libsumo
+        _libsumo = _swig()
 
         gids = _libsumo.vehicle_getIDList()
         n = len(gids)
@@ -420,9 +427,9 @@ class BatchBackend:
         speeds = np.asarray(speeds_mps, dtype=np.float64)
         if speeds.shape != (len(vehicle_ids),):
             raise SimulationError(f"{speeds.shape} speeds for {len(vehicle_ids)} vehicles (a bug)")
-        bad = ~np.isfinite(speeds) | (speeds < 0)
-        if bool(bad.any()):
-            i = int(np.flatnonzero(bad)[0])
+        # Two reductions for the check (a NaN makes the minimum NaN; -0.0 passes, as before) ...
+        if len(speeds) and not (speeds.min() >= 0 and speeds.max() < np.inf):
+            i = int(np.flatnonzero(~np.isfinite(speeds) | (speeds < 0))[0])  # ... the first bad one named
             raise SimulationError(
                 f"invalid speed command {speeds[i]!r} for vehicle {vehicle_ids[i]!r} (a bug, not an input)"
             )
@@ -431,7 +438,7 @@ class BatchBackend:
         else:
             prefixes = self._prefixes
             gids = [prefixes[k] + v for k, v in zip(np.asarray(copy).tolist(), vehicle_ids, strict=True)]
-        from libsumo import _libsumo
+        _libsumo = _swig()
 
         values = speeds.tolist()
         try:  # the common case in one pass (setSpeed through SWIG directly, like the getters)
