@@ -429,22 +429,32 @@ class _LearningPolicy:
         self.actor = actor
         self.tasks = tasks
         self.generators = [torch.Generator().manual_seed(t.action_seed) for t in tasks]
+        self.greedy = np.array([t.deterministic for t in tasks], dtype=np.bool_)
 
     def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         assert batch.job is not None, "the episode loop names each agent's job"
         jobs = batch.job[rows]
         out = np.zeros(len(rows), dtype=np.int64)
         # Greedy and sampling episodes may share a step: one forward per kind.
-        greedy = np.array([self.tasks[j].deterministic for j in jobs.tolist()], dtype=np.bool_)
+        greedy = self.greedy[jobs]
         for det in (False, True):
             part = np.flatnonzero(greedy == det)
             if not len(part):
                 continue
+            # Each job's rows (ascending) with its generator, jobs in ascending order.
+            order = np.argsort(jobs[part], kind="stable")
+            present, first = np.unique(jobs[part][order], return_index=True)
+            ends = [*first[1:].tolist(), len(order)]
             groups = [
-                (np.flatnonzero(jobs[part] == j), self.generators[j]) for j in np.unique(jobs[part]).tolist()
+                (order[lo:hi], self.generators[j])
+                for j, lo, hi in zip(present.tolist(), first.tolist(), ends, strict=True)
             ]
             sel = rows[part]
-            out[part] = self.actor.act_grouped(batch.obs[sel], batch.masks[sel], groups, deterministic=det)
+            if len(sel) == len(batch) and np.array_equal(sel, np.arange(len(batch))):
+                obs, masks = batch.obs, batch.masks  # every row in order: no copy
+            else:
+                obs, masks = batch.obs[sel], batch.masks[sel]
+            out[part] = self.actor.act_grouped(obs, masks, groups, deterministic=det)
         return out
 
 
