@@ -1,14 +1,19 @@
-"""Rollout workers: where episodes are collected. The loop only sees ``RolloutWorkers.run``.
+"""Rollout workers: where episodes are collected, and a training round's gradients computed. The loop only sees
+``RolloutWorkers.train_round`` (a round: episodes, then one learner step) and ``RolloutWorkers.run`` (episodes:
+validation).
 
 ``InProcessWorkers`` runs the episodes in the training process. ``PoolWorkers`` drives W workers of a
 ``sim.processes.WorkerPool``: processes on this machine (``ProcessPool``, started by
 ``sim.processes.WorkerProcesses``: fresh interpreters, since libsumo allows one SUMO per process and
 a forked SUMO is not safe) or Ray actors (``--ray-address``, distributed/ray_pool.py). Each worker
 is a ``RolloutServer`` with its own episode engine (env/engine.py: ``copies`` episodes side by side
-in one SUMO run, one actor forward per step for all of them); every round they get the current actor
-weights and a share of the episodes.
+in one SUMO run, one actor forward per step for all of them); every round they get the current weights
+(the actor's; for a training round every network's) and a share of the episodes.
 Each episode carries its own action-sampling seed, so the data do not depend on the worker count, on
-which worker ran which episode, or on the backend.
+which worker ran which episode, or on the backend. In a training round each worker also computes the learner's
+gradient on the groups of episodes it collected (``GROUP_EPISODES``; a share is whole groups) and sends back only
+that and the episodes' stats; the training process weighs the groups' gradients into one step. The groups do not
+depend on the worker count and every group's gradient is computed on one torch thread, so neither do the weights.
 
 Every worker gets the run's resolved ``MergeSite`` and its ``EnvConfig`` (no worker parses the net). A
 round may name its own site (a training run with ``[geometry]`` draws one per round, training/geometry.py);
