@@ -178,10 +178,19 @@ class RolloutWorkers(ABC):
         parts come back; with ``normalize_advantages`` (which standardises over the whole batch) the
         episodes come back and the update runs here on all of them."""
         if learner.config.normalize_advantages:
-            episodes = self.run(learner, tasks, net)
-            return [e.stats for e in episodes], learner.update(batch_from_episodes(episodes, central=central))
+            return self.train_round_here(learner, tasks, net, central)
         stats, parts = self._collect_gradients(learner, tasks, net, central)
         return stats, learner.apply_gradients(parts)
+
+    def train_round_here(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], dict[str, float]]:
+        """``train_round`` with the episodes brought here and one ``Learner.update`` on all their rows: what
+        ``normalize_advantages`` needs, and what a script that inspects each update's batch runs instead
+        (experiments/stage2_collapse/instrumented_train.py). The same maths as ``train_round``; the floats
+        differ in their last bits (one batch on this process's threads, not groups on one thread)."""
+        episodes = self.run(learner, tasks, net)
+        return [e.stats for e in episodes], learner.update(batch_from_episodes(episodes, central=central))
 
     @abstractmethod
     def _collect_gradients(
