@@ -489,25 +489,34 @@ def test_others_actions_onehot() -> None:
 
 
 def test_rollout_others_actions_are_the_onehot_rows() -> None:
-    """The rollout's per-agent rows of the others' actions are ``others_actions_onehot``'s rows, bit for bit."""
+    """The rollout's per-agent rows of the others' actions, built for a step of several copies at once, are
+    each copy's ``others_actions_onehot`` rows, bit for bit (rows of the copies interleaved)."""
     from idas_sumo.agents.rollout import _others_actions
 
     rng = np.random.default_rng(0)
     for _ in range(50):
-        n = int(rng.integers(0, 9))
-        slots = rng.permutation(STATE_SLOTS)[:n].astype(np.int64)
-        slots[rng.random(n) < 0.2] = -1  # agents without a slot
-        applied = rng.integers(0, N_ACTIONS, n).astype(np.int64)
-        actions = np.zeros(STATE_SLOTS, dtype=np.int64)
-        acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
-        actions[slots[slots >= 0]] = applied[slots >= 0]
-        acting[slots[slots >= 0]] = True
-        table = np.vstack(
-            [others_actions_onehot(actions, acting), np.zeros((1, OTHERS_ACTIONS_DIM), np.float32)]
-        )
-        expected = table[np.where(slots >= 0, slots, STATE_SLOTS)]
-        got = _others_actions(slots, applied)
-        assert got.dtype == np.float32 and got.tobytes() == expected.tobytes()
+        copies = int(rng.integers(1, 4))
+        slots, applied, copy, expected = [], [], [], []
+        for k in range(copies):
+            n = int(rng.integers(0, 9))
+            s = rng.permutation(STATE_SLOTS)[:n].astype(np.int64)
+            s[rng.random(n) < 0.2] = -1  # agents without a slot
+            a = rng.integers(0, N_ACTIONS, n).astype(np.int64)
+            actions = np.zeros(STATE_SLOTS, dtype=np.int64)
+            acting = np.zeros(STATE_SLOTS, dtype=np.bool_)
+            actions[s[s >= 0]] = a[s >= 0]
+            acting[s[s >= 0]] = True
+            table = np.vstack(
+                [others_actions_onehot(actions, acting), np.zeros((1, OTHERS_ACTIONS_DIM), np.float32)]
+            )
+            slots.append(s)
+            applied.append(a)
+            copy.append(np.full(n, k, dtype=np.int64))
+            expected.append(table[np.where(s >= 0, s, STATE_SLOTS)])
+        order = rng.permutation(sum(len(s) for s in slots))
+        got = _others_actions(*(np.concatenate(x)[order] for x in (copy, slots, applied)))
+        want = np.concatenate(expected)[order]
+        assert got.dtype == np.float32 and got.tobytes() == want.tobytes()
 
 
 def test_normalised_advantages_change_the_step_but_not_the_direction_of_a_single_sample() -> None:

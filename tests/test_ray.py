@@ -183,8 +183,9 @@ def test_train_on_ray_is_the_same_run_as_local_workers(
     assert ray_rounds == []
     code, _, err = main_in_process(capsys, *common, "--out", str(tmp_path / "ray"), "--ray-address", "local")
     assert code == 0, err
-    # 2 training rounds and 2 validations (a round of 2 episodes and 2 scenarios), each split over 2 actors.
-    assert ray_rounds == [2, 2, 2, 2]
+    # 2 training rounds, each one group of gradients (training/workers.py: GROUP_EPISODES) on one actor, and 2
+    # validations of 2 scenarios, each split over 2 actors.
+    assert ray_rounds == [1, 2, 1, 2]
     import ray
 
     assert not ray.is_initialized()  # the instance the command started is stopped

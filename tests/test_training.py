@@ -359,16 +359,16 @@ def test_interrupt_then_resume_continues_exactly(
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)
 
-    real_update = Learner.update
+    real_update = Learner.apply_gradients  # a training round's update
     calls = {"n": 0}
 
-    def update_then_interrupt(self: Learner, batch: Any) -> Any:
+    def update_then_interrupt(self: Learner, parts: Any) -> Any:
         calls["n"] += 1
         if calls["n"] == 2:
             raise KeyboardInterrupt
-        return real_update(self, batch)
+        return real_update(self, parts)
 
-    monkeypatch.setattr(Learner, "update", update_then_interrupt)
+    monkeypatch.setattr(Learner, "apply_gradients", update_then_interrupt)
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         run_training(net_path, config, run, progress=False)
@@ -447,13 +447,19 @@ def test_ctrl_c_during_a_validation_then_resume_continues_exactly(
 def test_two_workers_collect_the_same_episodes(net_path: Path, tmp_path: Path) -> None:
     from idas_sumo.training.loop import run_training
 
-    config = tiny_config(stage="direct", episodes_per_update=2)
+    """A round of 16 episodes: each worker collects a group of 8 and computes its gradient part; the metrics
+    and the weights are those of one worker, bit for bit."""
+    config = tiny_config(stage="direct", episodes_per_update=16, direct_episodes=16, checkpoint_every=16)
     run_training(net_path, config, tmp_path / "w1", progress=False)
     run_training(net_path, config.with_overrides(workers=2), tmp_path / "w2", progress=False)
-    cols = ("stage", "episode", "return_mean", "agent_steps", "success", "actor_loss")
-    one = [[r[c] for c in cols] for r in read_metrics(tmp_path / "w1")]
-    two = [[r[c] for c in cols] for r in read_metrics(tmp_path / "w2")]
-    assert one == two and len(one) == 2
+    one, two = (
+        [{k: v for k, v in r.items() if k != "wall_time_s"} for r in read_metrics(tmp_path / w)]
+        for w in ("w1", "w2")
+    )
+    assert one == two and len(one) == 16
+    a, b = (load_checkpoint(tmp_path / w / "direct.pt").learner for w in ("w1", "w2"))
+    for net in ("actor", "value", "central"):
+        assert all(torch.equal(v, b[net][k]) for k, v in a[net].items())
 
 
 def test_resume_without_checkpoint_is_input_error(net_path: Path, tmp_path: Path) -> None:
@@ -498,16 +504,16 @@ def test_resume_after_a_kill_in_stage_two_writes_no_row_twice(
     straight = tmp_path / "straight"
     run_training(net_path, config, straight, progress=False)
 
-    real_update = Learner.update
+    real_update = Learner.apply_gradients  # a training round's update
     calls = {"n": 0}
 
-    def update_then_die(self: Learner, batch: Any) -> Any:
+    def update_then_die(self: Learner, parts: Any) -> Any:
         calls["n"] += 1
         if calls["n"] == 4:  # 2 robot rounds, then stage 2's second round
             raise RuntimeError("killed")
-        return real_update(self, batch)
+        return real_update(self, parts)
 
-    monkeypatch.setattr(Learner, "update", update_then_die)
+    monkeypatch.setattr(Learner, "apply_gradients", update_then_die)
     run = tmp_path / "run"
     with pytest.raises(RuntimeError, match="killed"):
         run_training(net_path, config, run, progress=False)

@@ -1,6 +1,7 @@
 """``idas-sumo train`` with per-update diagnostics of the learner (issue 36, the stage-2 collapse).
 
-Wraps ``Learner.update`` and, for every update, writes one row to ``<out>/diagnostics.csv``: the batch's
+Wraps ``Learner.update`` (every round updates in this process on its whole batch,
+``RolloutWorkers.train_round_here``) and, for every update, writes one row to ``<out>/diagnostics.csv``: the batch's
 action histogram, how often the mask leaves the hard brake alone, the ego speed distribution, the mean A1 and
 A2 (raw, before any standardisation) per action, V and Q and their targets, the policy's entropy and the KL
 between the policies before and after the step (on the batch's observations). Everything else is the ordinary
@@ -24,6 +25,7 @@ from idas_sumo.agents import learner as learner_module  # (idas_sumo before torc
 from idas_sumo.cli import main as cli_main
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS
 from idas_sumo.env.layout import SPEED_SCALE_MPS
+from idas_sumo.training.workers import RolloutWorkers
 
 KL_ROWS = 4096  # rows of the batch the KL between consecutive policies is measured on
 
@@ -87,6 +89,9 @@ def install(path: Path) -> None:
         return stats
 
     learner_module.Learner.update = update  # type: ignore[method-assign]
+    # Training rounds compute their gradients by groups (where they were collected); this script needs each
+    # update's whole batch, so its rounds update here on all of it.
+    RolloutWorkers.train_round = RolloutWorkers.train_round_here  # type: ignore[method-assign]
 
 
 if __name__ == "__main__":

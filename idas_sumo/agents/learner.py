@@ -34,7 +34,7 @@ from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
-__all__ = ["ActorStep", "Batch", "CriticStep", "Learner", "LearnerConfig", "UpdateRecord"]
+__all__ = ["ActorStep", "Batch", "CriticStep", "GradientPart", "Learner", "LearnerConfig", "UpdateRecord"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -346,6 +346,62 @@ def _sample_grouped(
     return (probs / q).argmax(dim=1)
 
 
+@dataclass(frozen=True)
+class GradientPart:
+    """``Learner.gradient_part``: one part of a batch's update, before any step. ``grads``: per network
+    ("value", "central", "actor"), the gradient of its loss (a mean over the part's rows) for each of its
+    parameters in order; the steps' per-row tensors cover the part's rows. Plain tensors and floats: a rollout
+    worker sends it back as it is."""
+
+    rows: int
+    value: CriticStep | None
+    central: CriticStep | None
+    actor: ActorStep | None
+    grads: dict[str, list[torch.Tensor | None]]
+
+
+_OPTIMISERS = {"value": "opt_value", "central": "opt_central", "actor": "opt_actor"}
+"""Each network's optimiser, by the learner's attribute names."""
+
+
+def _gradient(loss: torch.Tensor, network: nn.Module) -> list[torch.Tensor | None]:
+    """d loss / d each parameter of ``network``; None for one the loss does not reach (as ``backward`` leaves
+    its ``grad``: Adam then skips it)."""
+    return list(torch.autograd.grad(loss, list(network.parameters()), allow_unused=True))
+
+
+def _weighed_sum(grads: Sequence[torch.Tensor | None], shares: Sequence[float]) -> torch.Tensor | None:
+    """One parameter's gradient over the parts, each weighed by its share of the rows; exactly the part's own
+    for one part; None where no part reaches the parameter."""
+    if len(grads) == 1:
+        return grads[0]
+    total: torch.Tensor | None = None
+    for grad, share in zip(grads, shares, strict=True):
+        if grad is not None:
+            total = grad * share if total is None else total + grad * share
+    return total
+
+
+def _weighed(values: Sequence[float], shares: Sequence[float]) -> float:
+    """The parts' values weighed by their shares of the rows (the value itself for one part)."""
+    if len(values) == 1:
+        return values[0]
+    return float(sum(v * s for v, s in zip(values, shares, strict=True)))
+
+
+def _merged_critic(steps: Sequence[CriticStep | None], shares: Sequence[float]) -> CriticStep:
+    """One critic's step over the parts: their rows' tensors in order, the loss weighed by the rows."""
+    present = [s for s in steps if s is not None]
+    if len(present) == 1:
+        return present[0]
+    return CriticStep(
+        prediction=torch.cat([s.prediction for s in present]),
+        target=torch.cat([s.target for s in present]),
+        advantage=torch.cat([s.advantage for s in present]),
+        loss=_weighed([s.loss for s in present], shares),
+    )
+
+
 class _LazyAdam:
     """A learner's Adam optimiser for one of its networks, built on first use.
 
@@ -463,26 +519,76 @@ class Learner:
         Losses are means over the batch (the paper writes sums; a mean keeps the step size
         independent of B). Critics step before the actor, but both advantages are computed from the
         critics as they were before their step. What each part regressed to and handed on is kept in
-        ``last_update``.
+        ``last_update``. The same as ``apply_gradients([gradient_part(batch)])``.
+        """
+        return self.apply_gradients([self.gradient_part(batch)])
+
+    def gradient_part(self, batch: Batch) -> GradientPart:
+        """The gradients of V's, Q's and the actor's losses (means over ``batch``) and what they were built
+        from, with no step taken: every part depends only on the weights before the update.
+
+        A round's batch may be cut into parts at episode boundaries (an agent's rows link only within its
+        episode): ``apply_gradients`` then weighs each part's means by its rows, which is the mean over the
+        whole batch to float rounding. Not with ``normalize_advantages``, which standardises over the batch.
         """
         if batch.action.numel() == 0:
+            return GradientPart(rows=0, value=None, central=None, actor=None, grads={})
+        b = self._checked(batch)
+        value_forward = self._value_forward(b)
+        value_step, value_grads = self._value_critic_gradient(b, value_forward)
+        policy = self._policy(b, value_forward.obs)
+        central_forward, central_step = None, None
+        grads: dict[str, list[torch.Tensor | None]] = {"value": value_grads}
+        if self.config.use_central_critic:
+            central_forward = self._central_forward(b, policy.probs.detach())
+            central_step, grads["central"] = self._central_critic_gradient(b, central_forward)
+        actor_step, grads["actor"] = self._actor_gradient(
+            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+        )
+        return GradientPart(
+            rows=int(b.action.shape[0]), value=value_step, central=central_step, actor=actor_step, grads=grads
+        )
+
+    def apply_gradients(self, parts: Sequence[GradientPart]) -> dict[str, float]:
+        """One step of each network from the parts of one batch (in the batch's row order): each part's
+        gradient weighed by its share of the rows (exactly the part's own with one part), clipped, one Adam
+        step; then the targets' soft update. Returns the scalar metrics, as ``update``."""
+        parts = [p for p in parts if p.rows > 0]
+        if not parts:
             # A round in which no learning car acted (each entered too late, or the episodes were cut
             # short): nothing to learn from, so no step; the metrics row says so with zero losses.
             return dict.fromkeys(UPDATE_STAT_NAMES, 0.0)
-        b = self._checked(batch)
-        value_forward = self._value_forward(b)
-        value_step = self._step_value_critic(b, value_forward)
-        policy = self._policy(b, value_forward.obs)
-        central_forward, central_step = None, None
-        if self.config.use_central_critic:
-            central_forward = self._central_forward(b, policy.probs.detach())
-            central_step = self._step_central_critic(b, central_forward)
-        actor_step = self._update_actor(
-            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+        rows = sum(p.rows for p in parts)
+        shares = [p.rows / rows for p in parts]
+        norms = {
+            name: self._step_network(name, [p.grads[name] for p in parts], shares) for name in parts[0].grads
+        }
+        value = _merged_critic([p.value for p in parts], shares)
+        central = None if parts[0].central is None else _merged_critic([p.central for p in parts], shares)
+        actors = [p.actor for p in parts if p.actor is not None]
+        actor = ActorStep(
+            loss=_weighed([a.loss for a in actors], shares),
+            entropy=_weighed([a.entropy for a in actors], shares),
+            grad_norm=norms["actor"],
         )
         self._update_targets()
-        self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
+        self.last_update = UpdateRecord(value=value, central=central, actor=actor)
         return self.last_update.stats()
+
+    def _step_network(
+        self, name: str, grads: Sequence[list[torch.Tensor | None]], shares: Sequence[float]
+    ) -> float:
+        """Set network ``name``'s gradient to the parts' weighed sum, clip it, step its Adam; returns the
+        gradient's norm before clipping."""
+        network: nn.Module = getattr(self, name)
+        optimiser: torch.optim.Optimizer = getattr(self, _OPTIMISERS[name])
+        optimiser.zero_grad(set_to_none=True)
+        for i, param in enumerate(network.parameters()):
+            total = _weighed_sum([part[i] for part in grads], shares)
+            param.grad = None if total is None else total.to(param.device)
+        norm = nn.utils.clip_grad_norm_(network.parameters(), self.config.max_grad_norm)
+        optimiser.step()
+        return float(norm.item())
 
     def _checked(self, batch: Batch) -> Batch:
         """The batch on this learner's device, refused when an action breaks its own mask."""
@@ -515,8 +621,11 @@ class Learner:
                 )
         return _ValueForward(obs=obs, values=values, advantage=advantage, next_index=next_index)
 
-    def _step_value_critic(self, b: Batch, forward: _ValueForward) -> CriticStep:
-        """L(φ1): V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the λ-return."""
+    def _value_critic_gradient(
+        self, b: Batch, forward: _ValueForward
+    ) -> tuple[CriticStep, list[torch.Tensor | None]]:
+        """L(φ1) and its gradient: V regressed to r + γ·V̂(o')·(1 - done) (V̂ the target network), or to the
+        λ-return."""
         cfg = self.config
         values = forward.values
         with torch.no_grad():
@@ -535,13 +644,10 @@ class Learner:
                     next_target_values = _gather_next(target_bank, where, ended)
                 target = td_targets(b.reward.float(), next_target_values, b.done.float(), cfg.gamma)
         loss = 0.5 * (target - values).pow(2).mean()
-        self.opt_value.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(self.value.parameters(), cfg.max_grad_norm)
-        self.opt_value.step()
-        return CriticStep(
+        step = CriticStep(
             prediction=values.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
         )
+        return step, _gradient(loss, self.value)
 
     def _next_index(self, b: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Where each row's o' is, given ``next_row``: row i's o' is row next_row[i]'s o, or row n + j for
@@ -566,8 +672,10 @@ class Learner:
             q_all=q_all, advantage=self.central.advantage(q_all.detach(), probs, b.action.long())
         )
 
-    def _step_central_critic(self, b: Batch, forward: _CentralForward) -> CriticStep:
-        """L(φ2): Q(s, a) regressed to R + γ·Q̂(s', a'), a' the joint action taken at t+1 (SARSA), or to the
+    def _central_critic_gradient(
+        self, b: Batch, forward: _CentralForward
+    ) -> tuple[CriticStep, list[torch.Tensor | None]]:
+        """L(φ2) and its gradient: Q(s, a) regressed to R + γ·Q̂(s', a'), a' the joint action taken at t+1 (SARSA), or to the
         λ-return; s' the agent's own next step, or with ``q_horizon`` 'episode' after its last one the episode's
         next step (``_q_next``)."""
         cfg = self.config
@@ -589,13 +697,10 @@ class Learner:
                 q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
                 target = lambda_targets(target, q_now, _require(nxt.row, "next_row"), cfg.gamma, cfg.q_lambda)
         loss, q_taken = self.central.loss(forward.q_all, action, target)
-        self.opt_central.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
-        self.opt_central.step()
-        return CriticStep(
+        step = CriticStep(
             prediction=q_taken.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
         )
+        return step, _gradient(loss, self.central)
 
     def _q_next(self, b: Batch) -> _QNext:
         """Where Q's target bootstraps from. 'agent' horizon (or a batch without ``team_next_row``): the agent's
@@ -641,9 +746,11 @@ class Learner:
             anchor_kl = kl_divergence(dist, start)  # masked actions have probability 0 in both: no term
         return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs, anchor_kl=anchor_kl)
 
-    def _update_actor(self, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None) -> ActorStep:
+    def _actor_gradient(
+        self, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None
+    ) -> tuple[ActorStep, list[torch.Tensor | None]]:
         """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus, plus an
-        optional KL anchor."""
+        optional KL anchor; the step's grad_norm is filled in by ``apply_gradients``."""
         cfg = self.config
         log_probs, entropy = policy.log_prob, policy.entropy
         if cfg.normalize_advantages:
@@ -660,15 +767,10 @@ class Learner:
         )
         if policy.anchor_kl is not None:
             loss = loss + cfg.anchor_coef * policy.anchor_kl.mean()
-        self.opt_actor.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
-        self.opt_actor.step()
-        return ActorStep(
-            loss=float(loss.item()),
-            entropy=float(entropy.detach().mean().item()),
-            grad_norm=float(grad_norm.item()),
+        step = ActorStep(
+            loss=float(loss.item()), entropy=float(entropy.detach().mean().item()), grad_norm=0.0
         )
+        return step, _gradient(loss, self.actor)
 
     def _update_targets(self) -> None:
         """Soft-update the critics' target networks; Q̂ only where Q was trained."""

@@ -203,9 +203,12 @@ class _EpisodeRecorder:
         reasons: list[str],
         joint: float,
         collisions: int,
+        others: npt.NDArray[np.float32],
     ) -> None:
+        """One step's rows of the episode (views of the step's arrays; ``others``: each row's
+        ``_others_actions``)."""
         assert self.state is not None, "the state is taken before the step"
-        self.others.append(_others_actions(agent_slots, applied))
+        self.others.append(others)
         self.obs_rows.append(obs)
         self.ids.extend(ids)
         self.masks.append(mask)
@@ -233,15 +236,18 @@ class _EpisodeRecorder:
 
 
 def _others_actions(
-    agent_slots: npt.NDArray[np.int64], applied: npt.NDArray[np.int64]
+    copy: npt.NDArray[np.int64], agent_slots: npt.NDArray[np.int64], applied: npt.NDArray[np.int64]
 ) -> npt.NDArray[np.float32]:
-    """Each agent's row of ``others_actions_onehot`` for one step (every agent with a slot acted): the step's
-    joint action one-hot with the agent's own entry cleared (its block then holds nothing, as COMA wants); an
-    agent without a slot sees no one (zeros). The same 0/1 floats, built without the slots × slots table."""
+    """Each agent's row of ``others_actions_onehot`` for one step of every copy (``copy``: each row's; every
+    agent with a slot acted): its copy's joint action one-hot with the agent's own entry cleared (its block then
+    holds nothing, as COMA wants); an agent without a slot sees no one (zeros). The same 0/1 floats, built
+    without a slots × slots table: one row per copy, then each agent's copy of it."""
     in_range = np.flatnonzero(agent_slots >= 0)
-    hot = agent_slots[in_range] * N_ACTIONS + applied[in_range]
-    out = np.zeros((len(agent_slots), OTHERS_ACTIONS_DIM), dtype=np.float32)
-    out[in_range[:, None], hot[None, :]] = 1.0
+    hot = agent_slots[in_range] * N_ACTIONS + np.asarray(applied, dtype=np.int64)[in_range]
+    joint = np.zeros((int(copy.max()) + 1 if len(copy) else 0, OTHERS_ACTIONS_DIM), dtype=np.float32)
+    joint[copy[in_range], hot] = 1.0  # a slot is one agent's in its copy: no two rows set the same entry
+    out = joint[copy]
+    out[agent_slots < 0] = 0.0
     out[in_range, hot] = 0.0
     return out
 
@@ -423,22 +429,32 @@ class _LearningPolicy:
         self.actor = actor
         self.tasks = tasks
         self.generators = [torch.Generator().manual_seed(t.action_seed) for t in tasks]
+        self.greedy = np.array([t.deterministic for t in tasks], dtype=np.bool_)
 
     def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         assert batch.job is not None, "the episode loop names each agent's job"
         jobs = batch.job[rows]
         out = np.zeros(len(rows), dtype=np.int64)
         # Greedy and sampling episodes may share a step: one forward per kind.
-        greedy = np.array([self.tasks[j].deterministic for j in jobs.tolist()], dtype=np.bool_)
+        greedy = self.greedy[jobs]
         for det in (False, True):
             part = np.flatnonzero(greedy == det)
             if not len(part):
                 continue
+            # Each job's rows (ascending) with its generator, jobs in ascending order.
+            order = np.argsort(jobs[part], kind="stable")
+            present, first = np.unique(jobs[part][order], return_index=True)
+            ends = [*first[1:].tolist(), len(order)]
             groups = [
-                (np.flatnonzero(jobs[part] == j), self.generators[j]) for j in np.unique(jobs[part]).tolist()
+                (order[lo:hi], self.generators[j])
+                for j, lo, hi in zip(present.tolist(), first.tolist(), ends, strict=True)
             ]
             sel = rows[part]
-            out[part] = self.actor.act_grouped(batch.obs[sel], batch.masks[sel], groups, deterministic=det)
+            if len(sel) == len(batch) and np.array_equal(sel, np.arange(len(batch))):
+                obs, masks = batch.obs, batch.masks  # every row in order: no copy
+            else:
+                obs, masks = batch.obs[sel], batch.masks[sel]
+            out[part] = self.actor.act_grouped(obs, masks, groups, deterministic=det)
         return out
 
 
@@ -465,23 +481,50 @@ class _Collector:
     ) -> None:
         if not len(batch):
             return
-        obs = batch.obs
-        for k in np.unique(batch.copy).tolist():
-            rows = np.flatnonzero(batch.copy == k)
-            ids = [batch.ids[r] for r in rows]
-            state_slot = engine.slots[k].state_slot
-            agent_slots = np.array([state_slot.get(a, -1) for a in ids], dtype=np.int64)
+        copy = batch.copy
+        slots = engine.slots
+        agent_slots = np.fromiter(
+            (slots[k].state_slot.get(a, -1) for k, a in zip(copy.tolist(), batch.ids, strict=True)),
+            dtype=np.int64,
+            count=len(batch),
+        )
+        others = _others_actions(copy, agent_slots, result.applied)
+        # Each copy's rows as one slice of the step's arrays (the batch lists its agents copy by copy; else
+        # sorted so, stably): views, where a row index per copy copied every column.
+        in_order = bool(np.all(copy[1:] >= copy[:-1]))
+        order = None if in_order else np.argsort(copy, kind="stable")
+
+        def rows(a: npt.NDArray[_Column]) -> npt.NDArray[_Column]:
+            return a if order is None else a[order]
+
+        ids = batch.ids if order is None else [batch.ids[r] for r in order.tolist()]
+        reasons = result.end_reason if order is None else [result.end_reason[r] for r in order.tolist()]
+        columns = (
+            rows(batch.obs),
+            rows(batch.masks),
+            rows(agent_slots),
+            rows(np.asarray(result.applied, dtype=np.int64)),
+            rows(np.asarray(result.rewards, dtype=np.float64)),
+            rows(np.asarray(result.reward_parts, dtype=np.float64)),
+            rows(others),
+        )
+        sorted_copy = rows(copy)
+        present, first = np.unique(sorted_copy, return_index=True)
+        ends = [*first[1:].tolist(), len(sorted_copy)]
+        for k, lo, hi in zip(present.tolist(), first.tolist(), ends, strict=True):
+            obs, mask, agent_slot, applied, reward, parts, other = (c[lo:hi] for c in columns)
             self.recorders[jobs[k]].step(
-                ids,
-                obs[rows],
-                batch.masks[rows],
-                agent_slots,
-                result.applied[rows],
-                result.rewards[rows],
-                result.reward_parts[rows],
-                [result.end_reason[r] for r in rows],
+                list(ids[lo:hi]),
+                obs,
+                mask,
+                agent_slot,
+                applied,
+                reward,
+                parts,
+                list(reasons[lo:hi]),
                 float(result.joint_reward[k]),
                 len(result.collisions[k]),
+                other,
             )
 
     def ended(self, engine: MergeEngine, slot: int, job: int, outcome: EpisodeOutcome) -> None:

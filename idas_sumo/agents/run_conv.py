@@ -65,20 +65,30 @@ def _forward(
     lead: int,
 ) -> npt.NDArray[np.float32]:
     """ReLU(bias + Σ pieces) (rows, cells, outs): piece j adds value[j] · table[table_row[j], (t, o)] at cell
-    start[j] - lead + t of its grid row."""
+    start[j] - lead + t of its grid row. Row by row (the pieces come in row order): a row's sums in a small
+    buffer, then bias and ReLU in one contiguous pass (the bias tiled over the cells, so the pass vectorises)."""
     outs = bias.shape[0]
     reach = table.shape[1] // outs
-    summed = np.zeros(rows * cells * outs, dtype=np.float32)
-    for j in range(table_row.shape[0]):
-        r, v, first = table_row[j], value[j], start[j] - lead
-        at = (grid_row[j] * cells + first) * outs
-        for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
-            summed[at + k] += v * table[r, k]
+    width = cells * outs
+    tiled = np.empty(width, dtype=np.float32)
+    for k in range(width):
+        tiled[k] = bias[k % outs]
+    summed = np.zeros(width, dtype=np.float32)
+    out = np.empty(rows * width, dtype=np.float32)
     zero = np.float32(0.0)
-    for i in range(rows * cells):
-        for o in range(outs):
-            summed[i * outs + o] = max(summed[i * outs + o] + bias[o], zero)
-    return summed.reshape(rows, cells, outs)
+    j = 0
+    for b in range(rows):
+        while j < table_row.shape[0] and grid_row[j] == b:
+            r, v, first = table_row[j], value[j], start[j] - lead
+            at = first * outs
+            for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
+                summed[at + k] += v * table[r, k]
+            j += 1
+        base = b * width
+        for k in range(width):
+            out[base + k] = max(summed[k] + tiled[k], zero)
+            summed[k] = zero
+    return out.reshape(rows, cells, outs)
 
 
 def _backward(
@@ -92,22 +102,32 @@ def _backward(
     reach: int,
     lead: int,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
-    """The gradients of the table and the bias, given the output's ``grad`` and the output (ReLU's mask)."""
+    """The gradients of the table and the bias, given the output's ``grad`` and the output (ReLU's mask). Row
+    by row: the row's gradient where its ReLU passes into a small buffer (one contiguous pass), summed per
+    output place for the bias and read by the row's pieces for the table."""
     rows, cells, outs = out.shape
+    width = cells * outs
     flat_grad, flat_out = grad.reshape(-1), out.reshape(-1)
-    live = np.empty_like(flat_grad)
-    grad_bias = np.zeros(outs)  # float64 sums: millions of terms
-    for i in range(rows * cells):
-        for o in range(outs):
-            g = flat_grad[i * outs + o] if flat_out[i * outs + o] > 0.0 else np.float32(0.0)
-            live[i * outs + o] = g
-            grad_bias[o] += g
+    live = np.empty(width, dtype=np.float32)
+    per_place = np.zeros(width)  # float64 sums: thousands of rows
     grad_table = np.zeros((table_rows, reach * outs))
-    for j in range(table_row.shape[0]):
-        r, v, first = table_row[j], value[j], start[j] - lead
-        at = (grid_row[j] * cells + first) * outs
-        for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
-            grad_table[r, k] += v * live[at + k]
+    zero = np.float32(0.0)
+    j = 0
+    for b in range(rows):
+        base = b * width
+        for k in range(width):
+            g = flat_grad[base + k] if flat_out[base + k] > zero else zero
+            live[k] = g
+            per_place[k] += g
+        while j < table_row.shape[0] and grid_row[j] == b:
+            r, v, first = table_row[j], value[j], start[j] - lead
+            at = first * outs
+            for k in range(max(0, -first) * outs, min(reach, cells - first) * outs):
+                grad_table[r, k] += v * live[at + k]
+            j += 1
+    grad_bias = np.zeros(outs)
+    for k in range(width):
+        grad_bias[k % outs] += per_place[k]
     return grad_table.astype(np.float32), grad_bias.astype(np.float32)
 
 

@@ -28,7 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from idas_sumo import stops
 from idas_sumo.agents.learner import Learner
-from idas_sumo.agents.rollout import EpisodeData, batch_from_episodes
+from idas_sumo.agents.rollout import EpisodeStats
 from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
 from idas_sumo.env.scenario import Road, generate_scenario, start_room_m
 from idas_sumo.errors import InputError
@@ -697,8 +697,7 @@ def _round(
     tasks = _episode_tasks(run, plan, state, speed_limits, room)
     if run.geometry is not None:
         run.geometry.prefetch(state.np_rng)
-    episodes = workers.run(learner, tasks, net)
-    losses = learner.update(batch_from_episodes(episodes, central=plan.central))
+    stats, losses = workers.train_round(learner, tasks, net, central=plan.central)
     wall_s = run.wall_s()
     metrics.write(
         [
@@ -707,7 +706,7 @@ def _round(
                 **losses,
                 "wall_time_s": wall_s,
             }
-            for i, e in enumerate(episodes)
+            for i, e in enumerate(stats)
         ]
     )
     if run.geometry is not None and drawn is not None and net is not None:
@@ -716,7 +715,7 @@ def _round(
         run.geometry.sink.write([row])
     before = state.global_episode
     state.advance(len(tasks))
-    stage_bar.episodes_done(state.episode, [e.stats.success for e in episodes])
+    stage_bar.episodes_done(state.episode, [s.success for s in stats])
 
     checkpoint_due = _passed_multiple(before, state.global_episode, config.checkpoint_every)
     validation_due = validation is not None and _passed_multiple(
@@ -769,8 +768,7 @@ def _passed_multiple(before: int, after: int, every: int) -> bool:
     return after // every > before // every
 
 
-def _episode_row(plan: StagePlan, episode: int, global_episode: int, e: EpisodeData) -> dict[str, Any]:
-    s = e.stats
+def _episode_row(plan: StagePlan, episode: int, global_episode: int, s: EpisodeStats) -> dict[str, Any]:
     return {
         "stage": plan.name,
         "episode": episode,

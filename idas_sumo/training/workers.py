@@ -1,14 +1,19 @@
-"""Rollout workers: where episodes are collected. The loop only sees ``RolloutWorkers.run``.
+"""Rollout workers: where episodes are collected, and a training round's gradients computed. The loop only sees
+``RolloutWorkers.train_round`` (a round: episodes, then one learner step) and ``RolloutWorkers.run`` (episodes:
+validation).
 
 ``InProcessWorkers`` runs the episodes in the training process. ``PoolWorkers`` drives W workers of a
 ``sim.processes.WorkerPool``: processes on this machine (``ProcessPool``, started by
 ``sim.processes.WorkerProcesses``: fresh interpreters, since libsumo allows one SUMO per process and
 a forked SUMO is not safe) or Ray actors (``--ray-address``, distributed/ray_pool.py). Each worker
 is a ``RolloutServer`` with its own episode engine (env/engine.py: ``copies`` episodes side by side
-in one SUMO run, one actor forward per step for all of them); every round they get the current actor
-weights and a share of the episodes.
+in one SUMO run, one actor forward per step for all of them); every round they get the current weights
+(the actor's; for a training round every network's) and a share of the episodes.
 Each episode carries its own action-sampling seed, so the data do not depend on the worker count, on
-which worker ran which episode, or on the backend.
+which worker ran which episode, or on the backend. In a training round each worker also computes the learner's
+gradient on the groups of episodes it collected (``GROUP_EPISODES``; a share is whole groups) and sends back only
+that and the episodes' stats; the training process weighs the groups' gradients into one step. The groups do not
+depend on the worker count and every group's gradient is computed on one torch thread, so neither do the weights.
 
 Every worker gets the run's resolved ``MergeSite`` and its ``EnvConfig`` (no worker parses the net). A
 round may name its own site (a training run with ``[geometry]`` draws one per round, training/geometry.py);
@@ -18,10 +23,12 @@ A round that names none runs on the workers' own merge (the run's ``--net``: val
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import traceback
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
@@ -29,12 +36,19 @@ from typing import Any
 import numpy as np
 import torch
 
-from idas_sumo.agents.learner import Learner, LearnerConfig
-from idas_sumo.agents.rollout import EpisodeData, RolloutTask, collect_episodes
+from idas_sumo.agents.learner import ActorStep, CriticStep, GradientPart, Learner, LearnerConfig
+from idas_sumo.agents.rollout import (
+    EpisodeData,
+    EpisodeStats,
+    RolloutTask,
+    batch_from_episodes,
+    collect_episodes,
+)
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed
+from idas_sumo.training.config import EPISODES_PER_WORKER
 
 __all__ = [
     "EpisodeTask",
@@ -48,6 +62,15 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 ActorWeights = dict[str, np.ndarray]
+LearnerWeights = dict[str, ActorWeights]
+"""Each network of a learner (``LEARNER_NETWORKS``, and its anchor if any) as numpy arrays."""
+
+GROUP_EPISODES = EPISODES_PER_WORKER
+"""A training round's episodes are cut, in task order, into groups of this many (the last may hold fewer),
+and the learner's gradient is computed per group (``Learner.gradient_part``) where the group was collected,
+then weighed by rows into one step (``Learner.apply_gradients``). The cut does not depend on the worker
+count: a worker's share is whole groups, so the weights do not either."""
+LEARNER_NETWORKS = ("actor", "value", "central", "value_target", "central_target")
 
 
 EpisodeTask = RolloutTask
@@ -90,8 +113,49 @@ def actor_weights(learner: Learner) -> ActorWeights:
     return {k: v.detach().cpu().numpy().copy() for k, v in learner.actor.state_dict().items()}
 
 
+def learner_weights(learner: Learner) -> LearnerWeights:
+    """Every network a gradient part reads (``LEARNER_NETWORKS``, the anchor if any), as numpy arrays."""
+    nets = {name: getattr(learner, name) for name in LEARNER_NETWORKS}
+    if learner.anchor is not None:
+        nets["anchor"] = learner.anchor
+    return {
+        name: {k: v.detach().cpu().numpy().copy() for k, v in net.state_dict().items()}
+        for name, net in nets.items()
+    }
+
+
+def _load_learner_weights(learner: Learner, weights: LearnerWeights) -> None:
+    if "anchor" in weights and learner.anchor is None:
+        learner.anchor_to_start()
+    for name, state in weights.items():
+        getattr(learner, name).load_state_dict({k: torch.from_numpy(v) for k, v in state.items()})
+
+
 def _run_tasks(engine: MergeEngine, learner: Learner, tasks: list[EpisodeTask]) -> list[EpisodeData]:
     return collect_episodes(engine, learner, tasks)
+
+
+@contextlib.contextmanager
+def _one_thread() -> Iterator[None]:
+    """Torch on one thread: small-batch inference runs slower with intra-op threads fighting SUMO, and a
+    gradient part gets the same bits wherever it is computed (a rollout worker runs one thread; torch's
+    reductions and products may round by the thread count)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _gradient_parts(learner: Learner, episodes: list[EpisodeData], central: bool) -> list[GradientPart]:
+    """The gradient part of each ``GROUP_EPISODES`` of ``episodes`` (which start at a group's start), on one
+    torch thread."""
+    with _one_thread():
+        return [
+            learner.gradient_part(batch_from_episodes(episodes[i : i + GROUP_EPISODES], central=central))
+            for i in range(0, len(episodes), GROUP_EPISODES)
+        ]
 
 
 class RolloutWorkers(ABC):
@@ -102,6 +166,37 @@ class RolloutWorkers(ABC):
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
     ) -> list[EpisodeData]:
         """The episodes of ``tasks`` on ``net`` (None: the workers' own merge)."""
+
+    def train_round(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], dict[str, float]]:
+        """A training round: the episodes of ``tasks`` with the learner's actor, then one update of
+        ``learner`` on all their agent-steps (``central``: with the centralised critic's fields). Returns
+        the episodes' stats, in task order, and the update's metrics.
+
+        The gradient is computed by groups (``GROUP_EPISODES``) where they were collected, and only the
+        parts come back; with ``normalize_advantages`` (which standardises over the whole batch) the
+        episodes come back and the update runs here on all of them."""
+        if learner.config.normalize_advantages:
+            return self.train_round_here(learner, tasks, net, central)
+        stats, parts = self._collect_gradients(learner, tasks, net, central)
+        return stats, learner.apply_gradients(parts)
+
+    def train_round_here(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], dict[str, float]]:
+        """``train_round`` with the episodes brought here and one ``Learner.update`` on all their rows: what
+        ``normalize_advantages`` needs, and what a script that inspects each update's batch runs instead
+        (experiments/stage2_collapse/instrumented_train.py). The same maths as ``train_round``; the floats
+        differ in their last bits (one batch on this process's threads, not groups on one thread)."""
+        episodes = self.run(learner, tasks, net)
+        return [e.stats for e in episodes], learner.update(batch_from_episodes(episodes, central=central))
+
+    @abstractmethod
+    def _collect_gradients(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], list[GradientPart]]:
+        """The episodes' stats and the gradient parts of their groups, in task order."""
 
     @abstractmethod
     def close(self) -> None: ...
@@ -132,14 +227,14 @@ class InProcessWorkers(RolloutWorkers):
     def run(
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
     ) -> list[EpisodeData]:
-        # Small-batch inference runs slower with intra-op threads fighting SUMO; the learner update
-        # afterwards gets the threads back.
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
+        with _one_thread():
             return _run_tasks(self.engines.on(net), learner, tasks)
-        finally:
-            torch.set_num_threads(threads)
+
+    def _collect_gradients(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], list[GradientPart]]:
+        episodes = self.run(learner, tasks, net)
+        return [e.stats for e in episodes], _gradient_parts(learner, episodes, central)
 
     def close(self) -> None:
         self.engines.close()
@@ -194,6 +289,48 @@ def _unpack(p: _PackedEpisode) -> EpisodeData:
     )
 
 
+_PackedStep = tuple[np.ndarray, np.ndarray, np.ndarray, float]
+_PackedPart = tuple[int, "_PackedStep | None", "_PackedStep | None", ActorStep | None, dict[str, list[Any]]]
+
+
+def _pack_step(step: CriticStep | None) -> _PackedStep | None:
+    if step is None:
+        return None
+    return (step.prediction.numpy(), step.target.numpy(), step.advantage.numpy(), step.loss)
+
+
+def _unpack_step(packed: _PackedStep | None) -> CriticStep | None:
+    if packed is None:
+        return None
+    prediction, target, advantage, loss = packed
+    return CriticStep(
+        torch.from_numpy(prediction), torch.from_numpy(target), torch.from_numpy(advantage), loss
+    )
+
+
+def _pack_part(p: GradientPart) -> _PackedPart:
+    """A gradient part for the pipe: numpy arrays (torch's own pickling of tensors goes through shared memory)."""
+    grads = {k: [None if g is None else g.numpy() for g in v] for k, v in p.grads.items()}
+    return (p.rows, _pack_step(p.value), _pack_step(p.central), p.actor, grads)
+
+
+def _unpack_part(packed: _PackedPart) -> GradientPart:
+    rows, value, central, actor, grads = packed
+    tensors = {k: [None if g is None else torch.from_numpy(g) for g in v] for k, v in grads.items()}
+    return GradientPart(rows, _unpack_step(value), _unpack_step(central), actor, tensors)
+
+
+@dataclass(frozen=True)
+class _GradientRequest:
+    """A training round's share for a rollout worker: its episodes, then the gradient parts of their groups
+    under ``config`` (the learner's, with the round's weights)."""
+
+    net: MergeSite | None
+    tasks: list[EpisodeTask]
+    config: LearnerConfig
+    central: bool
+
+
 class RolloutServer:
     """A rollout worker (``sim.processes.Server``): owns one SUMO; answers a share of a round's tasks
     (``(net, tasks)``: the round's net, None for the worker's own), with the round's actor weights,
@@ -211,9 +348,13 @@ class RolloutServer:
         return self.engines.engine
 
     def handle(
-        self, request: tuple[MergeSite | None, list[EpisodeTask]], weights: ActorWeights
+        self,
+        request: tuple[MergeSite | None, list[EpisodeTask]] | _GradientRequest,
+        weights: ActorWeights | LearnerWeights,
     ) -> tuple[Any, ...]:
         try:
+            if isinstance(request, _GradientRequest):
+                return self._gradients(request, weights)  # type: ignore[arg-type]
             net, tasks = request
             self.learner.actor.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()})
             return ("ok", [_pack(e) for e in _run_tasks(self.engines.on(net), self.learner, tasks)])
@@ -221,6 +362,15 @@ class RolloutServer:
             return ("error", type(err).__name__, str(err))
         except Exception:
             return ("error", "Exception", traceback.format_exc())
+
+    def _gradients(self, request: _GradientRequest, weights: LearnerWeights) -> tuple[Any, ...]:
+        """The share's episodes' stats and its groups' gradient parts, with the round's learner."""
+        if self.learner.config != request.config:
+            self.learner = Learner(request.config, seed=0)
+        _load_learner_weights(self.learner, weights)
+        episodes = _run_tasks(self.engines.on(request.net), self.learner, request.tasks)
+        parts = _gradient_parts(self.learner, episodes, request.central)
+        return ("ok", [e.stats for e in episodes], [_pack_part(p) for p in parts])
 
     def close(self) -> None:
         self.engines.close()
@@ -239,21 +389,40 @@ class PoolWorkers(RolloutWorkers):
         shares = [list(s) for s in np.array_split(np.arange(len(tasks)), self._pool.size)]
         requests = {w: (net, [tasks[i] for i in idx]) for w, idx in enumerate(shares) if idx}
         self._pool.submit(requests, shared=actor_weights(learner))
-        results: list[EpisodeData] = []
+        return [_unpack(p) for reply in self._replies(requests) for p in reply[1]]
+
+    def _collect_gradients(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], list[GradientPart]]:
+        groups = -(-len(tasks) // GROUP_EPISODES)
+        requests = {}
+        for w, share in enumerate(np.array_split(np.arange(groups), self._pool.size)):
+            if len(share):  # whole groups, in task order
+                first, end = int(share[0]) * GROUP_EPISODES, (int(share[-1]) + 1) * GROUP_EPISODES
+                requests[w] = _GradientRequest(net, tasks[first:end], learner.config, central)
+        self._pool.submit(requests, shared=learner_weights(learner))
+        replies = self._replies(requests)
+        stats = [s for reply in replies for s in reply[1]]
+        return stats, [_unpack_part(p) for reply in replies for p in reply[2]]
+
+    def _replies(self, requests: dict[int, Any]) -> list[tuple[Any, ...]]:
+        """The workers' "ok" replies to ``requests``, in worker order (so results follow the task order); a
+        ``SimulationError`` naming the first failure once all are in."""
+        replies: list[tuple[Any, ...]] = []
         errors: list[str] = []
-        for w in requests:  # in order, so results follow the task order
+        for w in requests:
             try:
                 reply = self._pool.result(w)
             except SimulationError as err:
                 errors.append(str(err))
                 continue
             if reply[0] == "ok":
-                results.extend(_unpack(p) for p in reply[1])
+                replies.append(reply)
             else:
                 errors.append(f"{reply[1]}: {reply[2]}")
         if errors:
             raise SimulationError(f"rollout worker failed: {errors[0]}")
-        return results
+        return replies
 
     def close(self) -> None:
         self._pool.close()
