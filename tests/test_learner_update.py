@@ -22,7 +22,7 @@ from torch import nn
 
 from idas_sumo.agents import critics
 from idas_sumo.agents.checkpoint_file import load_actor
-from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
+from idas_sumo.agents.learner import AdvantageScale, Batch, Learner, LearnerConfig
 from idas_sumo.agents.networks import (
     STATE_DIM,
     STATE_SLOTS,
@@ -440,6 +440,50 @@ def test_next_row_reuse_gives_the_update_of_the_plain_next_observations(central:
     torch.testing.assert_close(a.value.advantage, b.value.advantage)
     for pa, pb in zip(learners[0].actor.parameters(), learners[1].actor.parameters(), strict=True):
         torch.testing.assert_close(pa, pb)
+
+
+def two_episodes() -> tuple[Batch, Batch, Batch]:
+    """Two episodes' batches (``make_batch`` with other draws) and their concatenation, rows linked within each."""
+    first, second = make_batch(0), make_batch(1)
+    shifted = dataclasses.replace(
+        second, next_row=torch.where(second.next_row >= 0, second.next_row + ROWS, -1)
+    )
+    whole = Batch(
+        **{
+            f.name: None
+            if (v := getattr(first, f.name)) is None
+            else torch.cat([v, getattr(shifted, f.name)])
+            for f in dataclasses.fields(first)
+        }
+    )
+    return first, second, whole
+
+
+@pytest.mark.parametrize("central", [False, True])
+def test_parts_with_the_batchs_advantage_scale_give_the_normalised_update(central: bool) -> None:
+    """``normalize_advantages`` standardises A1 and A2 over the whole batch: parts of it (a rollout worker's
+    groups) finish their actor gradients with the moments of all the parts' advantages, and the weighed step is
+    the whole batch's ``update`` to float rounding; each part on its own moments is another gradient."""
+    first, second, whole = two_episodes()
+    config = LearnerConfig(use_central_critic=central, normalize_advantages=True, max_grad_norm=NO_CLIP)
+    learners = [Learner(config, seed=3) for _ in range(3)]
+    learners[0].update(whole)
+    pending = [learners[1].pending_part(b) for b in (first, second)]
+    adv = [p.advantages for p in pending]
+    scale = AdvantageScale.over(
+        [v for v, _ in adv if v is not None], [q for _, q in adv if q is not None] or None
+    )
+    learners[1].apply_gradients([learners[1].finish_part(p, scale) for p in pending])
+    learners[2].apply_gradients([learners[2].gradient_part(b) for b in (first, second)])
+    whole, parts, own = ([p.grad for p in learner.actor.parameters()] for learner in learners)  # as stepped
+    for a, b in zip(whole, parts, strict=True):
+        assert a is not None and b is not None
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
+    assert any(
+        not torch.allclose(a, b, rtol=1e-4, atol=1e-7)
+        for a, b in zip(whole, own, strict=True)
+        if a is not None
+    )
 
 
 def test_an_update_without_agent_steps_changes_nothing() -> None:

@@ -444,12 +444,27 @@ def test_ctrl_c_during_a_validation_then_resume_continues_exactly(
 
 
 @pytest.mark.sumo
-def test_two_workers_collect_the_same_episodes(net_path: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("normalize", [False, True], ids=["plain", "normalize_advantages"])
+def test_two_workers_collect_the_same_episodes(
+    net_path: Path, tmp_path: Path, normalize: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from idas_sumo.training.loop import run_training
 
-    """A round of 16 episodes: each worker collects a group of 8 and computes its gradient part; the metrics
-    and the weights are those of one worker, bit for bit."""
-    config = tiny_config(stage="direct", episodes_per_update=16, direct_episodes=16, checkpoint_every=16)
+    """A round of 16 episodes: each worker collects a group of 8 and computes its gradient part (with
+    ``normalize_advantages``, after the round's advantage scale from both groups came back); the metrics and
+    the weights are those of one worker, bit for bit. No round runs the whole update here."""
+
+    def whole_batch_update(*args: Any) -> None:
+        raise AssertionError("a training round ran Learner.update on the whole batch in the training process")
+
+    monkeypatch.setattr(Learner, "update", whole_batch_update)
+    config = tiny_config(
+        stage="direct",
+        episodes_per_update=16,
+        direct_episodes=16,
+        checkpoint_every=16,
+        learner=LearnerConfig(normalize_advantages=normalize),
+    )
     run_training(net_path, config, tmp_path / "w1", progress=False)
     run_training(net_path, config.with_overrides(workers=2), tmp_path / "w2", progress=False)
     one, two = (

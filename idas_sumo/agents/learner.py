@@ -34,7 +34,17 @@ from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 
-__all__ = ["ActorStep", "Batch", "CriticStep", "GradientPart", "Learner", "LearnerConfig", "UpdateRecord"]
+__all__ = [
+    "ActorStep",
+    "AdvantageScale",
+    "Batch",
+    "CriticStep",
+    "GradientPart",
+    "Learner",
+    "LearnerConfig",
+    "PendingPart",
+    "UpdateRecord",
+]
 
 CHECKPOINT_FORMAT = 1
 
@@ -278,10 +288,38 @@ class _Policy:
     """KL(π ‖ π₀) per row (B,), with gradients; None without an anchor."""
 
 
-def _standardised(adv: torch.Tensor) -> torch.Tensor:
-    """Zero mean, unit variance over the batch (a batch of one is only centred)."""
-    centred = adv - adv.mean()
-    return centred / (centred.std() + 1e-8) if adv.numel() > 1 else centred
+def _moments(adv: torch.Tensor) -> tuple[float, float | None]:
+    """The mean of ``adv`` and the standard deviation (torch's, n - 1) of ``adv`` less that mean, as floats
+    (float32 results, exact as Python floats); no deviation for one row."""
+    mean = adv.mean()
+    return float(mean.item()), float((adv - mean).std().item()) if adv.numel() > 1 else None
+
+
+def _standardised(adv: torch.Tensor, moments: tuple[float, float | None]) -> torch.Tensor:
+    """``adv`` less the mean, over the standard deviation (+ 1e-8); only centred without a deviation. The same
+    float32 operations whether ``moments`` come from ``adv`` itself or from a whole batch ``adv`` is part of."""
+    mean, std = moments
+    centred = adv - torch.tensor(mean, dtype=adv.dtype, device=adv.device)
+    if std is None:
+        return centred
+    return centred / (torch.tensor(std, dtype=adv.dtype, device=adv.device) + 1e-8)
+
+
+@dataclass(frozen=True)
+class AdvantageScale:
+    """What ``normalize_advantages`` standardises A1 and A2 with: their moments (``_moments``) over a whole
+    batch. A round computed in parts (``Learner.pending_part``) gets it from all the parts' advantages
+    (``over``), so each part's actor gradient uses the whole batch's, as one ``update`` on the batch does."""
+
+    value: tuple[float, float | None]
+    central: tuple[float, float | None] | None
+
+    @staticmethod
+    def over(value: Sequence[torch.Tensor], central: Sequence[torch.Tensor] | None) -> AdvantageScale:
+        """The moments of the concatenated parts' A1 (``value``) and A2 (``central``; None in stage 1)."""
+        return AdvantageScale(
+            _moments(torch.cat(list(value))), None if central is None else _moments(torch.cat(list(central)))
+        )
 
 
 def _soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
@@ -358,6 +396,28 @@ class GradientPart:
     central: CriticStep | None
     actor: ActorStep | None
     grads: dict[str, list[torch.Tensor | None]]
+
+
+@dataclass(frozen=True)
+class PendingPart:
+    """``Learner.pending_part``: a gradient part without its actor's gradient yet (``part.actor`` None, no
+    "actor" in ``part.grads``), with the masked policy's graph and A1 that ``Learner.finish_part`` needs (both
+    None for an empty batch). A2 is ``part.central.advantage``."""
+
+    part: GradientPart
+    policy: _Policy | None
+    value_advantage: torch.Tensor | None
+
+    @property
+    def advantages(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """A1 and A2 (None in stage 1) of the part's rows, before any standardisation."""
+        return self.value_advantage, None if self.part.central is None else self.part.central.advantage
+
+
+def _require_moments(moments: tuple[float, float | None] | None) -> tuple[float, float | None]:
+    if moments is None:
+        raise ValueError("AdvantageScale has no A2 moments but the central critic is on")
+    return moments
 
 
 _OPTIMISERS = {"value": "opt_value", "central": "opt_central", "actor": "opt_actor"}
@@ -523,31 +583,47 @@ class Learner:
         """
         return self.apply_gradients([self.gradient_part(batch)])
 
-    def gradient_part(self, batch: Batch) -> GradientPart:
+    def gradient_part(self, batch: Batch, scale: AdvantageScale | None = None) -> GradientPart:
         """The gradients of V's, Q's and the actor's losses (means over ``batch``) and what they were built
         from, with no step taken: every part depends only on the weights before the update.
 
         A round's batch may be cut into parts at episode boundaries (an agent's rows link only within its
         episode): ``apply_gradients`` then weighs each part's means by its rows, which is the mean over the
-        whole batch to float rounding. Not with ``normalize_advantages``, which standardises over the batch.
+        whole batch to float rounding. With ``normalize_advantages`` the advantages are standardised with
+        ``scale`` (None: this batch's own moments): a part needs the whole batch's (``pending_part``).
         """
+        return self.finish_part(self.pending_part(batch), scale)
+
+    def pending_part(self, batch: Batch) -> PendingPart:
+        """``gradient_part`` up to the actor's gradient: the critics' gradients, A1 and A2 (for the whole
+        batch's ``AdvantageScale``) and the policy's graph, which ``finish_part`` then differentiates."""
         if batch.action.numel() == 0:
-            return GradientPart(rows=0, value=None, central=None, actor=None, grads={})
+            return PendingPart(
+                GradientPart(rows=0, value=None, central=None, actor=None, grads={}), None, None
+            )
         b = self._checked(batch)
         value_forward = self._value_forward(b)
         value_step, value_grads = self._value_critic_gradient(b, value_forward)
         policy = self._policy(b, value_forward.obs)
-        central_forward, central_step = None, None
+        central_step = None
         grads: dict[str, list[torch.Tensor | None]] = {"value": value_grads}
         if self.config.use_central_critic:
             central_forward = self._central_forward(b, policy.probs.detach())
             central_step, grads["central"] = self._central_critic_gradient(b, central_forward)
-        actor_step, grads["actor"] = self._actor_gradient(
-            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+        part = GradientPart(
+            rows=int(b.action.shape[0]), value=value_step, central=central_step, actor=None, grads=grads
         )
-        return GradientPart(
-            rows=int(b.action.shape[0]), value=value_step, central=central_step, actor=actor_step, grads=grads
-        )
+        return PendingPart(part, policy, value_forward.advantage)
+
+    def finish_part(self, pending: PendingPart, scale: AdvantageScale | None = None) -> GradientPart:
+        """The pending part's actor gradient (advantages standardised with ``scale`` under
+        ``normalize_advantages``; None: the part's own moments), and the whole part."""
+        part, policy = pending.part, pending.policy
+        if policy is None or pending.value_advantage is None:
+            return part
+        adv_q = None if part.central is None else part.central.advantage
+        actor_step, actor_grads = self._actor_gradient(policy, pending.value_advantage, adv_q, scale)
+        return dataclasses.replace(part, actor=actor_step, grads={**part.grads, "actor": actor_grads})
 
     def apply_gradients(self, parts: Sequence[GradientPart]) -> dict[str, float]:
         """One step of each network from the parts of one batch (in the batch's row order): each part's
@@ -747,16 +823,18 @@ class Learner:
         return _Policy(log_prob=log_prob, entropy=entropy, probs=dist.probs, anchor_kl=anchor_kl)
 
     def _actor_gradient(
-        self, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None
+        self, policy: _Policy, adv_v: torch.Tensor, adv_q: torch.Tensor | None, scale: AdvantageScale | None
     ) -> tuple[ActorStep, list[torch.Tensor | None]]:
         """∇J = α∇J1 + (1-α)∇J2 (α = 1 without the central critic), minus an optional entropy bonus, plus an
         optional KL anchor; the step's grad_norm is filled in by ``apply_gradients``."""
         cfg = self.config
         log_probs, entropy = policy.log_prob, policy.entropy
         if cfg.normalize_advantages:
-            adv_v = _standardised(adv_v)
+            if scale is None:
+                scale = AdvantageScale.over([adv_v], None if adv_q is None else [adv_q])
+            adv_v = _standardised(adv_v, scale.value)
             if adv_q is not None:
-                adv_q = _standardised(adv_q)
+                adv_q = _standardised(adv_q, _require_moments(scale.central))
         loss = combined_policy_loss(
             log_probs,
             adv_v,

@@ -36,7 +36,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from idas_sumo.agents.learner import ActorStep, CriticStep, GradientPart, Learner, LearnerConfig
+from idas_sumo.agents.learner import (
+    ActorStep,
+    AdvantageScale,
+    Batch,
+    CriticStep,
+    GradientPart,
+    Learner,
+    LearnerConfig,
+    PendingPart,
+)
 from idas_sumo.agents.rollout import (
     EpisodeData,
     EpisodeStats,
@@ -152,10 +161,46 @@ def _gradient_parts(learner: Learner, episodes: list[EpisodeData], central: bool
     """The gradient part of each ``GROUP_EPISODES`` of ``episodes`` (which start at a group's start), on one
     torch thread."""
     with _one_thread():
-        return [
-            learner.gradient_part(batch_from_episodes(episodes[i : i + GROUP_EPISODES], central=central))
-            for i in range(0, len(episodes), GROUP_EPISODES)
-        ]
+        return [learner.gradient_part(batch) for batch in _group_batches(episodes, central)]
+
+
+def _group_batches(episodes: list[EpisodeData], central: bool) -> Iterator[Batch]:
+    for i in range(0, len(episodes), GROUP_EPISODES):
+        yield batch_from_episodes(episodes[i : i + GROUP_EPISODES], central=central)
+
+
+def _pending_parts(learner: Learner, episodes: list[EpisodeData], central: bool) -> list[PendingPart]:
+    """``_gradient_parts`` up to the actor's gradient (``Learner.pending_part``), on one torch thread."""
+    with _one_thread():
+        return [learner.pending_part(batch) for batch in _group_batches(episodes, central)]
+
+
+def _finished_parts(
+    learner: Learner, pending: list[PendingPart], scale: AdvantageScale
+) -> list[GradientPart]:
+    with _one_thread():
+        return [learner.finish_part(p, scale) for p in pending]
+
+
+_Advantages = tuple[np.ndarray | None, np.ndarray | None]
+"""A group's A1 and A2 (None in stage 1), None for a group without rows: what the whole round's
+``AdvantageScale`` is computed from."""
+
+
+def _advantages(pending: PendingPart) -> _Advantages:
+    adv_v, adv_q = pending.advantages
+    return (None if adv_v is None else adv_v.numpy(), None if adv_q is None else adv_q.numpy())
+
+
+def _round_scale(groups: list[_Advantages]) -> AdvantageScale:
+    """The round's ``AdvantageScale`` from its groups' advantages in task order (so it does not depend on the
+    worker count), on one torch thread: the same operations as ``Learner.update`` on the round's batch."""
+    value = [torch.from_numpy(v) for v, _ in groups if v is not None]
+    central = [torch.from_numpy(q) for v, q in groups if v is not None and q is not None]
+    if not value:  # no rows in the round: no step, the scale is not read
+        return AdvantageScale((0.0, None), None)
+    with _one_thread():
+        return AdvantageScale.over(value, central or None)
 
 
 class RolloutWorkers(ABC):
@@ -175,19 +220,20 @@ class RolloutWorkers(ABC):
         the episodes' stats, in task order, and the update's metrics.
 
         The gradient is computed by groups (``GROUP_EPISODES``) where they were collected, and only the
-        parts come back; with ``normalize_advantages`` (which standardises over the whole batch) the
-        episodes come back and the update runs here on all of them."""
-        if learner.config.normalize_advantages:
-            return self.train_round_here(learner, tasks, net, central)
-        stats, parts = self._collect_gradients(learner, tasks, net, central)
-        return stats, learner.apply_gradients(parts)
+        parts come back. With ``normalize_advantages`` (A1 and A2 standardised over the whole batch) in two
+        phases: the groups' critic gradients and advantages, then, with the round's ``AdvantageScale`` from all
+        the groups' advantages, their actor gradients."""
+        if not learner.config.normalize_advantages:
+            stats, parts = self._collect_gradients(learner, tasks, net, central)
+            return stats, learner.apply_gradients(parts)
+        stats, advantages = self._collect_advantages(learner, tasks, net, central)
+        return stats, learner.apply_gradients(self._finish_gradients(learner, _round_scale(advantages)))
 
     def train_round_here(
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
     ) -> tuple[list[EpisodeStats], dict[str, float]]:
-        """``train_round`` with the episodes brought here and one ``Learner.update`` on all their rows: what
-        ``normalize_advantages`` needs, and what a script that inspects each update's batch runs instead
-        (experiments/stage2_collapse/instrumented_train.py). The same maths as ``train_round``; the floats
+        """``train_round`` with the episodes brought here and one ``Learner.update`` on all their rows: what a
+        script that inspects each update's batch runs instead (experiments/stage2_collapse/instrumented_train.py). The same maths as ``train_round``; the floats
         differ in their last bits (one batch on this process's threads, not groups on one thread)."""
         episodes = self.run(learner, tasks, net)
         return [e.stats for e in episodes], learner.update(batch_from_episodes(episodes, central=central))
@@ -197,6 +243,17 @@ class RolloutWorkers(ABC):
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
     ) -> tuple[list[EpisodeStats], list[GradientPart]]:
         """The episodes' stats and the gradient parts of their groups, in task order."""
+
+    @abstractmethod
+    def _collect_advantages(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], list[_Advantages]]:
+        """The episodes' stats and their groups' advantages, in task order; the groups' pending parts stay
+        where they were computed until ``_finish_gradients``."""
+
+    @abstractmethod
+    def _finish_gradients(self, learner: Learner, scale: AdvantageScale) -> list[GradientPart]:
+        """The gradient parts of the last ``_collect_advantages``'s groups with the round's ``scale``."""
 
     @abstractmethod
     def close(self) -> None: ...
@@ -218,6 +275,7 @@ class InProcessWorkers(RolloutWorkers):
     ) -> None:
         copies = 1 if gui else copies
         self.engines = _NetEngine(site, env_config, seed, copies, gui)
+        self._pending: list[PendingPart] = []
 
     @property
     def engine(self) -> MergeEngine:
@@ -235,6 +293,17 @@ class InProcessWorkers(RolloutWorkers):
     ) -> tuple[list[EpisodeStats], list[GradientPart]]:
         episodes = self.run(learner, tasks, net)
         return [e.stats for e in episodes], _gradient_parts(learner, episodes, central)
+
+    def _collect_advantages(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], list[_Advantages]]:
+        episodes = self.run(learner, tasks, net)
+        self._pending = _pending_parts(learner, episodes, central)
+        return [e.stats for e in episodes], [_advantages(p) for p in self._pending]
+
+    def _finish_gradients(self, learner: Learner, scale: AdvantageScale) -> list[GradientPart]:
+        pending, self._pending = self._pending, []
+        return _finished_parts(learner, pending, scale)
 
     def close(self) -> None:
         self.engines.close()
@@ -323,12 +392,21 @@ def _unpack_part(packed: _PackedPart) -> GradientPart:
 @dataclass(frozen=True)
 class _GradientRequest:
     """A training round's share for a rollout worker: its episodes, then the gradient parts of their groups
-    under ``config`` (the learner's, with the round's weights)."""
+    under ``config`` (the learner's, with the round's weights). ``pending``: only their advantages, the parts
+    kept for a ``_ScaleRequest`` (``normalize_advantages``)."""
 
     net: MergeSite | None
     tasks: list[EpisodeTask]
     config: LearnerConfig
     central: bool
+    pending: bool = False
+
+
+@dataclass(frozen=True)
+class _ScaleRequest:
+    """The round's ``AdvantageScale``: the worker's kept parts' actor gradients, then the parts."""
+
+    scale: AdvantageScale
 
 
 class RolloutServer:
@@ -341,6 +419,7 @@ class RolloutServer:
         torch.set_num_threads(1)
         self.engines = _NetEngine(site, env_config, seed, copies)
         self.learner = Learner(LearnerConfig(), seed=0)
+        self._pending: list[PendingPart] = []
 
     @property
     def engine(self) -> MergeEngine:
@@ -349,13 +428,17 @@ class RolloutServer:
 
     def handle(
         self,
-        request: tuple[MergeSite | None, list[EpisodeTask]] | _GradientRequest,
-        weights: ActorWeights | LearnerWeights,
+        request: tuple[MergeSite | None, list[EpisodeTask]] | _GradientRequest | _ScaleRequest,
+        weights: ActorWeights | LearnerWeights | None,
     ) -> tuple[Any, ...]:
         try:
+            if isinstance(request, _ScaleRequest):
+                pending, self._pending = self._pending, []
+                return ("ok", [_pack_part(p) for p in _finished_parts(self.learner, pending, request.scale)])
             if isinstance(request, _GradientRequest):
                 return self._gradients(request, weights)  # type: ignore[arg-type]
             net, tasks = request
+            assert weights is not None  # a round's actor weights
             self.learner.actor.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()})
             return ("ok", [_pack(e) for e in _run_tasks(self.engines.on(net), self.learner, tasks)])
         except IdasError as err:
@@ -369,6 +452,9 @@ class RolloutServer:
             self.learner = Learner(request.config, seed=0)
         _load_learner_weights(self.learner, weights)
         episodes = _run_tasks(self.engines.on(request.net), self.learner, request.tasks)
+        if request.pending:
+            self._pending = _pending_parts(self.learner, episodes, request.central)
+            return ("ok", [e.stats for e in episodes], [_advantages(p) for p in self._pending])
         parts = _gradient_parts(self.learner, episodes, request.central)
         return ("ok", [e.stats for e in episodes], [_pack_part(p) for p in parts])
 
@@ -382,6 +468,8 @@ class PoolWorkers(RolloutWorkers):
 
     def __init__(self, pool: WorkerPool) -> None:
         self._pool = pool
+        self._holding: list[int] = []
+        """The workers asked in the last gradient round (those a ``_ScaleRequest`` goes to)."""
 
     def run(
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
@@ -394,16 +482,36 @@ class PoolWorkers(RolloutWorkers):
     def _collect_gradients(
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
     ) -> tuple[list[EpisodeStats], list[GradientPart]]:
+        replies = self._gradient_replies(learner, tasks, _GradientRequest(net, [], learner.config, central))
+        stats = [s for reply in replies for s in reply[1]]
+        return stats, [_unpack_part(p) for reply in replies for p in reply[2]]
+
+    def _collect_advantages(
+        self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
+    ) -> tuple[list[EpisodeStats], list[_Advantages]]:
+        request = _GradientRequest(net, [], learner.config, central, pending=True)
+        replies = self._gradient_replies(learner, tasks, request)
+        return [s for reply in replies for s in reply[1]], [a for reply in replies for a in reply[2]]
+
+    def _finish_gradients(self, learner: Learner, scale: AdvantageScale) -> list[GradientPart]:
+        requests = dict.fromkeys(self._holding, _ScaleRequest(scale))
+        self._pool.submit(requests)
+        return [_unpack_part(p) for reply in self._replies(requests) for p in reply[1]]
+
+    def _gradient_replies(
+        self, learner: Learner, tasks: list[EpisodeTask], request: _GradientRequest
+    ) -> list[tuple[Any, ...]]:
+        """Each worker's ``request`` for its share of ``tasks`` (whole groups, in task order), with the
+        learner's weights; the replies in worker order."""
         groups = -(-len(tasks) // GROUP_EPISODES)
         requests = {}
         for w, share in enumerate(np.array_split(np.arange(groups), self._pool.size)):
             if len(share):  # whole groups, in task order
                 first, end = int(share[0]) * GROUP_EPISODES, (int(share[-1]) + 1) * GROUP_EPISODES
-                requests[w] = _GradientRequest(net, tasks[first:end], learner.config, central)
+                requests[w] = dataclasses.replace(request, tasks=tasks[first:end])
         self._pool.submit(requests, shared=learner_weights(learner))
-        replies = self._replies(requests)
-        stats = [s for reply in replies for s in reply[1]]
-        return stats, [_unpack_part(p) for reply in replies for p in reply[2]]
+        self._holding = list(requests)
+        return self._replies(requests)
 
     def _replies(self, requests: dict[int, Any]) -> list[tuple[Any, ...]]:
         """The workers' "ok" replies to ``requests``, in worker order (so results follow the task order); a
