@@ -195,8 +195,9 @@ def _advantages(pending: PendingPart) -> _Advantages:
 def _round_scale(groups: list[_Advantages]) -> AdvantageScale:
     """The round's ``AdvantageScale`` from its groups' advantages in task order (so it does not depend on the
     worker count), on one torch thread: the same operations as ``Learner.update`` on the round's batch."""
-    value = [torch.from_numpy(v) for v, _ in groups if v is not None]
-    central = [torch.from_numpy(q) for v, q in groups if v is not None and q is not None]
+    # Copies: a Ray reply's arrays are read-only, which torch.from_numpy warns about.
+    value = [torch.tensor(v) for v, _ in groups if v is not None]
+    central = [torch.tensor(q) for v, q in groups if v is not None and q is not None]
     if not value:  # no rows in the round: no step, the scale is not read
         return AdvantageScale((0.0, None), None)
     with _one_thread():
