@@ -42,6 +42,10 @@ QHorizon = Literal["episode", "agent"]
 """What the centralised critic's target sums (``LearnerConfig.q_horizon``)."""
 Q_HORIZONS: tuple[str, ...] = get_args(QHorizon)
 
+CentralAdvantage = Literal["q", "return"]
+"""What J2's advantage takes for the action taken (``LearnerConfig.central_advantage``)."""
+CENTRAL_ADVANTAGES: tuple[str, ...] = get_args(CentralAdvantage)
+
 
 @dataclass(frozen=True)
 class LearnerConfig:
@@ -86,6 +90,12 @@ class LearnerConfig:
     from Q̂ at the episode's next step). 'agent': only along the agent's own steps, as every shipped policy
     was trained (before 2026-11-27): Q then leaves out the joint reward that comes after its agent has left,
     and credits an agent for staying on the road while others finish (experiments/stage2_collapse)."""
+    central_advantage: CentralAdvantage = "q"
+    """A2 for the action taken. 'q' (the paper): the critic's advantage, COMA's Q(s, a) - Σ_a' π(a'|o) Q(s, a').
+    'return' (ours): Q's own target for the row (the λ-return of the joint reward, or r + γ·Q̂(s', a')) in place
+    of Q(s, a), the counterfactual baseline kept: A2 + (target - Q(s, a)). Q's differences between one agent's
+    actions are mostly fitting noise here (one 0.2 s action moves the joint return far less than what Q cannot
+    predict), and J2 followed them consistently into stage 2's drift (experiments/stage2_critic)."""
     normalize_advantages: bool = False
     """Standardise A1 and A2 over each batch before the policy gradient (ours; the paper does not)."""
     central_critic: str = DEFAULT_CENTRAL_CRITIC
@@ -116,6 +126,10 @@ class LearnerConfig:
                 raise InputError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.q_horizon not in Q_HORIZONS:
             raise InputError(f"q_horizon must be one of {', '.join(Q_HORIZONS)}, got {self.q_horizon!r}")
+        if self.central_advantage not in CENTRAL_ADVANTAGES:
+            raise InputError(
+                f"central_advantage must be one of {', '.join(CENTRAL_ADVANTAGES)}, got {self.central_advantage!r}"
+            )
         check_central_critic(self.central_critic)
 
     @property
@@ -173,7 +187,8 @@ class CriticStep:
     target: torch.Tensor
     """What the prediction was regressed to."""
     advantage: torch.Tensor
-    """A1 (TD error or GAE) or A2 (COMA), before any standardisation."""
+    """A1 (TD error or GAE) or A2 (COMA's, or with ``central_advantage`` 'return' the target less COMA's
+    baseline): what the actor is handed, before any standardisation."""
     loss: float
     """0.5 · mean (target - prediction)²."""
 
@@ -478,7 +493,7 @@ class Learner:
             central_forward = self._central_forward(b, policy.probs.detach())
             central_step = self._step_central_critic(b, central_forward)
         actor_step = self._update_actor(
-            policy, value_forward.advantage, None if central_forward is None else central_forward.advantage
+            policy, value_forward.advantage, None if central_step is None else central_step.advantage
         )
         self._update_targets()
         self.last_update = UpdateRecord(value=value_step, central=central_step, actor=actor_step)
@@ -593,9 +608,10 @@ class Learner:
         loss.backward()
         nn.utils.clip_grad_norm_(self.central.parameters(), cfg.max_grad_norm)
         self.opt_central.step()
-        return CriticStep(
-            prediction=q_taken.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
-        )
+        advantage = forward.advantage
+        if cfg.central_advantage == "return":  # the sampled return for the action taken, the baseline kept
+            advantage = advantage + (target - q_taken.detach())
+        return CriticStep(prediction=q_taken.detach(), target=target, advantage=advantage, loss=float(loss.item()))
 
     def _q_next(self, b: Batch) -> _QNext:
         """Where Q's target bootstraps from. 'agent' horizon (or a batch without ``team_next_row``): the agent's
