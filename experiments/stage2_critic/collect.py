@@ -14,13 +14,13 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from idas_sumo.agents.rollout import batch_from_episodes  # (idas_sumo before torch)
-
-import numpy as np  # noqa: I001
+import numpy as np
 import torch
 
+from idas_sumo.agents.rollout import batch_from_episodes
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stage2_collapse"))
-from probe_signal import collect  # noqa: E402
+from probe_signal import collect
 
 
 def main() -> None:
@@ -36,7 +36,9 @@ def main() -> None:
     fields = {f.name: getattr(batch, f.name) for f in dataclasses.fields(batch)}
     timed_out = float(np.mean([e.stats.timed_out for e in data]))
     torch.save({"batch": fields, "episode": torch.from_numpy(episode), "gamma": gamma}, args.out)
-    print(f"{args.policy}: {len(data)} episodes, {len(episode)} rows, timed out {timed_out:.0%} -> {args.out}")
+    print(
+        f"{args.policy}: {len(data)} episodes, {len(episode)} rows, timed out {timed_out:.0%} -> {args.out}"
+    )
 
 
 if __name__ == "__main__":

@@ -22,12 +22,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from idas_sumo.env.layout import ACCEL_SCALE_MPS2, GRID_CELLS, N_SCALARS, SPEED_SCALE_MPS  # before torch
-from idas_sumo.env.state_layout import STATE_FEATURES, STATE_SLOTS
-
-import numpy as np  # noqa: I001
+import numpy as np
 import torch
 from torch import nn
+
+from idas_sumo.env.layout import ACCEL_SCALE_MPS2, GRID_CELLS, N_SCALARS, SPEED_SCALE_MPS
+from idas_sumo.env.state_layout import STATE_FEATURES, STATE_SLOTS
 
 KEEP, PLUS = 2, 4
 EGO_CELL = GRID_CELLS // 2
@@ -108,12 +108,14 @@ def main() -> None:
     target_net = mlp(x.shape[1], args.hidden, args.layers)
     target_net.load_state_dict(net.state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
-    y_fixed = torch.from_numpy(returns(b, args.gamma, "agent" if args.target == "mc_agent" else "episode")).float()
+    y_fixed = torch.from_numpy(
+        returns(b, args.gamma, "agent" if args.target == "mc_agent" else "episode")
+    ).float()
     own, team = b["next_row"].long(), b["team_next_row"].long()
     link = torch.where(own >= 0, own, team)
     r = b["joint_reward"].float()
     tr_idx = torch.nonzero(train).squeeze(1)
-    for epoch in range(args.epochs):
+    for _epoch in range(args.epochs):
         if args.target == "td0":
             with torch.no_grad():
                 qn = target_net(x).gather(1, act.unsqueeze(1)).squeeze(1)
@@ -193,7 +195,8 @@ def report(args, net, x, b, act, g_ep, y, train, test, n_ep) -> None:
     print(
         "    held-out E[G|a] - E[G]            "
         + " ".join(
-            f"{g[m & (a == k)].mean() - g[m].mean():+6.2f}" if (m & (a == k)).any() else "   nan" for k in range(7)
+            f"{g[m & (a == k)].mean() - g[m].mean():+6.2f}" if (m & (a == k)).any() else "   nan"
+            for k in range(7)
         )
     )
 

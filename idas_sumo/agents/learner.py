@@ -611,7 +611,9 @@ class Learner:
         advantage = forward.advantage
         if cfg.central_advantage == "return":  # the sampled return for the action taken, the baseline kept
             advantage = advantage + (target - q_taken.detach())
-        return CriticStep(prediction=q_taken.detach(), target=target, advantage=advantage, loss=float(loss.item()))
+        return CriticStep(
+            prediction=q_taken.detach(), target=target, advantage=advantage, loss=float(loss.item())
+        )
 
     def _q_next(self, b: Batch) -> _QNext:
         """Where Q's target bootstraps from. 'agent' horizon (or a batch without ``team_next_row``): the agent's
