@@ -235,14 +235,22 @@ def play_dilemma(learner: Learner, generator: torch.Generator, episodes: int = 6
 
 
 @pytest.mark.parametrize(
-    ("alpha", "central", "answer", "rounds"),
-    [(1.0, False, DEFECT, 45), (0.0, True, COOPERATE, 30), (0.7, True, COOPERATE, 55)],
-    ids=["J1-stage1", "J2-coma", "paper-mix-0.7"],
+    ("alpha", "central", "answer", "rounds", "advantage"),
+    [
+        (1.0, False, DEFECT, 45, "q"),
+        (0.0, True, COOPERATE, 30, "q"),
+        (0.7, True, COOPERATE, 55, "q"),
+        (0.7, True, COOPERATE, 55, "return"),
+    ],
+    ids=["J1-stage1", "J2-coma", "paper-mix-0.7", "mix-0.7-return-advantage"],
 )
 def test_social_dilemma_answer_follows_the_objective(
-    alpha: float, central: bool, answer: int, rounds: int
+    alpha: float, central: bool, answer: int, rounds: int, advantage: str
 ) -> None:
-    learner = Learner(dataclasses.replace(FAST, alpha=alpha, use_central_critic=central), seed=0)
+    """``advantage`` 'return' (ours, ``central_advantage``): J2 with Q's target for the action taken in place of
+    Q(s, a) still carries the joint reward to the actor."""
+    config = dataclasses.replace(FAST, alpha=alpha, use_central_critic=central, central_advantage=advantage)
+    learner = Learner(config, seed=0)
     train(learner, play_dilemma, rounds=rounds)
     assert probability(learner, DILEMMA_OBS, DILEMMA_ACTIONS, answer) > 0.9
 

@@ -236,6 +236,39 @@ def test_update_hand_worked_targets_losses_and_sgd_steps(central: bool) -> None:
     assert floats(learner.central_target.head.bias) == approx(expected_q_hat)
 
 
+@pytest.mark.parametrize("q_lambda", [0.0, 0.8])
+def test_return_advantage_puts_qs_target_in_place_of_q_hand_worked(q_lambda: float) -> None:
+    """``central_advantage = "return"`` (ours): A2 = Q's target for the row - Σ_a' π(a'|o)·Q(s, a'), COMA's
+    baseline kept; Q's own step and A1 are untouched, and the actor is stepped with that A2."""
+    steps = {}
+    for kind in ("q", "return"):
+        learner = pinned_learner(True, q_lambda=q_lambda)
+        learner.config = dataclasses.replace(learner.config, central_advantage=kind)
+        stats = learner.update(make_batch())
+        assert learner.last_update is not None and learner.last_update.central is not None
+        steps[kind] = (learner.last_update, stats, floats(learner.actor.head.bias))
+    paper, ours = steps["q"][0], steps["return"][0]
+    assert ours.central is not None and paper.central is not None
+    assert floats(ours.central.target) == approx(floats(paper.central.target))  # Q learns the same
+    assert floats(ours.value.advantage) == approx(floats(paper.value.advantage))
+    baseline = [sum(pi(i, a) * Q_ONLINE[a] for a in range(N_ACTIONS)) for i in range(ROWS)]
+    target = floats(paper.central.target)
+    adv_q = [target[i] - baseline[i] for i in range(ROWS)]
+    if q_lambda == 0.0:
+        # Row 0: y = R 0 + 0.9·Q̂(s', 1) = -0.55; baseline (Q 1 + Q 2 + Q 3 + Q 5) / 4 = -0.25: A2 = -0.3.
+        assert adv_q == approx([-0.3, 3.7, 0.15, -3.3, 13.125, 13.0])
+    assert floats(ours.central.advantage) == approx(adv_q)
+    # The actor's head bias after one SGD step, with the weight α·A1 + (1-α)·A2 per row.
+    adv_v = floats(ours.value.advantage)
+    weight = [ALPHA * adv_v[i] + (1.0 - ALPHA) * adv_q[i] for i in range(ROWS)]
+    actor_bias = [
+        LR * sum(weight[i] * ((1.0 if j == ACTION[i] else 0.0) - pi(i, j)) for i in range(ROWS)) / ROWS
+        for j in range(N_ACTIONS)
+    ]
+    assert steps["return"][2] == approx(actor_bias)
+    assert steps["return"][2] != approx(steps["q"][2])
+
+
 def test_lambda_targets_hand_worked() -> None:
     """q_lambda > 0 (and gae_lambda > 0): λ-returns G = r + γ·((1-λ)·bootstrap + λ·G_next) per agent."""
     lam_v, lam_q = 0.5, 0.8

@@ -32,7 +32,7 @@ def test_the_recipe_is_the_papers_settings() -> None:
     learner = config.learner
     assert (learner.gamma, learner.alpha) == (0.9, 0.7)  # L201
     assert (learner.gae_lambda, learner.q_lambda) == (0.0, 0.0)  # one-step targets through V-hat and Q-hat
-    assert learner.central_critic == "coma"
+    assert learner.central_critic == "coma" and learner.central_advantage == "q"
     assert not learner.normalize_advantages
     assert learner.entropy_coef == learner.anchor_coef == 0.0
     assert config.init_from == ""  # from random weights

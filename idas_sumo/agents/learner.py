@@ -52,6 +52,10 @@ QHorizon = Literal["episode", "agent"]
 """What the centralised critic's target sums (``LearnerConfig.q_horizon``)."""
 Q_HORIZONS: tuple[str, ...] = get_args(QHorizon)
 
+CentralAdvantage = Literal["q", "return"]
+"""What J2's advantage takes for the action taken (``LearnerConfig.central_advantage``)."""
+CENTRAL_ADVANTAGES: tuple[str, ...] = get_args(CentralAdvantage)
+
 
 @dataclass(frozen=True)
 class LearnerConfig:
@@ -96,6 +100,12 @@ class LearnerConfig:
     from Q̂ at the episode's next step). 'agent': only along the agent's own steps, as every shipped policy
     was trained (before 2026-11-27): Q then leaves out the joint reward that comes after its agent has left,
     and credits an agent for staying on the road while others finish (experiments/stage2_collapse)."""
+    central_advantage: CentralAdvantage = "q"
+    """A2 for the action taken. 'q' (the paper): the critic's advantage, COMA's Q(s, a) - Σ_a' π(a'|o) Q(s, a').
+    'return' (ours): Q's own target for the row (the λ-return of the joint reward, or r + γ·Q̂(s', a')) in place
+    of Q(s, a), the counterfactual baseline kept: A2 + (target - Q(s, a)). Q's differences between one agent's
+    actions are mostly fitting noise here (one 0.2 s action moves the joint return far less than what Q cannot
+    predict), and J2 followed them consistently into stage 2's drift (experiments/stage2_critic)."""
     normalize_advantages: bool = False
     """Standardise A1 and A2 over each batch before the policy gradient (ours; the paper does not)."""
     central_critic: str = DEFAULT_CENTRAL_CRITIC
@@ -126,6 +136,10 @@ class LearnerConfig:
                 raise InputError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.q_horizon not in Q_HORIZONS:
             raise InputError(f"q_horizon must be one of {', '.join(Q_HORIZONS)}, got {self.q_horizon!r}")
+        if self.central_advantage not in CENTRAL_ADVANTAGES:
+            raise InputError(
+                f"central_advantage must be one of {', '.join(CENTRAL_ADVANTAGES)}, got {self.central_advantage!r}"
+            )
         check_central_critic(self.central_critic)
 
     @property
@@ -183,7 +197,8 @@ class CriticStep:
     target: torch.Tensor
     """What the prediction was regressed to."""
     advantage: torch.Tensor
-    """A1 (TD error or GAE) or A2 (COMA), before any standardisation."""
+    """A1 (TD error or GAE) or A2 (COMA's, or with ``central_advantage`` 'return' the target less COMA's
+    baseline): what the actor is handed, before any standardisation."""
     loss: float
     """0.5 · mean (target - prediction)²."""
 
@@ -773,8 +788,11 @@ class Learner:
                 q_now = self.central_target(state, others, slot).gather(1, action.unsqueeze(1)).squeeze(1)
                 target = lambda_targets(target, q_now, _require(nxt.row, "next_row"), cfg.gamma, cfg.q_lambda)
         loss, q_taken = self.central.loss(forward.q_all, action, target)
+        advantage = forward.advantage
+        if cfg.central_advantage == "return":  # the sampled return for the action taken, the baseline kept
+            advantage = advantage + (target - q_taken.detach())
         step = CriticStep(
-            prediction=q_taken.detach(), target=target, advantage=forward.advantage, loss=float(loss.item())
+            prediction=q_taken.detach(), target=target, advantage=advantage, loss=float(loss.item())
         )
         return step, _gradient(loss, self.central)
 
