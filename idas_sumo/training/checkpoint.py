@@ -59,12 +59,18 @@ class TrainingCheckpoint(PolicyCheckpoint):
         return super().from_dict(data, path)
 
 
+_PREDATED_SETTINGS = (
+    ("learner", "q_horizon", "agent"),
+    ("robot_traffic", "entries", "as_drawn"),
+    ("intelligent_traffic", "entries", "as_drawn"),
+)
+"""(section, key, the value a run used before the key existed) for each setting whose default changed."""
+
+
 def config_as_it_ran(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` with the values of settings it predates: what the run used before they existed."""
-    legacy = {"learner": ("q_horizon", "agent"), "robot_traffic": ("entries", "as_drawn")}
-    legacy["intelligent_traffic"] = legacy["robot_traffic"]
     config = dict(config)
-    for section, (key, value) in legacy.items():
+    for section, key, value in _PREDATED_SETTINGS:
         table = config.get(section)
         if isinstance(table, dict) and key not in table:
             config[section] = {**table, key: value}
