@@ -1,6 +1,6 @@
 """The declared pick of the paper's recipe (idas_sumo/scenarios/train_paper.toml, scripts/paper_recipe.sh).
 
-    python scripts/paper_pick.py runs/paper [--seeds 0 1 2]
+    python scripts/paper_pick.py runs/paper [--seeds 0 1 2] [--suffix _paper]
 
 Per method, among every validation of its seeds (40 scenarios of validation seed 123): the first by validation
 success, then joint return; within a run the earliest of equals (the run's own ``<stage>_best.pt``), across
@@ -21,15 +21,16 @@ from idas_sumo.errors import InputError
 from idas_sumo.io_utils import read_csv_columns, write_csv_atomic
 
 METHODS: dict[str, tuple[str, str]] = {
-    "idas_paper": ("curriculum", "intelligent"),
-    "idas_v_paper": ("curriculum", "robot"),
-    "idas_direct_paper": ("direct", "direct"),
+    "idas": ("curriculum", "intelligent"),
+    "idas_v": ("curriculum", "robot"),
+    "idas_direct": ("direct", "direct"),
 }
-"""Method -> (run kind, stage): the runs are OUT_ROOT/<kind>_seed<S>, the stage names its validation rows."""
+"""Method -> (run kind, stage): the runs are OUT_ROOT/<kind>_seed<S>, the stage names its validation rows.
+The method's name takes the recipe's suffix: ``_paper`` for the paper's recipe, none for ours."""
 COLUMNS = ("stage", "episode", "global_episode", "joint_return", "perfect_rate", "success_rate")
 
 
-def seed_rows(root: Path, method: str, seeds: list[int]) -> pd.DataFrame:
+def seed_rows(root: Path, method: str, seeds: list[int], suffix: str = "_paper") -> pd.DataFrame:
     """One row per seed that has validated this method's stage: its best (by the rule) and its last validation."""
     kind, stage = METHODS[method]
     rows = []
@@ -46,7 +47,7 @@ def seed_rows(root: Path, method: str, seeds: list[int]) -> pd.DataFrame:
         last = table.iloc[-1]
         rows.append(
             {
-                "method": method,
+                "method": method + suffix,
                 "seed": seed,
                 "run": str(path.parent),
                 "checkpoint": str(path.parent / f"{stage}_best.pt"),
@@ -64,11 +65,11 @@ def seed_rows(root: Path, method: str, seeds: list[int]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def picks(root: Path, seeds: list[int]) -> pd.DataFrame:
+def picks(root: Path, seeds: list[int], suffix: str = "_paper") -> pd.DataFrame:
     """Every seed's row per method, the pick marked (``picked``): success, then return, then the lower seed."""
     frames = []
     for method in METHODS:
-        rows = seed_rows(root, method, seeds)
+        rows = seed_rows(root, method, seeds, suffix)
         if rows.empty:
             continue
         order = rows.sort_values(
@@ -77,7 +78,7 @@ def picks(root: Path, seeds: list[int]) -> pd.DataFrame:
         rows["picked"] = rows.index == order.index[0]
         frames.append(rows)
     if not frames:
-        raise InputError(f"{root}: no validation.csv of the paper recipe's runs")
+        raise InputError(f"{root}: no validation.csv of a recipe's runs (<kind>_seed<S>/validation.csv)")
     return pd.concat(frames, ignore_index=True)
 
 
@@ -87,9 +88,12 @@ def main() -> None:
     )
     parser.add_argument("root", type=Path, help="the runs' directory (scripts/paper_recipe.sh's OUT_ROOT)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument(
+        "--suffix", default="_paper", help="the methods' name suffix: _paper (the paper's recipe), '' (ours)"
+    )
     args = parser.parse_args()
     try:
-        table = picks(args.root, args.seeds)
+        table = picks(args.root, args.seeds, args.suffix)
     except InputError as err:
         print(f"paper_pick: {err}", file=sys.stderr)
         raise SystemExit(2) from None

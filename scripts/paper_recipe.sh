@@ -10,8 +10,13 @@
 # shortens every run, for a smoke test: `bash scripts/paper_recipe.sh /tmp/paper_smoke 100`. SEEDS="0" runs
 # fewer seeds; WORKERS=1 leaves the machine's other cores free. All six runs: about 15-30 h on 2 cores
 # (seed 0's curriculum ran 20,000 episodes in ~13 min, then stage 2 at ~16 episodes/s with one worker).
+# RECIPE names another recipe run the same way (our recipe: RECIPE=idas_sumo/scenarios/train_ours.toml SUFFIX=
+# bash scripts/paper_recipe.sh runs/ours); KINDS="direct" runs one kind only, e.g. one kind per core.
 set -euo pipefail
 out=${1:-runs/paper}
+recipe=${RECIPE:-idas_sumo/scenarios/train_paper.toml}
+kinds=${KINDS:-curriculum direct}
+suffix=${SUFFIX-_paper}
 episodes=${2:-}
 seeds=${SEEDS:-0 1 2}
 budget=()
@@ -24,11 +29,12 @@ train() { # STAGE SEED
     idas-sumo train --out "$dir" --resume --no-progress "${budget[@]}"
   else
     # Nothing to continue: a run stopped before its first checkpoint starts over (--force).
-    idas-sumo train --config scenarios/train_paper.toml --stage "$1" --seed "$2" --out "$dir" --force \
+    idas-sumo train --config "$recipe" --stage "$1" --seed "$2" --out "$dir" --force \
       --no-progress "${budget[@]}"
   fi
 }
 
-for seed in $seeds; do train curriculum "$seed"; done
-for seed in $seeds; do train direct "$seed"; done
-python "$(dirname "$0")/paper_pick.py" "$out" --seeds $seeds
+for kind in $kinds; do
+  for seed in $seeds; do train "$kind" "$seed"; done
+done
+python "$(dirname "$0")/paper_pick.py" "$out" --seeds $seeds --suffix "$suffix"

@@ -84,6 +84,8 @@ def test_the_pick_is_success_then_return_then_the_lower_seed(tmp_path: Path) -> 
     direct = chosen.loc["idas_direct_paper"]
     assert (direct["best_episode"], direct["last_episode"], direct["last_success"]) == (500, 1000, 0.0)
     assert table["picked"].sum() == 3
+    # Our recipe's runs are picked the same way under the shipped names.
+    assert set(pick.picks(tmp_path, [0, 1, 2], suffix="")["method"]) == {"idas", "idas_v", "idas_direct"}
 
 
 def test_the_pick_refuses_a_directory_without_runs(tmp_path: Path) -> None:
