@@ -19,8 +19,8 @@ from idas_sumo.training.config import load_train_config
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
-def _pick_module() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("paper_pick", REPO_ROOT / "scripts" / "paper_pick.py")
+def _pick_module(name: str = "paper_pick") -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "scripts" / f"{name}.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -91,3 +91,40 @@ def test_the_pick_is_success_then_return_then_the_lower_seed(tmp_path: Path) -> 
 def test_the_pick_refuses_a_directory_without_runs(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"no validation\.csv"):
         _pick_module().picks(tmp_path, [0, 1, 2])
+
+
+def test_our_recipe_differs_from_the_papers_where_it_says_ours() -> None:
+    ours, paper = (load_train_config(SCENARIO_DIR / f"train_{n}.toml") for n in ("ours", "paper"))
+    assert ours.init_from == "idas_sumo/policies/warm_start.pt" and paper.init_from == ""
+    # IDAS and IDAS-direct see the same RL episodes; one learner for every stage and method.
+    assert ours.robot_episodes + ours.intelligent_episodes == ours.direct_episodes
+    assert ours.learner.central_advantage == "return" and ours.learner.alpha == paper.learner.alpha
+    assert (ours.validate_every, ours.validation_seed) == (paper.validate_every, paper.validation_seed)
+
+
+def test_the_equal_terms_table_is_per_training_seed_then_mean_and_sd() -> None:
+    table = _pick_module("equal_terms")
+    rows = []
+    # Three training seeds of idas_v_paper, two scenarios each: perfect 100, 50, 0 %; the pick is seed 1.
+    for seed, perfect in ((0, (1, 1)), (1, (1, 0)), (2, (0, 0))):
+        for k, value in enumerate(perfect):
+            rows.append(("paper", "idas_v_paper", "idas_v", seed, seed == 1, 500, f"s{k}", 1, value))
+    frame = pd.DataFrame(
+        rows,
+        columns=[
+            "recipe",
+            "method",
+            "base",
+            "training_seed",
+            "picked",
+            "pick_episode",
+            "scenario",
+            "success",
+            "perfect",
+        ],
+    )
+    row = table.summary(frame).iloc[0]
+    assert row["perfect_per_seed"] == "100.0 / 50.0 / 0.0"
+    assert (row["perfect_mean"], row["perfect_sd"], row["pick_perfect"]) == (50.0, 50.0, 50.0)
+    assert (row["paper_success"], row["paper_perfect"]) == (93.0, 64.0)  # Fig. 4's IDAS-V
+    assert table.base_method("idas_direct_paper", "_paper") == "idas_direct"

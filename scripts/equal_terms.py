@@ -1,0 +1,160 @@
+"""The equal-terms table (issue 36): every recipe's methods, each training seed's own pick, on declared seeds.
+
+    python scripts/equal_terms.py --recipe ours=runs/ours --recipe paper=runs/paper --out results/equal-terms
+
+Each recipe's runs directory holds its ``picks.csv`` (``scripts/paper_pick.py``): per method and training seed the
+run's own validation pick (``<stage>_best.pt``) and whether it is the method's pick. Every such checkpoint is
+evaluated under the paper's protocol (``idas-sumo evaluate --policy``, 100 scenarios per evaluation seed, the
+defaults: feasible entries, own-lane mask, every other car on the shipped IDAS), and so are the reference methods
+(``warm_start`` and the rules) once per evaluation seed. Writes OUT/episodes.csv (every episode, with its recipe,
+method and training seed) and OUT/equal_terms.csv: per method, success and perfect success for each training seed
+(over all evaluation seeds' scenarios), their mean and standard deviation over training seeds, the method's pick,
+and the paper's figure (Fig. 4, left) where it prints one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+from idas_sumo.errors import InputError
+from idas_sumo.io_utils import ensure_writable_dir, read_csv_columns, write_csv_atomic
+
+EVALUATION_SEEDS = (2031, 2032, 2033)
+"""Declared in experiments/diary.md before any run ("Declared: the evaluation seeds for issue 36's ...")."""
+REFERENCES = ("warm_start", "idm", "fsm_idm", "fsm_idm_smooth")
+PAPER_FIGURES: dict[str, tuple[float, float]] = {
+    "idas": (100.0, 95.0),
+    "idas_v": (93.0, 64.0),
+    "idas_direct": (77.0, 23.0),
+    "idm": (80.0, 12.0),
+    "fsm_idm": (94.0, 57.0),
+}
+"""The paper's success and perfect success, % (its Fig. 4 table), by the method it names."""
+PICK_COLUMNS = ("method", "seed", "checkpoint", "picked", "best_episode")
+EPISODE_COLUMNS = ("scenario", "seed", "success", "perfect")
+
+
+def evaluate(method: str, policy: Path | None, seed: int, out: Path, scenarios: int) -> pd.DataFrame:
+    """One ``idas-sumo evaluate`` run, its episodes.csv read back."""
+    command = [
+        "idas-sumo",
+        "evaluate",
+        "--baseline",
+        method,
+        "--scenarios",
+        str(scenarios),
+        "--seed",
+        str(seed),
+    ]
+    if policy is not None:
+        command += ["--policy", str(policy)]
+    command += ["--out", str(out), "--force", "--no-progress"]
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise InputError(f"{' '.join(command)}: {done.stderr.strip().splitlines()[-1:]}")
+    return read_csv_columns(out / "episodes.csv", EPISODE_COLUMNS, "idas-sumo evaluate")
+
+
+def base_method(method: str, suffix: str) -> str:
+    """The learned method a recipe's pick is evaluated as (idas_v_paper -> idas_v)."""
+    return method[: -len(suffix)] if suffix and method.endswith(suffix) else method
+
+
+def recipe_episodes(name: str, root: Path, seeds: list[int], out: Path, scenarios: int) -> pd.DataFrame:
+    """Every training seed's pick of every method of one recipe, on every evaluation seed."""
+    picks = read_csv_columns(root / "picks.csv", PICK_COLUMNS, "scripts/paper_pick.py")
+    suffix = "" if name == "ours" else f"_{name}"
+    frames = []
+    for row in picks.itertuples():
+        base = base_method(str(row.method), suffix)
+        for seed in seeds:
+            where = out / "runs" / str(row.method) / f"train{row.seed}" / f"eval{seed}"
+            episodes = evaluate(base, Path(str(row.checkpoint)), seed, where, scenarios)
+            episodes["recipe"], episodes["method"], episodes["base"] = name, row.method, base
+            episodes["training_seed"], episodes["picked"] = int(row.seed), bool(row.picked)
+            episodes["pick_episode"] = int(row.best_episode)
+            frames.append(episodes)
+    return pd.concat(frames, ignore_index=True)
+
+
+def reference_episodes(seeds: list[int], out: Path, scenarios: int) -> pd.DataFrame:
+    frames = []
+    for method in REFERENCES:
+        for seed in seeds:
+            episodes = evaluate(method, None, seed, out / "runs" / method / f"eval{seed}", scenarios)
+            episodes["recipe"], episodes["method"], episodes["base"] = "reference", method, method
+            episodes["training_seed"], episodes["picked"], episodes["pick_episode"] = -1, True, -1
+            frames.append(episodes)
+    return pd.concat(frames, ignore_index=True)
+
+
+def summary(episodes: pd.DataFrame) -> pd.DataFrame:
+    """One row per method: per training seed, mean ± sd over training seeds, the pick, the paper's figure."""
+    rows = []
+    for (recipe, method), group in episodes.groupby(["recipe", "method"], sort=False):
+        per_seed = group.groupby("training_seed")[["success", "perfect"]].mean() * 100.0
+        pick = group[group["picked"]]
+        paper = PAPER_FIGURES.get(str(group["base"].iloc[0]), (float("nan"), float("nan")))
+        rows.append(
+            {
+                "recipe": recipe,
+                "method": method,
+                "training_seeds": len(per_seed),
+                "scenarios_per_seed": int(len(group) / len(per_seed)),
+                "success_per_seed": " / ".join(f"{v:.1f}" for v in per_seed["success"]),
+                "perfect_per_seed": " / ".join(f"{v:.1f}" for v in per_seed["perfect"]),
+                "success_mean": round(float(per_seed["success"].mean()), 2),
+                "success_sd": round(float(per_seed["success"].std(ddof=1)), 2) if len(per_seed) > 1 else None,
+                "perfect_mean": round(float(per_seed["perfect"].mean()), 2),
+                "perfect_sd": round(float(per_seed["perfect"].std(ddof=1)), 2) if len(per_seed) > 1 else None,
+                "pick_training_seed": int(pick["training_seed"].iloc[0]),
+                "pick_episode": int(pick["pick_episode"].iloc[0]),
+                "pick_success": round(100.0 * float(pick["success"].mean()), 2),
+                "pick_perfect": round(100.0 * float(pick["perfect"].mean()), 2),
+                "paper_success": paper[0],
+                "paper_perfect": paper[1],
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--recipe",
+        action="append",
+        default=[],
+        metavar="NAME=DIR",
+        help="a recipe's runs (its picks.csv); NAME 'ours' ships without a suffix, any other as _NAME",
+    )
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(EVALUATION_SEEDS))
+    parser.add_argument("--scenarios", type=int, default=100)
+    args = parser.parse_args()
+    try:
+        recipes = [tuple(item.split("=", 1)) for item in args.recipe]
+        if not recipes or any(len(r) != 2 for r in recipes):
+            raise InputError("--recipe NAME=DIR, at least one (e.g. --recipe ours=runs/ours)")
+        ensure_writable_dir(args.out)
+        frames = [recipe_episodes(n, Path(d), args.seeds, args.out, args.scenarios) for n, d in recipes]
+        episodes = pd.concat([*frames, reference_episodes(args.seeds, args.out, args.scenarios)])
+    except InputError as err:
+        print(f"equal_terms: {err}", file=sys.stderr)
+        return 2
+    write_csv_atomic(episodes, args.out / "episodes.csv")
+    table = summary(episodes)
+    write_csv_atomic(table, args.out / "equal_terms.csv")
+    with pd.option_context("display.width", 250, "display.max_columns", 30):
+        print(table.to_string(index=False))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
