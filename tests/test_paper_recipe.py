@@ -128,3 +128,19 @@ def test_the_equal_terms_table_is_per_training_seed_then_mean_and_sd() -> None:
     assert (row["perfect_mean"], row["perfect_sd"], row["pick_perfect"]) == (50.0, 50.0, 50.0)
     assert (row["paper_success"], row["paper_perfect"]) == (93.0, 64.0)  # Fig. 4's IDAS-V
     assert table.base_method("idas_direct_paper", "_paper") == "idas_direct"
+
+
+def test_the_margins_compare_the_first_method_with_each_other_one() -> None:
+    margins = _pick_module("margins")
+    # Two scenarios: IDAS perfect in both, warm_start in one, IDM in none.
+    frame = pd.DataFrame(
+        [
+            (method, 2030, f"s{k}", 1, perfect)
+            for method, perfects in (("idas", (1, 1)), ("warm_start", (1, 0)), ("idm", (0, 0)))
+            for k, perfect in enumerate(perfects)
+        ],
+        columns=["method", "seed", "scenario", "success", "perfect"],
+    )
+    rows = margins.margin_rows(frame, ("idas", "warm_start", "idm"))
+    assert rows[-1]["seed"] == "all" and rows[-1]["idas_perfect_pct"] == 100.0
+    assert (rows[-1]["idas_minus_warm_start_pts"], rows[-1]["idas_minus_idm_pts"]) == (50.0, 100.0)
