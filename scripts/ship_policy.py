@@ -109,6 +109,13 @@ def budget_run_record(run_metrics: pd.DataFrame, budget_dir: Path, stages: list[
     }
 
 
+def rl_episodes_text(data: TrainingCheckpoint, start_episodes: int) -> str:
+    """What the weights' RL episodes were: the start's, then this run's up to the checkpoint."""
+    start = data.config.init_from or "random weights"
+    own = f"{data.global_episode:,} episodes of this run (to {data.stage} episode {data.episode:,})"
+    return f"{start_episodes:,} of its start ({start}) + {own}"
+
+
 def recipe_names(command: str) -> list[str]:
     """The file names of the ``--config`` recipes a made-with command trains from (tests check they ship)."""
     words = command.split()
@@ -122,6 +129,12 @@ def main() -> None:
     parser.add_argument("--command", required=True, help="the train command that made the run")
     parser.add_argument("--stages", nargs="*", help="only these stages' metrics (default: all in the run)")
     parser.add_argument("--note", default="", help="how the run relates to the paper's budget and recipe")
+    parser.add_argument(
+        "--start-rl-episodes",
+        type=int,
+        default=0,
+        help="RL episodes the run's start (init_from) had seen: 0 for random weights or an imitation",
+    )
     parser.add_argument(
         "--budget-run",
         type=Path,
@@ -159,6 +172,8 @@ def main() -> None:
         "run_episodes": int(metrics["global_episode"].max() + 1),
         "checkpoint_global_episode": data.global_episode,
         "central_critic": central_critic,
+        "rl_episodes_in_weights": args.start_rl_episodes + data.global_episode,
+        "rl_episodes_in_weights_are": rl_episodes_text(data, args.start_rl_episodes),
         "seed": data.config.seed,
         "wall_time_s": round(wall_s, 1),
         "machine": f"{platform.machine()}, {platform.python_version()}, {os.cpu_count()} CPU cores, no GPU",

@@ -298,7 +298,7 @@ def test_evaluate_help_lists_exactly_the_registered_methods(capsys: pytest.Captu
     """--baseline's help is derived from evaluation/policies.py: the paper's methods, then ours, then nothing
     else (a method removed there leaves the help too)."""
     from idas_sumo.cli.evaluate import baseline_help
-    from idas_sumo.evaluation.policies import METHODS, PAPER_METHODS
+    from idas_sumo.evaluation.policies import METHODS, PAPER_METHODS, PAPER_RECIPE_METHODS
 
     with pytest.raises(SystemExit) as exit_:
         main(["evaluate", "--help"])
@@ -309,15 +309,16 @@ def test_evaluate_help_lists_exactly_the_registered_methods(capsys: pytest.Captu
     for part in baseline.split(";"):
         names = part.strip().removeprefix("also").split("(")[0]
         listed += [name.strip() for name in names.split("|")]
-    ours = [m for m in METHODS if m not in PAPER_METHODS]
-    assert listed == [*PAPER_METHODS, "all", *ours]
+    ours = [m for m in METHODS if m not in PAPER_METHODS and m not in PAPER_RECIPE_METHODS]
+    assert listed == [*PAPER_METHODS, "all", *ours, *PAPER_RECIPE_METHODS]
     assert set(PAPER_METHODS) <= set(METHODS)
     # Hand-written registries: the text follows them, and a list without variants has no "also".
-    assert baseline_help(("idas", "idm", "x_y"), ("idas", "idm")) == (
+    assert baseline_help(("idas", "idm", "x_y"), ("idas", "idm"), ()) == (
         "method: idas | idm | all (those 2: the paper's); also x_y (ours, docs/results.md)"
     )
     assert (
-        baseline_help(("idas", "idm"), ("idas", "idm")) == "method: idas | idm | all (those 2: the paper's)"
+        baseline_help(("idas", "idm"), ("idas", "idm"), ())
+        == "method: idas | idm | all (those 2: the paper's)"
     )
 
 

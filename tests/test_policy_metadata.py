@@ -37,7 +37,16 @@ def _checkpoint(name: str) -> dict[str, Any]:
 def test_the_package_ships_exactly_the_learned_methods_policies() -> None:
     assert sorted(p.stem for p in POLICY_DIR.glob("*.pt")) == SHIPPED
     assert sorted(p.stem for p in POLICY_DIR.glob("*.json")) == SHIPPED
-    assert SHIPPED == ["idas", "idas_direct", "idas_geometry", "idas_v", "warm_start"]
+    assert SHIPPED == [
+        "idas",
+        "idas_direct",
+        "idas_direct_paper",
+        "idas_geometry",
+        "idas_paper",
+        "idas_v",
+        "idas_v_paper",
+        "warm_start",
+    ]
 
 
 def _stated_config(meta: dict[str, Any], ckpt: dict[str, Any]) -> tuple[TrainConfig, TrainConfig]:
@@ -139,7 +148,8 @@ def test_idas_weights_saw_idas_v_episodes_and_its_own() -> None:
     )
 
 
-def test_the_shipped_policies_keep_the_wheel_under_15_mb() -> None:
-    # The wheel is these files, deflated as a wheel's zip does, plus about 0.4 MB of code and data.
+def test_the_shipped_policies_keep_the_wheel_under_25_mb() -> None:
+    # The wheel is these files, deflated as a wheel's zip does, plus about 0.4 MB of code and data: eight
+    # checkpoints of about 2.8 MB each (networks, critics, optimiser state: each can start a run with init_from).
     deflated = sum(len(zlib.compress(p.read_bytes(), 6)) for p in POLICY_DIR.iterdir() if p.is_file())
-    assert deflated <= 14_500_000
+    assert deflated <= 24_500_000

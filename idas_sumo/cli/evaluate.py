@@ -24,7 +24,7 @@ from idas_sumo.cli.common import (
 from idas_sumo.env.actions import DEFAULT_SAFETY_MASK, SAFETY_MASKS
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation import DEFAULT_EVAL_COPIES
-from idas_sumo.evaluation.policies import METHODS, PAPER_METHODS
+from idas_sumo.evaluation.policies import METHODS, PAPER_METHODS, PAPER_RECIPE_METHODS
 from idas_sumo.resources import DEFAULT_NET_NAME, resolve_user_path
 
 if TYPE_CHECKING:
@@ -40,11 +40,18 @@ MISSING = "–"
 """The table's cell for a value that does not exist (no perfect episode, so no speed)."""
 
 
-def baseline_help(methods: tuple[str, ...] = METHODS, paper: tuple[str, ...] = PAPER_METHODS) -> str:
-    """``--baseline``'s help: the registered methods (evaluation/policies.py), the paper's first."""
-    ours = [m for m in methods if m not in paper]
+def baseline_help(
+    methods: tuple[str, ...] = METHODS,
+    paper: tuple[str, ...] = PAPER_METHODS,
+    recipe: tuple[str, ...] = PAPER_RECIPE_METHODS,
+) -> str:
+    """``--baseline``'s help: the registered methods (evaluation/policies.py), the paper's first, the paper's
+    recipe as printed last."""
+    ours = [m for m in methods if m not in paper and m not in recipe]
     text = f"method: {' | '.join(paper)} | all (those {len(paper)}: the paper's)"
-    return f"{text}; also {' | '.join(ours)} (ours, docs/results.md)" if ours else text
+    text = f"{text}; also {' | '.join(ours)} (ours, docs/results.md)" if ours else text
+    printed = [m for m in methods if m in recipe]
+    return f"{text}; {' | '.join(printed)} (the paper's recipe as printed)" if printed else text
 
 
 def add_parser(sub: Subparsers) -> None:

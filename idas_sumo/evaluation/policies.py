@@ -21,9 +21,15 @@ LEARNED_METHODS: dict[str, str] = {
     # Ours (issue 36): the imitation of FSM+IDM-smooth that IDAS, IDAS-V and IDAS-direct start from, before any
     # RL episode, so that what RL adds to it is measured.
     "warm_start": "warm_start.pt",
+    # The paper's recipe as printed, from random weights (issue 36; docs/paper-recipe.md), whatever it scores.
+    "idas_paper": "idas_paper.pt",
+    "idas_v_paper": "idas_v_paper.pt",
+    "idas_direct_paper": "idas_direct_paper.pt",
 }
 PAPER_METHODS: tuple[str, ...] = ("idas", "idas_v", "idas_direct", "idm", "fsm_idm")
 """The paper's five methods: what ``--baseline all`` runs."""
+PAPER_RECIPE_METHODS: tuple[str, ...] = ("idas_paper", "idas_v_paper", "idas_direct_paper")
+"""The paper's methods trained by its recipe as printed (``idas_sumo/scenarios/train_paper.toml``)."""
 METHODS: tuple[str, ...] = (*LEARNED_METHODS, *BASELINES)
 METHOD_LABELS: dict[str, str] = {
     "idas": "IDAS",
@@ -31,6 +37,9 @@ METHOD_LABELS: dict[str, str] = {
     "idas_direct": "IDAS-direct",
     "idas_geometry": "IDAS-geometry",
     "warm_start": "warm start",
+    "idas_paper": "IDAS (paper recipe)",
+    "idas_v_paper": "IDAS-V (paper recipe)",
+    "idas_direct_paper": "IDAS-direct (paper recipe)",
     "idm": "IDM",
     "fsm_idm": "FSM+IDM",
     "fsm_idm_smooth": "FSM+IDM-smooth",
