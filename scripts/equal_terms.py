@@ -3,8 +3,8 @@
     python scripts/equal_terms.py --recipe ours=runs/ours --recipe paper=runs/paper --out results/equal-terms
 
 Each recipe's runs directory holds its ``picks.csv`` (``scripts/paper_pick.py``): per method and training seed the
-run's own validation pick (``<stage>_best.pt``) and whether it is the method's pick. Every such checkpoint is
-evaluated under the paper's protocol (``idas-sumo evaluate --policy``, 100 scenarios per evaluation seed, the
+run's own validation pick (``<stage>_best.pt``) and whether it is the method's pick. Every such checkpoint, and the
+run's weights at the end of its budget (``<stage>.pt``), is evaluated under the paper's protocol (``idas-sumo evaluate --policy``, 100 scenarios per evaluation seed, the
 defaults: feasible entries, own-lane mask, every other car on the shipped IDAS), and so are the reference methods
 (``warm_start`` and the rules) once per evaluation seed. Writes OUT/episodes.csv (every episode, with its recipe,
 method and training seed) and OUT/equal_terms.csv: per method, success and perfect success for each training seed
@@ -72,13 +72,17 @@ def recipe_episodes(name: str, root: Path, seeds: list[int], out: Path, scenario
     frames = []
     for row in picks.itertuples():
         base = base_method(str(row.method), suffix)
-        for seed in seeds:
-            where = out / "runs" / str(row.method) / f"train{row.seed}" / f"eval{seed}"
-            episodes = evaluate(base, Path(str(row.checkpoint)), seed, where, scenarios)
-            episodes["recipe"], episodes["method"], episodes["base"] = name, row.method, base
-            episodes["training_seed"], episodes["picked"] = int(row.seed), bool(row.picked)
-            episodes["pick_episode"] = int(row.best_episode)
-            frames.append(episodes)
+        best = Path(str(row.checkpoint))
+        # The run's own pick, and the weights at the end of its budget (<stage>.pt beside <stage>_best.pt).
+        for weights, path in (("pick", best), ("last", best.with_name(best.name.replace("_best", "")))):
+            for seed in seeds:
+                where = out / "runs" / str(row.method) / f"train{row.seed}-{weights}" / f"eval{seed}"
+                episodes = evaluate(base, path, seed, where, scenarios)
+                episodes["recipe"], episodes["method"], episodes["base"] = name, row.method, base
+                episodes["weights"], episodes["training_seed"] = weights, int(row.seed)
+                episodes["picked"] = bool(row.picked) and weights == "pick"
+                episodes["pick_episode"] = int(row.best_episode) if weights == "pick" else -1
+                frames.append(episodes)
     return pd.concat(frames, ignore_index=True)
 
 
@@ -88,15 +92,30 @@ def reference_episodes(seeds: list[int], out: Path, scenarios: int) -> pd.DataFr
         for seed in seeds:
             episodes = evaluate(method, None, seed, out / "runs" / method / f"eval{seed}", scenarios)
             episodes["recipe"], episodes["method"], episodes["base"] = "reference", method, method
-            episodes["training_seed"], episodes["picked"], episodes["pick_episode"] = -1, True, -1
+            episodes["weights"], episodes["training_seed"] = "pick", -1
+            episodes["picked"], episodes["pick_episode"] = True, -1
             frames.append(episodes)
     return pd.concat(frames, ignore_index=True)
 
 
+def pick_columns(pick: pd.DataFrame) -> dict[str, object]:
+    """The method's pick on the evaluation seeds (none for the weights at the end of the budget)."""
+    if pick.empty:
+        return {"pick_training_seed": None, "pick_episode": None, "pick_success": None, "pick_perfect": None}
+    return {
+        "pick_training_seed": int(pick["training_seed"].iloc[0]),
+        "pick_episode": int(pick["pick_episode"].iloc[0]),
+        "pick_success": round(100.0 * float(pick["success"].mean()), 2),
+        "pick_perfect": round(100.0 * float(pick["perfect"].mean()), 2),
+    }
+
+
 def summary(episodes: pd.DataFrame) -> pd.DataFrame:
-    """One row per method: per training seed, mean ± sd over training seeds, the pick, the paper's figure."""
+    """One row per method and weights (each run's pick, or its last): per training seed, mean ± sd over training
+    seeds, the method's pick, the paper's figure."""
     rows = []
-    for (recipe, method), group in episodes.groupby(["recipe", "method"], sort=False):
+    keys = ["recipe", "method", "weights"]
+    for (recipe, method, weights), group in episodes.groupby(keys, sort=False):
         per_seed = group.groupby("training_seed")[["success", "perfect"]].mean() * 100.0
         pick = group[group["picked"]]
         paper = PAPER_FIGURES.get(str(group["base"].iloc[0]), (float("nan"), float("nan")))
@@ -104,6 +123,7 @@ def summary(episodes: pd.DataFrame) -> pd.DataFrame:
             {
                 "recipe": recipe,
                 "method": method,
+                "weights": weights,
                 "training_seeds": len(per_seed),
                 "scenarios_per_seed": int(len(group) / len(per_seed)),
                 "success_per_seed": " / ".join(f"{v:.1f}" for v in per_seed["success"]),
@@ -112,10 +132,7 @@ def summary(episodes: pd.DataFrame) -> pd.DataFrame:
                 "success_sd": round(float(per_seed["success"].std(ddof=1)), 2) if len(per_seed) > 1 else None,
                 "perfect_mean": round(float(per_seed["perfect"].mean()), 2),
                 "perfect_sd": round(float(per_seed["perfect"].std(ddof=1)), 2) if len(per_seed) > 1 else None,
-                "pick_training_seed": int(pick["training_seed"].iloc[0]),
-                "pick_episode": int(pick["pick_episode"].iloc[0]),
-                "pick_success": round(100.0 * float(pick["success"].mean()), 2),
-                "pick_perfect": round(100.0 * float(pick["perfect"].mean()), 2),
+                **pick_columns(pick),
                 "paper_success": paper[0],
                 "paper_perfect": paper[1],
             }

@@ -109,6 +109,11 @@ def budget_run_record(run_metrics: pd.DataFrame, budget_dir: Path, stages: list[
     }
 
 
+def init_digest(init_from: str) -> str | None:
+    """The SHA-256 of the checkpoint the run started from (tests match it to a shipped policy's)."""
+    return file_digest(Path(init_from)) if init_from and Path(init_from).is_file() else None
+
+
 def rl_episodes_text(data: TrainingCheckpoint, start_episodes: int) -> str:
     """What the weights' RL episodes were: the start's, then this run's up to the checkpoint."""
     start = data.config.init_from or "random weights"
@@ -168,6 +173,7 @@ def main() -> None:
         "made_with": args.command,
         "recipes": recipe_names(args.command),
         "source_checkpoint": str(args.checkpoint),
+        "init_from_sha256": init_digest(data.config.init_from),
         "stage_of_checkpoint": data.stage,
         "run_episodes": int(metrics["global_episode"].max() + 1),
         "checkpoint_global_episode": data.global_episode,

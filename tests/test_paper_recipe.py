@@ -123,11 +123,17 @@ def test_the_equal_terms_table_is_per_training_seed_then_mean_and_sd() -> None:
             "perfect",
         ],
     )
-    row = table.summary(frame).iloc[0]
+    frame["weights"] = "pick"
+    last = frame.assign(weights="last", picked=False, perfect=1)
+    summary = table.summary(pd.concat([frame, last]))
+    row = summary.iloc[0]
     assert row["perfect_per_seed"] == "100.0 / 50.0 / 0.0"
     assert (row["perfect_mean"], row["perfect_sd"], row["pick_perfect"]) == (50.0, 50.0, 50.0)
     assert (row["paper_success"], row["paper_perfect"]) == (93.0, 64.0)  # Fig. 4's IDAS-V
     assert table.base_method("idas_direct_paper", "_paper") == "idas_direct"
+    # The weights at the end of the budget are their own row, without a pick.
+    end = summary[summary["weights"] == "last"].iloc[0]
+    assert end["perfect_mean"] == 100.0 and pd.isna(end["pick_perfect"])
 
 
 def test_the_margins_compare_the_first_method_with_each_other_one() -> None:
