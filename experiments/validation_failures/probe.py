@@ -14,8 +14,10 @@ cars do (a car behind others on its road can only be slower).
 
 Writes to ``--out``: ``episodes.csv`` (method x scenario: outcome, the cars that timed out or collided, hard
 brakes, forced hard brakes), ``scenarios.csv`` (each scenario's entries, its solo bound, which methods fail it),
-``collisions.csv`` (each collided car: when, where, what its mask allowed in its last second),
-``summary.csv`` (per method) and ``trajectories_failed.csv`` (every failed episode, every car, every decision).
+``collisions.csv`` (each collided car: when, where, what its mask allowed in its last second), ``brakes.csv``
+(each hard brake's first step: forced or chosen, the car ahead on either road and the road it came from),
+``summary.csv`` (per method), ``cars.csv`` (each car's entry and solo finish) and, with ``--trajectories``,
+``trajectories_failed.csv`` (every failed episode, every car, every decision).
 
     python experiments/validation_failures/probe.py --out results/validation_failures \\
         --checkpoint /tmp/intelligent.pt --method warm_start --method fsm_idm_smooth [--seed 123 --scenarios 40]
@@ -226,7 +228,64 @@ def episode_row(label: str, scenario: str, stats: EpisodeStats, traj: pd.DataFra
         "forced_hard_brakes": int(
             ((decided.action == HARD_BRAKE) & (decided.allowed_actions == FORCED)).sum()
         ),
+        "cars_forced_before_free": forced_before_free(decided),
+        "impede": round(stats.reward_parts["impede"], 4),
+        "flow": round(stats.reward_parts["flow"], 4),
     }
+
+
+def brake_rows(label: str, scenario: str, traj: pd.DataFrame) -> list[dict]:
+    """Each hard brake's first step: forced or chosen, and the nearest car ahead on either road (the one r_impede
+    blames) with the road it came from: another road's car is one the own-lane mask did not see coming."""
+    decided = traj[traj.action >= 0]
+    origin = traj.groupby("vehicle").road.first()
+    rows = []
+    for vid, steps in decided.groupby("vehicle", sort=False):
+        braking = steps.action.to_numpy() == HARD_BRAKE
+        onsets = np.flatnonzero(braking & ~np.concatenate([[False], braking[:-1]]))
+        first_t = float(steps.time_s.iloc[0])
+        for i in onsets.tolist():
+            step = steps.iloc[i]
+            now = traj[(traj.time_s == step.time_s) & (traj.vehicle != vid)]
+            ahead = now[now.dist_to_merge_m < step.dist_to_merge_m]
+            before = steps.iloc[max(0, i - LAST_SECOND_STEPS) : i]
+            row = {
+                "method": label,
+                "scenario": scenario,
+                "vehicle": vid,
+                "origin": origin[vid],
+                "time_s": step.time_s,
+                "since_entry_s": round(step.time_s - first_t, 2),
+                "road": step.road,
+                "dist_to_merge_m": step.dist_to_merge_m,
+                "speed_mps": step.speed_mps,
+                "forced": int(step.allowed_actions == FORCED),
+                "free_steps_last_second": int(
+                    before.allowed_actions.str[:HARD_BRAKE].str.contains("1").sum()
+                ),
+            }
+            if len(ahead):
+                car = ahead.loc[ahead.dist_to_merge_m.idxmax()]
+                row |= {
+                    "ahead": car.vehicle,
+                    "ahead_origin": origin[car.vehicle],
+                    "ahead_gap_m": round(step.dist_to_merge_m - car.dist_to_merge_m, 2),
+                    "ahead_speed_mps": car.speed_mps,
+                    "ahead_other_road": int(origin[car.vehicle] != origin[vid]),
+                }
+            rows.append(row)
+    return rows
+
+
+def forced_before_free(decided: pd.DataFrame) -> int:
+    """Cars whose mask forced the hard brake before their first step with a Δa action allowed: a brake no
+    policy of theirs could have avoided (experiments/forced_entry_brakes.py, 'before_free')."""
+    count = 0
+    for _, steps in decided.groupby("vehicle", sort=False):
+        masks = steps.allowed_actions.tolist()
+        free = next((i for i, m in enumerate(masks) if "1" in m[:HARD_BRAKE]), len(masks))
+        count += any(m == FORCED for m in masks[:free])
+    return count
 
 
 def summarise(episodes: pd.DataFrame, scenarios: pd.DataFrame) -> pd.DataFrame:
@@ -256,6 +315,9 @@ def check_stored_validation(method: Method, stats: list[EpisodeStats], config: T
     """A ``<stage>_best.pt`` holds the validation that picked it: say whether this run reproduces it."""
     if (
         method.path is None
+        or args.safety_mask
+        or args.max_episode_s
+        or args.entries
         or args.seed != config.validation_seed
         or args.scenarios != config.validation_scenarios
     ):
@@ -287,6 +349,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument(
         "--entries", choices=("as_drawn", "feasible"), default=None, help="default: the recipe's"
     )
+    parser.add_argument("--trajectories", action="store_true", help="write trajectories_failed.csv")
     parser.add_argument("--out", type=Path, required=True)
     return parser.parse_args()
 
@@ -320,7 +383,7 @@ def main() -> None:
     print(f"{len(tasks)} scenarios of seed {args.seed}; {config.env}; entries {traffic.entries}")
     cars = solo_bounds(site, config, scenarios)
     table = scenario_table(scenarios, cars, config.env.max_episode_s)
-    episodes, collisions, failed = [], [], []
+    episodes, collisions, brakes, failed = [], [], [], []
     for method in methods:
         start = time.perf_counter()
         stats, results = run_method(site, config, tasks, method)
@@ -328,6 +391,7 @@ def main() -> None:
         for s, r, scenario in zip(stats, results, scenarios, strict=True):
             episodes.append(episode_row(method.label, scenario.name, s, r.trajectory))
             collisions += collision_rows(method.label, scenario.name, s, r.trajectory)
+            brakes += brake_rows(method.label, scenario.name, r.trajectory)
             if not s.success:
                 failed.append(r.trajectory.assign(method=method.label, scenario=scenario.name))
         print(f"  {method.label}: {time.perf_counter() - start:.0f} s")
@@ -340,7 +404,8 @@ def main() -> None:
     table.to_csv(args.out / "scenarios.csv", index=False)
     cars.to_csv(args.out / "cars.csv", index=False)
     pd.DataFrame(collisions).to_csv(args.out / "collisions.csv", index=False)
-    if failed:
+    pd.DataFrame(brakes).to_csv(args.out / "brakes.csv", index=False)
+    if failed and args.trajectories:
         pd.concat(failed).to_csv(args.out / "trajectories_failed.csv", index=False)
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(summary.to_string(index=False))
