@@ -17,7 +17,7 @@ brakes, forced hard brakes), ``scenarios.csv`` (each scenario's entries, its sol
 ``collisions.csv`` (each collided car: when, where, what its mask allowed in its last second), ``brakes.csv``
 (each hard brake's first step: forced or chosen, the car ahead on either road and the road it came from),
 ``summary.csv`` (per method), ``cars.csv`` (each car's entry and solo finish) and, with ``--trajectories``,
-``trajectories_failed.csv`` (every failed episode, every car, every decision).
+``trajectories_failed.csv.gz`` (every failed episode, every car, every decision).
 
     python experiments/validation_failures/probe.py --out results/validation_failures \\
         --checkpoint /tmp/intelligent.pt --method warm_start --method fsm_idm_smooth [--seed 123 --scenarios 40]
@@ -349,7 +349,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument(
         "--entries", choices=("as_drawn", "feasible"), default=None, help="default: the recipe's"
     )
-    parser.add_argument("--trajectories", action="store_true", help="write trajectories_failed.csv")
+    parser.add_argument("--trajectories", action="store_true", help="write trajectories_failed.csv.gz")
     parser.add_argument("--out", type=Path, required=True)
     return parser.parse_args()
 
@@ -406,7 +406,7 @@ def main() -> None:
     pd.DataFrame(collisions).to_csv(args.out / "collisions.csv", index=False)
     pd.DataFrame(brakes).to_csv(args.out / "brakes.csv", index=False)
     if failed and args.trajectories:
-        pd.concat(failed).to_csv(args.out / "trajectories_failed.csv", index=False)
+        pd.concat(failed).to_csv(args.out / "trajectories_failed.csv.gz", index=False)
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(summary.to_string(index=False))
         print(
