@@ -96,8 +96,9 @@ def test_metadata_agrees_with_its_checkpoint(name: str) -> None:
 
 
 def test_a_checkpoint_older_than_a_default_reads_as_it_ran() -> None:
-    """idas.pt predates ``q_horizon`` and ``entries``: it trained Q along its agent's steps, drew entries as drawn."""
-    ckpt = _checkpoint("idas")
+    """idas_geometry.pt predates ``q_horizon`` and ``entries``: it trained Q along its agent's steps, drew entries
+    as drawn."""
+    ckpt = _checkpoint("idas_geometry")
     assert (
         "q_horizon" not in ckpt["config"]["learner"]
         and "entries" not in ckpt["config"]["intelligent_traffic"]
@@ -117,14 +118,17 @@ def test_the_metadata_check_fails_on_a_wrong_claim() -> None:
     assert stated != stored
 
 
-def test_the_warm_start_is_what_the_rl_policies_started_from() -> None:
+def test_the_warm_start_is_what_our_recipe_started_from() -> None:
     warm = _metadata("warm_start")
     assert warm["rl_episodes_in_weights"] == warm["checkpoint_global_episode"] == 0
     assert warm["stage_of_checkpoint"] == f"imitation-{warm['teacher']}" == "imitation-fsm_idm_smooth"
-    for name in ("idas_v", "idas_direct"):
+    for name in ("idas", "idas_v", "idas_direct"):
         meta = _metadata(name)
-        assert meta["config"]["init_from"] == warm["source_checkpoint"], name
+        assert meta["init_from_sha256"] == warm["file_sha256"], name
         assert meta["rl_episodes_in_weights"] == meta["checkpoint_global_episode"], name
+    for name in ("idas_paper", "idas_v_paper", "idas_direct_paper"):  # from random weights
+        meta = _metadata(name)
+        assert meta["config"]["init_from"] == "" and meta["init_from_sha256"] is None, name
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -136,16 +140,16 @@ def test_the_recipes_a_policy_names_ship_in_the_package(name: str) -> None:
         assert (SCENARIO_DIR / recipe).is_file(), recipe
 
 
-def test_idas_weights_saw_idas_v_episodes_and_its_own() -> None:
-    idas, idas_v = _metadata("idas"), _metadata("idas_v")
-    # IDAS's stage 2 started from IDAS-V's checkpoint.
-    assert idas["config"]["init_from"] == idas_v["source_checkpoint"]
-    assert idas_v["rl_episodes_in_weights"] == idas_v["checkpoint_global_episode"] == 2000
-    assert (
-        idas["rl_episodes_in_weights"]
-        == 2000 + 2512
-        == (idas_v["checkpoint_global_episode"] + idas["checkpoint_global_episode"])
-    )
+@pytest.mark.parametrize("recipe", ["", "_paper"])
+def test_idas_weights_saw_its_robot_stage_and_its_own(recipe: str) -> None:
+    """IDAS is a curriculum run's intelligent stage: its weights saw the run's whole robot stage first."""
+    idas = _metadata(f"idas{recipe}")
+    robot = idas["config"]["robot_episodes"]
+    assert idas["stages"]["robot"]["episodes"] == robot
+    assert idas["rl_episodes_in_weights"] == robot + idas["picked_by_validation"]["stage_episode"]
+    assert idas["stage_of_checkpoint"] == "intelligent"
+    assert _metadata(f"idas_v{recipe}")["stage_of_checkpoint"] == "robot"
+    assert _metadata(f"idas_direct{recipe}")["stage_of_checkpoint"] == "direct"
 
 
 def test_the_shipped_policies_keep_the_wheel_under_25_mb() -> None:
