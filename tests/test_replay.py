@@ -28,11 +28,11 @@ from idas_sumo.evaluation.replay import (
 )
 from idas_sumo.resources import SCENARIO_DIR
 
-SEED = 10
+SEED = 15
 SCENARIOS = 8
-"""Seed 10's first 8 paper scenarios with IDM as the method and the shipped IDAS as the others hold
+"""Seed 15's first 8 paper scenarios with IDM as the method and the shipped IDAS as the others hold
 both a collision and a perfect episode (the test below checks that they still do; each shipped IDAS changes
-the others' driving: seed 7 did for the smooth recipe's first pick, 6 for the FSM+IDM-start IDAS). Drawn with
+the others' driving: seed 10 did for the smooth recipe's IDAS, 7 for its first pick, 6 for the FSM+IDM-start IDAS). Drawn with
 the "as_drawn" entries, which also checks that a replay keeps a non-default generator."""
 GIF_MAGIC = (b"GIF87a", b"GIF89a")
 
