@@ -8,7 +8,7 @@ between the policies before and after the step (on the batch's observations). Ev
 ``train`` command (its ``metrics.csv`` keeps the outcomes per episode). Run with ``--workers 1`` so that
 collection and update share this process:
 
-    python experiments/stage2_collapse/instrumented_train.py --config idas_sumo/scenarios/train_smooth_stage2_full.toml \
+    python experiments/stage2_collapse/instrumented_train.py --config experiments/recipes/train_smooth_stage2_full.toml \
         --stage intelligent --episodes 6000 --workers 1 --out /tmp/s2/base
 """
 
