@@ -13,7 +13,7 @@ Collects stage-2 episodes (the shipped recipe's intelligent-world traffic: 8 lea
   that tail, and what is one more step on the road worth to Q's target (the joint reward of a step after an
   exit) against what it costs J1 (the own finish reward discounted one step more)?
 
-    python experiments/stage2_collapse/probe_signal.py [--episodes 64] [--policy idas_sumo/policies/idas_v.pt]
+    python experiments/stage2_collapse/probe_signal.py [--episodes 64] [--policy experiments/policies/idas_v_smooth.pt]
 """
 
 from __future__ import annotations
