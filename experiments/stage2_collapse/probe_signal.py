@@ -168,7 +168,7 @@ def signal_audit(data: list[EpisodeData]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=64)
-    parser.add_argument("--policy", type=Path, default=ROOT / "idas_sumo" / "policies" / "idas_v.pt")
+    parser.add_argument("--policy", type=Path, default=ROOT / "experiments" / "policies" / "idas_v_smooth.pt")
     parser.add_argument("--seed", type=int, default=7)
     args = parser.parse_args()
     data, gamma = collect(args.policy, args.episodes, args.seed)
