@@ -870,3 +870,19 @@ def test_a_sum_of_zero_penalties_is_written_as_0_not_minus_0() -> None:
 
     assert f"{_sequential_sum(np.array([-0.0, -0.0]))}" == "0.0"
     assert _sequential_sum(np.array([-5.0, -0.0, -5.0])) == -10.0
+
+
+def test_init_from_finds_a_shipped_policy_from_any_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``init_from = "policies/warm_start.pt"`` names the shipped file wherever train runs; a missing path is one
+    InputError that names it."""
+    from idas_sumo.errors import InputError
+    from idas_sumo.training.config import TrainConfig
+    from idas_sumo.training.loop import _init_weights
+
+    monkeypatch.chdir(tmp_path)
+    weights = _init_weights(TrainConfig(init_from="policies/warm_start.pt"))
+    assert weights is not None and "actor" in weights
+    with pytest.raises(InputError, match=r"policies/missing\.pt"):
+        _init_weights(TrainConfig(init_from="policies/missing.pt"))

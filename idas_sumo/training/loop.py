@@ -33,6 +33,7 @@ from idas_sumo.env.net_needs import RoadNeeds, check_road_lengths, road_needs
 from idas_sumo.env.scenario import Road, generate_scenario, start_room_m
 from idas_sumo.errors import InputError
 from idas_sumo.io_utils import holds_files, output_directory
+from idas_sumo.resources import resolve_user_path
 from idas_sumo.sim.backend import require_display
 from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 from idas_sumo.sim.multinet import build_copies
@@ -294,11 +295,12 @@ def _init_weights(config: TrainConfig) -> dict[str, Any] | None:
     if not config.init_from:
         return None
     try:
-        return load_checkpoint(config.init_from).learner
+        # A shipped policy is found from any directory by its package path (policies/warm_start.pt).
+        return load_checkpoint(resolve_user_path(config.init_from)).learner
     except InputError as err:
         raise InputError(
-            f"init_from: {err} (a path from the working directory; the shipped recipe makes "
-            "runs/imitation.pt with scripts/pretrain_imitation.py)"
+            f"init_from: {err} (a path from the working directory, or a shipped policy as "
+            "policies/NAME.pt; scripts/pretrain_imitation.py makes a warm start of your own)"
         ) from None
 
 
