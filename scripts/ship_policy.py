@@ -28,7 +28,7 @@ import pandas as pd
 from idas_sumo.errors import InputError
 from idas_sumo.evaluation.policies import LEARNED_METHODS
 from idas_sumo.io_utils import atomic_open, file_digest, read_csv_columns
-from idas_sumo.resources import POLICY_DIR
+from idas_sumo.resources import POLICY_DIR, resolve_user_path
 from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint
 from idas_sumo.training.metrics import METRICS_NAME
 
@@ -110,8 +110,10 @@ def budget_run_record(run_metrics: pd.DataFrame, budget_dir: Path, stages: list[
 
 
 def init_digest(init_from: str) -> str | None:
-    """The SHA-256 of the checkpoint the run started from (tests match it to a shipped policy's)."""
-    return file_digest(Path(init_from)) if init_from and Path(init_from).is_file() else None
+    """The SHA-256 of the checkpoint the run started from, found as training finds it (tests match it to a
+    shipped policy's)."""
+    path = resolve_user_path(init_from) if init_from else None
+    return file_digest(path) if path is not None and path.is_file() else None
 
 
 def rl_episodes_text(data: TrainingCheckpoint, start_episodes: int) -> str:
