@@ -6,7 +6,9 @@
 Each directory is an ``idas-sumo evaluate`` output of the paper protocol (one seed each). Prints and writes one row
 per seed and one for all of them: success and perfect success per method, and the first method's margin over each
 other one on perfect success (IDAS − IDM, IDAS − FSM+IDM by default) with its standard error
-(``idas_sumo.evaluation.metrics.paired_margin``).
+(``idas_sumo.evaluation.metrics.paired_margin``). ``any_method_perfect_pct``: the scenarios that at least one
+of the evaluated methods (every method in the directories, not only ``--methods``) finished perfectly, a lower
+bound on what the best ego policy could reach there; ``methods_evaluated`` counts those methods.
 """
 
 from __future__ import annotations
@@ -39,6 +41,9 @@ def margin_rows(episodes: pd.DataFrame, methods: tuple[str, ...] = METHODS) -> l
             mine = group[group["method"] == method]
             row[f"{method}_success_pct"] = round(100.0 * float(mine["success"].mean()), 2)
             row[f"{method}_perfect_pct"] = round(100.0 * float(mine["perfect"].mean()), 2)
+        per_scenario = group.pivot_table(index=["seed", "scenario"], columns="method", values="perfect")
+        row["methods_evaluated"] = per_scenario.shape[1]
+        row["any_method_perfect_pct"] = round(100.0 * float(per_scenario.max(axis=1).mean()), 2)
         for rule in methods[1:]:
             margin = paired_margin(group, methods[0], rule)
             row[f"{methods[0]}_minus_{rule}_pts"] = margin.margin_pts

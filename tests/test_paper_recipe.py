@@ -150,3 +150,19 @@ def test_the_margins_compare_the_first_method_with_each_other_one() -> None:
     rows = margins.margin_rows(frame, ("idas", "warm_start", "idm"))
     assert rows[-1]["seed"] == "all" and rows[-1]["idas_perfect_pct"] == 100.0
     assert (rows[-1]["idas_minus_warm_start_pts"], rows[-1]["idas_minus_idm_pts"]) == (50.0, 100.0)
+
+
+def test_the_ceiling_counts_scenarios_some_evaluated_method_finished_perfectly() -> None:
+    margins = _pick_module("margins")
+    # Three scenarios: IDAS perfect in s0, IDM in s1 (not among --methods), nobody in s2.
+    frame = pd.DataFrame(
+        [
+            (method, 2030, f"s{k}", 1, perfect)
+            for method, perfects in (("idas", (1, 0, 0)), ("warm_start", (0, 0, 0)), ("idm", (0, 1, 0)))
+            for k, perfect in enumerate(perfects)
+        ],
+        columns=["method", "seed", "scenario", "success", "perfect"],
+    )
+    row = margins.margin_rows(frame, ("idas", "warm_start"))[-1]
+    assert row["methods_evaluated"] == 3
+    assert row["any_method_perfect_pct"] == round(200.0 / 3, 2)
