@@ -234,7 +234,7 @@ def profile_env(case: Case, steps: int, episode_steps: int, top: int) -> None:
         print(body.rstrip())
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -259,6 +259,61 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--profile-n", type=int, default=32, help="which case to profile")
     parser.add_argument("--profile-top", type=int, default=20, help="profile rows to print")
+    return parser
+
+
+def _measure(
+    cases: list[Case], scenarios: dict[int, Scenario], args: argparse.Namespace
+) -> tuple[dict[int, list[RunResult]], dict[int, list[RunResult]]]:
+    """Raw and env runs of every case, ``args.repeats`` times each, interleaved."""
+    raw: dict[int, list[RunResult]] = {c.n: [] for c in cases}
+    env: dict[int, list[RunResult]] = {c.n: [] for c in cases}
+    # Warm-up (imports, first libsumo start, numpy caches): one short run of each side, not kept.
+    run_raw(cases[0].net, scenarios[cases[0].n], 20, args.episode_steps)
+    run_env(cases[0].net, scenarios[cases[0].n], 20, args.episode_steps, seed=0)
+    for r in range(args.repeats):
+        for c in cases:
+            # Interleave, alternating which side goes first, so drifts in machine load hit both.
+            sides = ("raw", "env") if r % 2 == 0 else ("env", "raw")
+            for side in sides:
+                if side == "raw":
+                    raw[c.n].append(run_raw(c.net, scenarios[c.n], args.steps, args.episode_steps))
+                else:
+                    env[c.n].append(run_env(c.net, scenarios[c.n], args.steps, args.episode_steps, seed=r))
+        print(f"repeat {r + 1}/{args.repeats} done", file=sys.stderr, flush=True)
+    return raw, env
+
+
+def _table_rows(
+    cases: list[Case], raw: dict[int, list[RunResult]], env: dict[int, list[RunResult]]
+) -> tuple[list[list[str]], bool]:
+    """The table's rows, and whether any ratio is below the target."""
+    rows = []
+    below = False
+    for c in cases:
+        raw_sps = _median([x.steps_per_s for x in raw[c.n]])
+        env_sps = _median([x.steps_per_s for x in env[c.n]])
+        ratio = env_sps / raw_sps
+        below |= ratio < TARGET_RATIO
+        rows.append(
+            [
+                str(c.n),
+                c.net_label,
+                f"{raw_sps:,.0f}",
+                f"{env_sps:,.0f}",
+                f"{ratio:.2f}" + ("" if ratio >= TARGET_RATIO else " (<0.5)"),
+                f"{1e6 / raw_sps:,.0f}",
+                f"{1e6 / env_sps:,.0f}",
+                f"{_median([x.mean_vehicles for x in raw[c.n]]):.1f}|"
+                f"{_median([x.mean_vehicles for x in env[c.n]]):.1f}",
+                f"{sum(x.collisions for x in raw[c.n])}|{sum(x.collisions for x in env[c.n])}",
+            ]
+        )
+    return rows, below
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
     args = parser.parse_args(argv)
     if args.repeats < 1 or args.steps < 1 or args.episode_steps < 1:
         parser.error("--repeats, --steps and --episode-steps must be >= 1")
@@ -273,25 +328,7 @@ def main(argv: list[str] | None = None) -> int:
             long_net = read_merge_net(path)
             cases += [Case(n, f"{length:g} m", long_net) for n in args.long_sizes]
         scenarios = {c.n: make_scenario(c.n, c.net, args.episode_steps) for c in cases}
-
-        raw: dict[int, list[RunResult]] = {c.n: [] for c in cases}
-        env: dict[int, list[RunResult]] = {c.n: [] for c in cases}
-        # Warm-up (imports, first libsumo start, numpy caches): one short run of each side, not kept.
-        run_raw(cases[0].net, scenarios[cases[0].n], 20, args.episode_steps)
-        run_env(cases[0].net, scenarios[cases[0].n], 20, args.episode_steps, seed=0)
-        for r in range(args.repeats):
-            for c in cases:
-                # Interleave, alternating which side goes first, so drifts in machine load hit both.
-                sides = ("raw", "env") if r % 2 == 0 else ("env", "raw")
-                for side in sides:
-                    if side == "raw":
-                        raw[c.n].append(run_raw(c.net, scenarios[c.n], args.steps, args.episode_steps))
-                    else:
-                        env[c.n].append(
-                            run_env(c.net, scenarios[c.n], args.steps, args.episode_steps, seed=r)
-                        )
-            print(f"repeat {r + 1}/{args.repeats} done", file=sys.stderr, flush=True)
-
+        raw, env = _measure(cases, scenarios, args)
         headers = [
             "N",
             "net",
@@ -303,27 +340,7 @@ def main(argv: list[str] | None = None) -> int:
             "veh/step raw|env",
             "collisions raw|env",
         ]
-        rows = []
-        below = False
-        for c in cases:
-            raw_sps = _median([x.steps_per_s for x in raw[c.n]])
-            env_sps = _median([x.steps_per_s for x in env[c.n]])
-            ratio = env_sps / raw_sps
-            below |= ratio < TARGET_RATIO
-            rows.append(
-                [
-                    str(c.n),
-                    c.net_label,
-                    f"{raw_sps:,.0f}",
-                    f"{env_sps:,.0f}",
-                    f"{ratio:.2f}" + ("" if ratio >= TARGET_RATIO else " (<0.5)"),
-                    f"{1e6 / raw_sps:,.0f}",
-                    f"{1e6 / env_sps:,.0f}",
-                    f"{_median([x.mean_vehicles for x in raw[c.n]]):.1f}|"
-                    f"{_median([x.mean_vehicles for x in env[c.n]]):.1f}",
-                    f"{sum(x.collisions for x in raw[c.n])}|{sum(x.collisions for x in env[c.n])}",
-                ]
-            )
+        rows, below = _table_rows(cases, raw, env)
         print_table(
             rows,
             headers,

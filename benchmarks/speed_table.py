@@ -123,26 +123,8 @@ def paper_eval_seconds(scenarios: int) -> float:
         return time.perf_counter() - start
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--quick", action="store_true", help="tiny measurements: checks the script runs")
-    args = parser.parse_args()
-    steps = 60 if args.quick else 3000
-    repeats = 1 if args.quick else 3
-    # The issue's bar is measured over at least 2,000 episodes of a trained policy; random weights are a
-    # shorter look at the slow case (episodes run to the timeout).
-    train_episodes = {
-        "random weights": 8 if args.quick else 200,
-        "from shipped idas.pt": 8 if args.quick else 2000,
-    }
-    eval_scenarios = 4 if args.quick else 100
-
-    console = Console(width=150)
-    table = Table(title="idas-sumo speed, one run (2-core machine; ratios are within this run)")
-    for col in ("what", "N / world", "raw", "measured", "ratio", "µs per vehicle-step raw | measured"):
-        table.add_column(col, justify="right")
+def _engine_rows(table: Table, console: Console, steps: int, repeats: int) -> None:
+    """Raw libsumo, the one-world env and the engine at each N, interleaved repeats."""
     with tempfile.TemporaryDirectory(prefix="idas_speed_") as tmp:
         short = read_merge_net(DEFAULT_NET)
         long_path = generate_net(
@@ -177,6 +159,11 @@ def main() -> None:
                     f"{raw_us:.1f} | {1e6 / measured / n:.1f}",
                 )
 
+
+def _training_rows(
+    table: Table, console: Console, train_episodes: dict[str, int], eval_scenarios: int
+) -> None:
+    """Training paces, the paper curriculum projected from them, and the paper evaluation's wall time."""
     net_path = resolve_user_path("sumo_nets/tjunction.net.xml")
     pace: dict[str, float] = {}
     for stage in ("robot", "intelligent"):
@@ -217,6 +204,30 @@ def main() -> None:
         "",
         "--workers 2",
     )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help="tiny measurements: checks the script runs")
+    args = parser.parse_args()
+    steps = 60 if args.quick else 3000
+    repeats = 1 if args.quick else 3
+    # The issue's bar is measured over at least 2,000 episodes of a trained policy; random weights are a
+    # shorter look at the slow case (episodes run to the timeout).
+    train_episodes = {
+        "random weights": 8 if args.quick else 200,
+        "from shipped idas.pt": 8 if args.quick else 2000,
+    }
+    eval_scenarios = 4 if args.quick else 100
+
+    console = Console(width=150)
+    table = Table(title="idas-sumo speed, one run (2-core machine; ratios are within this run)")
+    for col in ("what", "N / world", "raw", "measured", "ratio", "µs per vehicle-step raw | measured"):
+        table.add_column(col, justify="right")
+    _engine_rows(table, console, steps, repeats)
+    _training_rows(table, console, train_episodes, eval_scenarios)
     print_table(table, console)
 
 
