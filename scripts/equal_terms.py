@@ -1,6 +1,6 @@
 """The equal-terms table (issue 36): every recipe's methods, each training seed's own pick, on declared seeds.
 
-    python scripts/equal_terms.py --recipe ours=runs/ours --recipe paper=runs/paper --out results/equal-terms
+    python scripts/equal_terms.py --recipe ours=runs/ours --recipe paper=runs/paper --out results/equal-terms [--reuse]
 
 Each recipe's runs directory holds its ``picks.csv`` (``scripts/paper_pick.py``): per method and training seed the
 run's own validation pick (``<stage>_best.pt``) and whether it is the method's pick. Every such checkpoint, and the
@@ -15,6 +15,7 @@ and the paper's figure (Fig. 4, left) where it prints one.
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -22,7 +23,14 @@ from pathlib import Path
 import pandas as pd
 
 from idas_sumo.errors import InputError
-from idas_sumo.io_utils import ensure_writable_dir, read_csv_columns, write_csv_atomic
+from idas_sumo.io_utils import (
+    atomic_open,
+    ensure_writable_dir,
+    file_digest,
+    read_csv_columns,
+    write_csv_atomic,
+)
+from idas_sumo.resources import POLICY_DIR
 
 EVALUATION_SEEDS = (2031, 2032, 2033)
 """Declared in experiments/diary.md before any run ("Declared: the evaluation seeds for issue 36's ...")."""
@@ -37,10 +45,26 @@ PAPER_FIGURES: dict[str, tuple[float, float]] = {
 """The paper's success and perfect success, % (its Fig. 4 table), by the method it names."""
 PICK_COLUMNS = ("method", "seed", "checkpoint", "picked", "best_episode")
 EPISODE_COLUMNS = ("scenario", "seed", "success", "perfect")
+INPUTS_NAME = "equal_terms_inputs.json"
+"""Beside each evaluation's CSVs: what it was run from, so that ``--reuse`` can skip it when nothing changed."""
 
 
-def evaluate(method: str, policy: Path | None, seed: int, out: Path, scenarios: int) -> pd.DataFrame:
-    """One ``idas-sumo evaluate`` run, its episodes.csv read back."""
+def evaluation_inputs(command: list[str], policy: Path | None) -> dict[str, object]:
+    """What an evaluation's episodes depend on besides the code: its command, the checkpoint it evaluates and
+    every shipped policy (the other cars drive the shipped IDAS; references load their own)."""
+    shipped = {p.name: file_digest(p) for p in sorted(POLICY_DIR.glob("*.pt"))}
+    return {
+        "command": command,
+        "policy_sha256": file_digest(policy) if policy is not None else None,
+        "shipped_policies_sha256": shipped,
+    }
+
+
+def evaluate(
+    method: str, policy: Path | None, seed: int, out: Path, scenarios: int, reuse: bool = False
+) -> pd.DataFrame:
+    """One ``idas-sumo evaluate`` run, its episodes.csv read back. ``reuse``: an earlier run into ``out`` from
+    the same inputs is read back instead (it trusts that evaluation's code has not changed since)."""
     command = [
         "idas-sumo",
         "evaluate",
@@ -54,9 +78,17 @@ def evaluate(method: str, policy: Path | None, seed: int, out: Path, scenarios: 
     if policy is not None:
         command += ["--policy", str(policy)]
     command += ["--out", str(out), "--force", "--no-progress"]
+    inputs = evaluation_inputs(command, policy)
+    marker = out / INPUTS_NAME
+    episodes_csv = out / "episodes.csv"
+    if reuse and episodes_csv.is_file() and marker.is_file() and json.loads(marker.read_text()) == inputs:
+        return read_csv_columns(out / "episodes.csv", EPISODE_COLUMNS, "idas-sumo evaluate")
+    marker.unlink(missing_ok=True)  # (a failed run leaves no marker to trust)
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise InputError(f"{' '.join(command)}: {done.stderr.strip().splitlines()[-1:]}")
+    with atomic_open(marker, "w") as f:
+        json.dump(inputs, f, indent=1)
     return read_csv_columns(out / "episodes.csv", EPISODE_COLUMNS, "idas-sumo evaluate")
 
 
@@ -65,7 +97,9 @@ def base_method(method: str, suffix: str) -> str:
     return method[: -len(suffix)] if suffix and method.endswith(suffix) else method
 
 
-def recipe_episodes(name: str, root: Path, seeds: list[int], out: Path, scenarios: int) -> pd.DataFrame:
+def recipe_episodes(
+    name: str, root: Path, seeds: list[int], out: Path, scenarios: int, reuse: bool = False
+) -> pd.DataFrame:
     """Every training seed's pick of every method of one recipe, on every evaluation seed."""
     picks = read_csv_columns(root / "picks.csv", PICK_COLUMNS, "scripts/paper_pick.py")
     suffix = "" if name == "ours" else f"_{name}"
@@ -77,7 +111,7 @@ def recipe_episodes(name: str, root: Path, seeds: list[int], out: Path, scenario
         for weights, path in (("pick", best), ("last", best.with_name(best.name.replace("_best", "")))):
             for seed in seeds:
                 where = out / "runs" / str(row.method) / f"train{row.seed}-{weights}" / f"eval{seed}"
-                episodes = evaluate(base, path, seed, where, scenarios)
+                episodes = evaluate(base, path, seed, where, scenarios, reuse)
                 episodes["recipe"], episodes["method"], episodes["base"] = name, row.method, base
                 episodes["weights"], episodes["training_seed"] = weights, int(row.seed)
                 episodes["picked"] = bool(row.picked) and weights == "pick"
@@ -86,11 +120,11 @@ def recipe_episodes(name: str, root: Path, seeds: list[int], out: Path, scenario
     return pd.concat(frames, ignore_index=True)
 
 
-def reference_episodes(seeds: list[int], out: Path, scenarios: int) -> pd.DataFrame:
+def reference_episodes(seeds: list[int], out: Path, scenarios: int, reuse: bool = False) -> pd.DataFrame:
     frames = []
     for method in REFERENCES:
         for seed in seeds:
-            episodes = evaluate(method, None, seed, out / "runs" / method / f"eval{seed}", scenarios)
+            episodes = evaluate(method, None, seed, out / "runs" / method / f"eval{seed}", scenarios, reuse)
             episodes["recipe"], episodes["method"], episodes["base"] = "reference", method, method
             episodes["weights"], episodes["training_seed"] = "pick", -1
             episodes["picked"], episodes["pick_episode"] = True, -1
@@ -154,14 +188,22 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seeds", type=int, nargs="+", default=list(EVALUATION_SEEDS))
     parser.add_argument("--scenarios", type=int, default=100)
+    parser.add_argument(
+        "--reuse",
+        action="store_true",
+        help="read back an evaluation already in OUT whose command, checkpoint and shipped policies are the same "
+        "(after adding a training seed, only its checkpoints are evaluated)",
+    )
     args = parser.parse_args()
     try:
         recipes = [tuple(item.split("=", 1)) for item in args.recipe]
         if not recipes or any(len(r) != 2 for r in recipes):
             raise InputError("--recipe NAME=DIR, at least one (e.g. --recipe ours=runs/ours)")
         ensure_writable_dir(args.out)
-        frames = [recipe_episodes(n, Path(d), args.seeds, args.out, args.scenarios) for n, d in recipes]
-        episodes = pd.concat([*frames, reference_episodes(args.seeds, args.out, args.scenarios)])
+        frames = [
+            recipe_episodes(n, Path(d), args.seeds, args.out, args.scenarios, args.reuse) for n, d in recipes
+        ]
+        episodes = pd.concat([*frames, reference_episodes(args.seeds, args.out, args.scenarios, args.reuse)])
     except InputError as err:
         print(f"equal_terms: {err}", file=sys.stderr)
         return 2

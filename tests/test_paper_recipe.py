@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 from pathlib import Path
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 
 import pandas as pd
 import pytest
@@ -166,3 +166,30 @@ def test_the_ceiling_counts_scenarios_some_evaluated_method_finished_perfectly()
     row = margins.margin_rows(frame, ("idas", "warm_start"))[-1]
     assert row["methods_evaluated"] == 3
     assert row["any_method_perfect_pct"] == round(200.0 / 3, 2)
+
+
+def test_equal_terms_reuses_an_evaluation_only_from_the_same_inputs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    module = _pick_module("equal_terms")
+    calls: list[list[str]] = []
+
+    def fake_run(command: list[str], **_: object) -> SimpleNamespace:
+        calls.append(command)
+        out = Path(command[command.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "episodes.csv").write_text("scenario,seed,success,perfect\ns0,2031,1,1\n")
+        return SimpleNamespace(returncode=0, stderr="")
+
+    monkeypatch.setattr(module.subprocess, "run", fake_run)
+    policy = tmp_path / "a.pt"
+    policy.write_bytes(b"weights")
+    out = tmp_path / "eval"
+    module.evaluate("idas", policy, 2031, out, 100)
+    module.evaluate("idas", policy, 2031, out, 100, reuse=True)  # same inputs: read back
+    assert len(calls) == 1
+    module.evaluate("idas", policy, 2031, out, 50, reuse=True)  # another command
+    policy.write_bytes(b"other weights")
+    module.evaluate("idas", policy, 2031, out, 50, reuse=True)  # another checkpoint
+    module.evaluate("idas", policy, 2031, out, 50)  # without --reuse, always run
+    assert len(calls) == 4
