@@ -886,3 +886,27 @@ def test_init_from_finds_a_shipped_policy_from_any_directory(
     assert weights is not None and "actor" in weights
     with pytest.raises(InputError, match=r"policies/missing\.pt"):
         _init_weights(TrainConfig(init_from="policies/missing.pt"))
+
+
+def test_a_resumed_stage_keeps_its_best_at_full_precision(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """validation.csv rounds to 6 significant digits: restored from it, the best 9.32078125 would read 9.32078,
+    and a later validation equal to the best would replace the earliest of equals (the pick rule's)."""
+    from types import SimpleNamespace
+
+    from idas_sumo.training import loop
+    from idas_sumo.training.validation import ValidationScore, validation_key
+
+    exact = ValidationScore(
+        joint_return=9.32078125, perfect_rate=0.65, success_rate=1.0, mean_end_time_s=18.76
+    )
+    row = {"joint_return": "9.32078", "perfect_rate": "0.65", "success_rate": "1", "mean_end_time_s": "18.76"}
+    best = tmp_path / "robot_best.pt"
+    best.write_bytes(b"")
+    monkeypatch.setattr(loop, "load_checkpoint", lambda path: SimpleNamespace(validation=exact))
+    restored = loop.resumed_best([row], best, "success_then_return")
+    assert restored == validation_key(exact, "success_then_return")
+    assert not validation_key(exact, "success_then_return") > restored  # an equal later score is no better
+    # Without a best file (none saved yet), the CSV's rows.
+    assert loop.resumed_best([row], tmp_path / "none.pt", "joint_return") == (9.32078, 0.0)

@@ -561,9 +561,7 @@ class _StageValidation:
             # The stage's validations before the checkpoint: the best so far, and whether the
             # checkpoint's own episode was validated already (then not twice).
             kept = [r for r in sink.kept if r["stage"] == plan.name]
-            validation.best = max(
-                (validation_key(_score_of(r), validation.criterion) for r in kept), default=validation.best
-            )
+            validation.best = resumed_best(kept, validation.best_path, validation.criterion)
             if kept and int(kept[-1]["episode"]) == resumed.episode:
                 validation.validated_at = resumed.episode
             validated_to = (
@@ -636,6 +634,20 @@ def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[MergeSite | Non
                 )
             )
     return groups
+
+
+def resumed_best(
+    kept: list[dict[str, str]], best_path: Path, criterion: ValidationCriterion
+) -> tuple[float, float]:
+    """A resumed stage's best validation so far: its best checkpoint's own score, at full precision
+    (validation.csv keeps 6 significant digits, so a later validation equal to the best would look better
+    than the CSV's rounded value and replace the earliest of equals); the CSV's rows where there is no file."""
+    saved = load_checkpoint(best_path).validation if best_path.is_file() else None
+    if saved is not None:
+        return validation_key(saved, criterion)
+    return max(
+        (validation_key(_score_of(r), criterion) for r in kept), default=(float("-inf"), float("-inf"))
+    )
 
 
 def _score_of(row: dict[str, str]) -> ValidationScore:
