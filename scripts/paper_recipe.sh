@@ -37,4 +37,5 @@ train() { # STAGE SEED
 for kind in $kinds; do
   for seed in $seeds; do train "$kind" "$seed"; done
 done
-python "$(dirname "$0")/paper_pick.py" "$out" --seeds $seeds --suffix "$suffix"
+# The pick over every seed that has run (paper_pick.py skips a seed without runs), not only this call's SEEDS.
+python "$(dirname "$0")/paper_pick.py" "$out" --suffix "$suffix"
