@@ -15,6 +15,7 @@ and the paper's figure (Fig. 4, left) where it prints one.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import sys
@@ -52,12 +53,17 @@ INPUTS_NAME = "equal_terms_inputs.json"
 def evaluation_inputs(command: list[str], policy: Path | None) -> dict[str, object]:
     """What an evaluation's episodes depend on besides the code: its command, the checkpoint it evaluates and
     every shipped policy (the other cars drive the shipped IDAS; references load their own)."""
-    shipped = {p.name: file_digest(p) for p in sorted(POLICY_DIR.glob("*.pt"))}
     return {
         "command": command,
         "policy_sha256": file_digest(policy) if policy is not None else None,
-        "shipped_policies_sha256": shipped,
+        "shipped_policies_sha256": _shipped_digests(),
     }
+
+
+@functools.cache
+def _shipped_digests() -> dict[str, str]:
+    """The shipped policies' digests, read once per run (they do not change while it evaluates)."""
+    return {p.name: file_digest(p) for p in sorted(POLICY_DIR.glob("*.pt"))}
 
 
 def evaluate(
@@ -82,14 +88,14 @@ def evaluate(
     marker = out / INPUTS_NAME
     episodes_csv = out / "episodes.csv"
     if reuse and episodes_csv.is_file() and marker.is_file() and json.loads(marker.read_text()) == inputs:
-        return read_csv_columns(out / "episodes.csv", EPISODE_COLUMNS, "idas-sumo evaluate")
+        return read_csv_columns(episodes_csv, EPISODE_COLUMNS, "idas-sumo evaluate")
     marker.unlink(missing_ok=True)  # (a failed run leaves no marker to trust)
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise InputError(f"{' '.join(command)}: {done.stderr.strip().splitlines()[-1:]}")
     with atomic_open(marker, "w") as f:
         json.dump(inputs, f, indent=1)
-    return read_csv_columns(out / "episodes.csv", EPISODE_COLUMNS, "idas-sumo evaluate")
+    return read_csv_columns(episodes_csv, EPISODE_COLUMNS, "idas-sumo evaluate")
 
 
 def base_method(method: str, suffix: str) -> str:
