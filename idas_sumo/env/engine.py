@@ -45,9 +45,11 @@ from idas_sumo.env.kernels import (
     _REASON_CODE,
     HardBrakes,
     _all_allowed,
+    _book_counts,
     _checked_actions,
     _end_codes,
     _hard_brakes,
+    _maybe_hard_brakes,
     _next_speeds,
 )
 from idas_sumo.env.layout import OBS_DIM
@@ -597,6 +599,10 @@ class MergeEngine:
     ) -> HardBrakes:
         """The step's hard brakes: agents that chose the hard brake, then SUMO-driven cars of acting copies
         that braked hard on their own, each placed where it was when it decided."""
+        k_count = len(self.slots)
+        if not _maybe_hard_brakes(applied, HARD_BRAKE, self.snapshot.accel_mps2):  # (most steps)
+            none = np.zeros(k_count, dtype=np.int64)
+            return HardBrakes(np.zeros(0, dtype=np.int64), none, none.copy(), [[] for _ in range(k_count)])
         cars = self._cars
         rows, copy, _, per_copy, zone_per_copy = _hard_brakes(
             batch.egos,
@@ -611,7 +617,7 @@ class MergeEngine:
             before.dist_to_merge_m,
             MERGE_ZONE_RADIUS_M,
         )
-        ids: list[list[str]] = [[] for _ in self.slots]
+        ids: list[list[str]] = [[] for _ in range(k_count)]
         for r, k in zip(rows.tolist(), copy.tolist(), strict=True):
             ids[k].append(before.ids[r])
         return HardBrakes(rows, per_copy, zone_per_copy, ids)
@@ -665,18 +671,26 @@ class MergeEngine:
         k_count = len(self.slots)
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
-        first_action = ~cars.scored[agents.car]
-        scored = scores.rewards.nonzero()[0]
-        if first_action.any() or len(scored):
+        # (One compiled pass for the counts; it marks the first-timers' cars scored.)
+        first_action, scored, impede_counts, active_counts = _book_counts(
+            agents.car,
+            cars.scored,
+            scores.rewards,
+            scores.parts[:, _IMPEDE],
+            batch.copy,
+            cars.copy,
+            cars.state,
+            k_count,
+        )
+        if len(first_action) or len(scored):
             copies = batch.copy.tolist()
-            for i in first_action.nonzero()[0].tolist():
+            for i in first_action.tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
-            cars.scored[agents.car] = True
             for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
-        impedes = np.bincount(batch.copy[scores.parts[:, _IMPEDE] < 0], minlength=k_count).tolist()
+        impedes = impede_counts.tolist()
         agents_per_copy = agents.per_copy
-        active_per_copy = np.bincount(cars.copy[cars.state == ACTIVE], minlength=k_count).tolist()
+        active_per_copy = active_counts.tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
         timed_out = self.timed_out()

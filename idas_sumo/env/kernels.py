@@ -141,6 +141,46 @@ def _hard_brakes(
 
 
 @kernel
+def _maybe_hard_brakes(applied, hard_brake, accel):
+    """Whether ``_hard_brakes`` can find any: an agent chose ``hard_brake``, or some car now brakes at
+    ``HARD_BRAKE_DETECT_MPS2`` or harder (most steps neither: the step then skips the full search)."""
+    for i in range(applied.shape[0]):
+        if applied[i] == hard_brake:
+            return True
+    for r in range(accel.shape[0]):  # noqa: SIM110
+        if accel[r] <= HARD_BRAKE_DETECT_MPS2:
+            return True
+    return False
+
+
+@kernel
+def _book_counts(agent_car, car_scored, rewards, impede, agent_copy, car_copy, car_state, k_count):
+    """``MergeEngine._book``'s counts in one pass: the agents acting for the first time (batch rows; their
+    cars marked scored), those with a nonzero reward (batch rows), and per copy the agents with an impede
+    penalty and the cars still acting."""
+    n = agent_car.shape[0]
+    first = np.empty(n, dtype=np.int64)
+    scored = np.empty(n, dtype=np.int64)
+    n_first = n_scored = 0
+    impedes = np.zeros(k_count, dtype=np.int64)
+    for i in range(n):
+        if not car_scored[agent_car[i]]:
+            first[n_first] = i
+            n_first += 1
+            car_scored[agent_car[i]] = True
+        if rewards[i] != 0.0:
+            scored[n_scored] = i
+            n_scored += 1
+        if impede[i] < 0.0:
+            impedes[agent_copy[i]] += 1
+    active = np.zeros(k_count, dtype=np.int64)
+    for c in range(car_state.shape[0]):
+        if car_state[c] == ACTIVE:
+            active[car_copy[c]] += 1
+    return first[:n_first], scored[:n_scored], impedes, active
+
+
+@kernel
 def _end_codes(collided, row, dist, finish_below_m, otherwise):
     """Each agent's end reason (``_REASON_CODE``), the first that holds: collided, removed (no ``row`` in
     the new snapshot), finished (its distance to the merge point at or below ``finish_below_m``), else

@@ -156,6 +156,24 @@ def build_observations_checked(
     return obs, bool(finite)
 
 
+@kernel
+def speed_spread(speed):
+    """``speed.max() - speed.min()`` (NaN if any speed is NaN; 0.0 without speeds) in one compiled pass
+    instead of two numpy reductions."""
+    if speed.shape[0] == 0:
+        return 0.0
+    lo = hi = speed[0]
+    for i in range(speed.shape[0]):
+        v = speed[i]
+        if v != v:
+            return np.nan
+        if v < lo:
+            lo = v
+        if v > hi:
+            hi = v
+    return hi - lo
+
+
 _SCALES = np.asarray(SCALAR_SCALES, dtype=np.float64)
 _SCALES.flags.writeable = False
 if SCALAR_NAMES != ("speed", "accel", "dist_to_merge", "b_prio", "b_type"):  # ``_write_scalars``' columns
