@@ -36,7 +36,7 @@ from idas_sumo.env.actions import (
     next_acceleration,
 )
 from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_snapshot, _Slot
-from idas_sumo.env.collisions import geometric_collisions
+from idas_sumo.env.collisions import any_overlap, geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
 from idas_sumo.env.front_cars import front_cars, own_lane_action_masks
@@ -93,6 +93,7 @@ class _RoadLayout(NamedTuple):
     origin: IntArray
     controlled: npt.NDArray[np.bool_]
     length_m: FloatArray
+    longest_m: float
 
 
 class MergeEngine:
@@ -152,6 +153,8 @@ class MergeEngine:
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
         self._origin = np.zeros(0, dtype=np.int64)
+        self._row_copies = np.zeros(0, dtype=np.int64)
+        """Each snapshot row's copy (zeros with one copy, where the snapshot has no ``copy``)."""
         self._cars = _Cars.of((), lambda k, vid: vid)
         self._car = np.zeros(0, dtype=np.int64)
         """Each snapshot row's car (``_Cars``)."""
@@ -360,10 +363,21 @@ class MergeEngine:
         one road (``geometric_collisions``). Both count as collided, as in a SUMO-reported
         collision (their episodes end with r_collide), and leave the road as SUMO's ``--collision.action
         remove`` would take them; the snapshot is then read again without them."""
-        pairs = geometric_collisions(self.snapshot, self._origin, self._routes.via_length_m[self._origin])
+        snap = self.snapshot
+        via = self._routes.via_length_m
+        if len(snap) < 2 or not any_overlap(
+            snap.by_distance.order,
+            snap.dist_to_merge_m,
+            self._row_copies,
+            snap.length_m,
+            self._origin,
+            via,
+            snap.longest_m,
+        ):  # (nearly every step)
+            return
+        pairs = geometric_collisions(snap, self._origin, via[self._origin])
         if not pairs:
             return
-        snap = self.snapshot
         removed = False
         for i, j in pairs:
             k = int(self._copy_of(snap, i))
@@ -400,7 +414,14 @@ class MergeEngine:
             for a in (car, row, length):
                 a.flags.writeable = False
             layout = self._layout = _RoadLayout(
-                states.vehicle, cars, car, row, cars.origin[car], cars.controlled[car], length
+                states.vehicle,
+                cars,
+                car,
+                row,
+                cars.origin[car],
+                cars.controlled[car],
+                length,
+                float(length.max()) if n else 0.0,
             )
         cars.row = layout.row
         self._car = layout.car
@@ -408,6 +429,7 @@ class MergeEngine:
         self._bounds = bounds
         self._controlled = layout.controlled
         self._origin = origin
+        self._row_copies = copy
         self.snapshot = TrafficSnapshot(
             ids=states.ids,
             road=road,
@@ -418,6 +440,7 @@ class MergeEngine:
             speed_limit_mps=limit,
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
+            known_longest_m=layout.longest_m,
         )
 
     # -- observation ---------------------------------------------------------------------------
