@@ -7,12 +7,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from idas_sumo.env.actions import next_acceleration
 from idas_sumo.env.cars import ACTIVE, ENDED, WAITING
 from idas_sumo.env.kernels import (
     _COLLIDED,
     _FINISHED,
     _REMOVED,
-    _all_allowed,
+    _allowed_step,
     _end_codes,
     _first_outside,
     _hard_brakes,
@@ -137,9 +138,16 @@ def test_action_checks_match_numpy() -> None:
         assert _first_outside(actions, 7) == (int(np.flatnonzero(wrong)[0]) if wrong.any() else -1), trial
         if not wrong.any():
             masks = (rng.random((n, 7)) < 0.9).astype(np.int8)
-            assert _all_allowed(masks, actions) == bool(masks[np.arange(n), actions].astype(bool).all()), (
-                trial
-            )
+            prev = rng.choice([-4.5, -2.0, -0.1, 0.0, 0.3, 2.0], n)
+            speed = rng.uniform(0.0, 3.0, 12)
+            egos = rng.integers(0, 12, n).astype(np.int64)
+            ok, accel, next_speed = _allowed_step(masks, actions, prev, speed, egos, 0.2)
+            assert ok == bool(masks[np.arange(n), actions].astype(bool).all()), trial
+            if ok:  # what the step computed before: next_acceleration, then _next_speeds
+                want = next_acceleration(prev, actions)
+                assert accel.view(np.uint64).tolist() == want.view(np.uint64).tolist(), trial
+                want_speed = _next_speeds(speed, egos, want, 0.2)
+                assert next_speed.view(np.uint64).tolist() == want_speed.view(np.uint64).tolist(), trial
 
 
 def test_next_speeds_match_numpy() -> None:

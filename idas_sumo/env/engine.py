@@ -44,7 +44,7 @@ from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
     HardBrakes,
-    _all_allowed,
+    _allowed_step,
     _book_counts,
     _checked_actions,
     _end_codes,
@@ -597,13 +597,17 @@ class MergeEngine:
         applied = requested
         if len(batch):
             masks, prev = batch.masks, batch.prev_accel
-            if not _all_allowed(masks, requested):
+            speed = self.snapshot.speed_mps
+            allowed_all, new_accel, next_speed = _allowed_step(  # (one compiled pass, most steps)
+                masks, requested, prev, speed, batch.egos, STEP_LENGTH_S
+            )
+            if not allowed_all:
                 rows = np.arange(len(batch))
                 allowed = masks[rows, requested].astype(bool)
                 wanted = candidate_accelerations(prev)[rows, requested]
                 applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
-            new_accel = next_acceleration(prev, applied)
-            next_speed = _next_speeds(self.snapshot.speed_mps, batch.egos, new_accel, STEP_LENGTH_S)
+                new_accel = next_acceleration(prev, applied)
+                next_speed = _next_speeds(speed, batch.egos, new_accel, STEP_LENGTH_S)
             self.backend.set_speeds(agents.global_ids, next_speed)
             self._cars.accel[agents.car] = new_accel
         events = self.backend.step()
@@ -664,10 +668,10 @@ class MergeEngine:
     def _terminate(self, batch: AgentBatch, agents: _Agents, code: IntArray) -> tuple[str, ...]:
         """End the agents whose code says so: their outcome's end reason, and a finished car leaves our
         control (SUMO drives it off). Returns every agent's end reason ('' while it goes on)."""
+        if not code.any():  # (nearly every step)
+            return ("",) * len(code)
         codes = code.tolist()
         reasons = tuple(map(_REASON_BY_CODE.__getitem__, codes))
-        if not any(codes):  # (nearly every step)
-            return reasons
         copies = batch.copy.tolist()
         for i in [i for i, c in enumerate(codes) if c]:
             a, k, reason = batch.ids[i], copies[i], reasons[i]
