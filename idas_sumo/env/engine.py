@@ -58,7 +58,14 @@ from idas_sumo.env.outcome import END_REASONS, EpisodeOutcome, is_perfect, is_su
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M, MERGE_ZONE_RADIUS_M, REWARD_PART_NAMES
 from idas_sumo.env.routes import Routes
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
-from idas_sumo.env.scoring import Scores, StepContext, check_terms, impeding_vehicles, score
+from idas_sumo.env.scoring import (
+    Scores,
+    StepContext,
+    check_terms,
+    impeding_vehicles,
+    quiet_scores,
+    score,
+)
 from idas_sumo.env.snapshot import TrafficSnapshot
 from idas_sumo.env.solo import _SoloBackend
 from idas_sumo.env.state_layout import critic_state
@@ -126,6 +133,8 @@ class MergeEngine:
             raise ValueError("sumo-gui shows one simulation: copies must be 1 with gui")
         self.config = config or EnvConfig()
         check_terms(self.config.reward)
+        self._paper_terms = self.config.reward.part_names == REWARD_PART_NAMES
+        """The paper's four terms, in order: a quiet step's scores are then ``quiet_scores``."""
         self.site = as_site(net, self.config.junction)
         # libsumo holds one simulation per process: when it is taken (another environment is open), run
         # the episodes one at a time in a SUMO child process; a net netconvert cannot copy faithfully
@@ -547,21 +556,11 @@ class MergeEngine:
         acting = agents.acting
         brakes = self._observe_brakes(batch, applied, before, rows_before, acting)
         code = self._observe_ends(batch, agents, events)
-        scores = score(
-            StepContext(
-                config=self.config.reward,
-                copies=len(self.slots),
-                copy=batch.copy,
-                b_type=batch.b_type,
-                b_prio=agents.origin_prio,
-                egos=batch.egos,
-                end_code=code,
-                before=before,
-                brakes=brakes.rows,
-                zone_brakes=brakes.zone_per_copy,
-                impeded_by=impeding_vehicles(before, brakes.rows),
-            )
-        )
+        if not len(brakes.rows) and self._paper_terms and not code.any():
+            # No hard brake and nobody ended (most steps): what ``score`` gives then, without its context.
+            scores = quiet_scores(len(batch), len(self.slots))
+        else:
+            scores = self._score(batch, agents, code, before, brakes)
         reasons = self._terminate(batch, agents, code)
         self._book(batch, agents, scores, brakes, events, acting)
         return StepResult(
@@ -575,6 +574,26 @@ class MergeEngine:
             hard_brakes_merge_zone=brakes.zone_per_copy,
             hard_brake_ids=brakes.ids,
             part_names=self.config.reward.part_names,
+        )
+
+    def _score(
+        self, batch: AgentBatch, agents: _Agents, code: IntArray, before: TrafficSnapshot, brakes: HardBrakes
+    ) -> Scores:
+        """The step's named reward terms (``score``)."""
+        return score(
+            StepContext(
+                config=self.config.reward,
+                copies=len(self.slots),
+                copy=batch.copy,
+                b_type=batch.b_type,
+                b_prio=agents.origin_prio,
+                egos=batch.egos,
+                end_code=code,
+                before=before,
+                brakes=brakes.rows,
+                zone_brakes=brakes.zone_per_copy,
+                impeded_by=impeding_vehicles(before, brakes.rows),
+            )
         )
 
     def _take_batch(self) -> tuple[AgentBatch, _Agents]:

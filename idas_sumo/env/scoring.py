@@ -118,7 +118,7 @@ def score(ctx: StepContext) -> Scores:
     names = ctx.config.part_names
     if names == REWARD_PART_NAMES and not ctx.end_code.any():
         if not (len(ctx.impeded_by) or ctx.zone_brakes.any()):
-            return _quiet(len(ctx.copy), ctx.copies)
+            return quiet_scores(len(ctx.copy), ctx.copies)
         return _nobody_ended(ctx)
     n = len(ctx.copy)
     parts = np.zeros((n, len(names)))
@@ -142,7 +142,7 @@ def score(ctx: StepContext) -> Scores:
     return Scores(parts, rewards, joint)
 
 
-def _quiet(n: int, copies: int) -> Scores:
+def quiet_scores(n: int, copies: int) -> Scores:
     """``score`` of the paper's four terms in a step where no agent ended, no hard brake had a car ahead
     and none was in the merging zone (most steps): what the terms give then, bit for bit (impede and flow
     are -5·0 and -1·0, i.e. -0.0; every sum 0.0), without calling them."""
