@@ -141,8 +141,11 @@ def build_observations_checked(
     observations then only has to look at the grids)."""
     n = len(egos)
     obs = np.zeros((n, OBS_DIM), dtype=np.float32)
-    egos = np.ascontiguousarray(egos, dtype=np.int64)
-    finite = _write_scalars(
+    if n == 0:
+        return obs, True
+    egos, by_dist, lo, hi = walk_start(snapshot, egos)
+    # The scalars, then the grids straight into the rows (``_draw_grids``), in one compiled call.
+    finite = _observations_kernel(
         obs,
         snapshot.speed_mps,
         snapshot.dist_to_merge_m,
@@ -151,9 +154,56 @@ def build_observations_checked(
         per_row(b_prio, n),
         per_row(b_type, n),
         _SCALES,
+        snapshot.road,
+        snapshot.length_m,
+        by_dist.order,
+        by_dist.sorted_dist,
+        lo,
+        hi,
+        snapshot.longest_m,
+        snapshot.copy is None or snapshot.copy_bounds is not None,
     )
-    _draw_grids(obs.reshape(-1), OBS_DIM, N_SCALARS, snapshot, egos)  # straight into the rows
     return obs, bool(finite)
+
+
+@kernel
+def _observations_kernel(
+    obs,
+    speed,
+    dist,
+    egos,
+    prev_accel,
+    b_prio,
+    b_type,
+    scales,
+    road,
+    length,
+    order,
+    sorted_dist,
+    lo,
+    hi,
+    longest,
+    rows_by_copy,
+):
+    """``_write_scalars`` then ``_draw_grids_kernel`` into the rows after the scalars (one call of both)."""
+    finite = _write_scalars(obs, speed, dist, egos, prev_accel, b_prio, b_type, scales)
+    _draw_grids_kernel(
+        obs.reshape(-1),
+        OBS_DIM,
+        N_SCALARS,
+        road,
+        dist,
+        length,
+        speed,
+        order,
+        sorted_dist,
+        lo,
+        hi,
+        egos,
+        longest,
+        rows_by_copy,
+    )
+    return finite
 
 
 @kernel
