@@ -128,6 +128,8 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         """Each agent's info: its raw physical values (``agent_info``), and with ``outcome`` the step's
         reward parts, joint reward, end reason and replaced action."""
         infos: dict[str, dict[str, Any]] = {}
+        if not agents:  # (no agent entered: most steps)
+            return infos
         for agent, info in zip(agents, self.sim.agent_infos(agents), strict=True):
             road = info["road"]
             info["road"] = ROAD_NAMES.index(road) if road in ROAD_NAMES else GONE
@@ -169,7 +171,8 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
                     "observation": self.sim.last_observation(a),
                     "action_mask": placeholder_mask(),
                 }
-        new_agents = [a for a in self.agents if a not in acting]
+        acted = set(acting)
+        new_agents = [a for a in self.agents if a not in acted]
         infos.update(self._infos(new_agents))
         if self.sim.timed_out():
             self.agents = []

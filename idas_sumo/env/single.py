@@ -115,10 +115,12 @@ class StepOutcome:
     @lazy
     def replaced_actions(self) -> dict[str, int]:
         """Agents whose requested action was masked, and the action applied instead."""
+        requested, applied = (
+            self._requested.tolist(),
+            self.result.applied.tolist(),
+        )  # (plain ints compare fast)
         return {
-            a: int(applied)
-            for a, wanted, applied in zip(self.acting, self._requested, self.result.applied, strict=True)
-            if wanted != applied
+            a: got for a, wanted, got in zip(self.acting, requested, applied, strict=True) if wanted != got
         }
 
 
