@@ -201,3 +201,44 @@ def test_distance_order_and_place_match_numpy() -> None:
     expected_out = (o, np.where(incoming, o, OUT), dist, np.where(incoming, own, limit_by[o, code]))
     for a, b in zip(got, expected_out, strict=True):
         assert np.array_equal(np.asarray(a).view(np.int64), np.asarray(b).astype(a.dtype).view(np.int64))
+
+
+@pytest.mark.parametrize("copies", [1, 3])
+def test_observe_own_lane_matches_the_separate_calls(copies: int) -> None:
+    """The engine's one-call observe (own-lane mask) gives the rows, accelerations, priorities and masks
+    of the separate numpy indexing and ``own_lane_action_masks`` it replaced, bit for bit."""
+    from idas_sumo.env.front_cars import observe_own_lane, own_lane_action_masks
+
+    rng = np.random.default_rng(11 + copies)
+    for trial in range(60):
+        sizes = rng.integers(1, 12, copies)
+        n = int(sizes.sum())
+        copy = np.repeat(np.arange(copies), sizes).astype(np.int64)
+        bounds = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+        dist = np.round(rng.uniform(-40.0, 150.0, n), 1)
+        snap = TrafficSnapshot(
+            tuple(f"v{i}" for i in range(n)),
+            np.where(dist < 0.0, 2, rng.integers(0, 2, n)).astype(np.int64),
+            dist,
+            rng.uniform(0.0, 15.0, n),
+            rng.uniform(-3.0, 2.0, n),
+            rng.choice([4.0, 5.0], n),
+            rng.choice([13.89, 16.67], n),
+            copy if copies > 1 else None,
+            bounds if copies > 1 else None,
+        )
+        car_row = rng.permutation(n).astype(np.int64)  # car c drives in row car_row[c]
+        car_accel = rng.choice([-4.5, -1.0, 0.0, 0.3, 2.0], n)
+        agent_car = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False)).astype(np.int64)
+        agent_copy = copy[car_row[agent_car]]
+        prio = rng.uniform(0.0, 1.0, (copies, 3))
+        egos, prev, b_prio, masks = observe_own_lane(
+            snap, copy, car_row, car_accel, agent_car, agent_copy, prio
+        )
+        want_egos = car_row[agent_car]
+        assert egos.tolist() == want_egos.tolist(), trial
+        assert prev.view(np.uint64).tolist() == car_accel[agent_car].view(np.uint64).tolist(), trial
+        want_prio = prio[agent_copy, snap.road[want_egos]]
+        assert b_prio.view(np.uint64).tolist() == want_prio.view(np.uint64).tolist(), trial
+        want_masks = own_lane_action_masks(snap, want_egos, car_accel[agent_car])
+        assert masks.dtype == want_masks.dtype and masks.tolist() == want_masks.tolist(), trial

@@ -39,7 +39,7 @@ from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_sn
 from idas_sumo.env.collisions import any_overlap, geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.front_cars import front_cars, own_lane_action_masks
+from idas_sumo.env.front_cars import front_cars, observe_own_lane, own_lane_action_masks
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
@@ -459,16 +459,24 @@ class MergeEngine:
         if agents is None:
             agents = self._agents = self._gather_agents()
         cars = self._cars
-        egos = cars.row[agents.car]
-        prev = cars.accel[agents.car]
+        snap = self.snapshot
+        if self.config.safety_mask == "own_lane" and len(agents.car):  # (the default: one compiled call)
+            egos, prev, b_prio, masks = observe_own_lane(
+                snap, self._row_copies, cars.row, cars.accel, agents.car, agents.copy, self._prio_by_road
+            )
+        else:
+            egos = cars.row[agents.car]
+            prev = cars.accel[agents.car]
+            masks = self._masks(egos, prev)
+            b_prio = self._prio_by_road[agents.copy, snap.road[egos]]
         batch = AgentBatch(
             ids=agents.ids,
             copy=agents.copy,
             egos=egos,
             prev_accel=prev,
-            masks=self._masks(egos, prev),
-            snapshot=self.snapshot,
-            b_prio=self._prio_by_road[agents.copy, self.snapshot.road[egos]],
+            masks=masks,
+            snapshot=snap,
+            b_prio=b_prio,
             b_type=agents.b_type,
             time_s=self._time_s,
         )
