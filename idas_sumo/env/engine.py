@@ -36,7 +36,7 @@ from idas_sumo.env.actions import (
     next_acceleration,
 )
 from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_snapshot, _Slot
-from idas_sumo.env.collisions import any_overlap, geometric_collisions
+from idas_sumo.env.collisions import geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
 from idas_sumo.env.front_cars import front_cars, observe_own_lane, own_lane_action_masks
@@ -66,7 +66,7 @@ from idas_sumo.env.scoring import (
     quiet_scores,
     score,
 )
-from idas_sumo.env.snapshot import TrafficSnapshot
+from idas_sumo.env.snapshot import DistanceOrder, TrafficSnapshot
 from idas_sumo.env.solo import _SoloBackend
 from idas_sumo.env.state_layout import critic_state
 from idas_sumo.errors import SimulationError
@@ -162,6 +162,8 @@ class MergeEngine:
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
         self._origin = np.zeros(0, dtype=np.int64)
+        self._may_overlap = False
+        """Whether two bodies of the snapshot may overlap (``any_overlap``): the cross-check looks then."""
         self._row_copies = np.zeros(0, dtype=np.int64)
         """Each snapshot row's copy (zeros with one copy, where the snapshot has no ``copy``)."""
         self._cars = _Cars.of((), lambda k, vid: vid)
@@ -372,19 +374,10 @@ class MergeEngine:
         one road (``geometric_collisions``). Both count as collided, as in a SUMO-reported
         collision (their episodes end with r_collide), and leave the road as SUMO's ``--collision.action
         remove`` would take them; the snapshot is then read again without them."""
-        snap = self.snapshot
-        via = self._routes.via_length_m
-        if len(snap) < 2 or not any_overlap(
-            snap.by_distance.order,
-            snap.dist_to_merge_m,
-            self._row_copies,
-            snap.length_m,
-            self._origin,
-            via,
-            snap.longest_m,
-        ):  # (nearly every step)
+        if not self._may_overlap:  # (``any_overlap``, found as the snapshot was read: nearly every step)
             return
-        pairs = geometric_collisions(snap, self._origin, via[self._origin])
+        snap = self.snapshot
+        pairs = geometric_collisions(snap, self._origin, self._routes.via_length_m[self._origin])
         if not pairs:
             return
         removed = False
@@ -434,7 +427,10 @@ class MergeEngine:
             )
         cars.row = layout.row
         self._car = layout.car
-        origin, road, dist, limit = self._routes.place(states, layout.origin)
+        origin, road, dist, limit, order, sorted_dist, overlap = self._routes.place_in_order(
+            states, layout.origin, layout.length_m, layout.longest_m
+        )
+        self._may_overlap = overlap
         self._bounds = bounds
         self._controlled = layout.controlled
         self._origin = origin
@@ -450,6 +446,7 @@ class MergeEngine:
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
             known_longest_m=layout.longest_m,
+            known_by_distance=DistanceOrder(order, sorted_dist, bounds),
         )
 
     # -- observation ---------------------------------------------------------------------------

@@ -46,6 +46,8 @@ class TrafficSnapshot:
     be entries for empty copies past the last vehicle's), to save working them out again."""
     known_longest_m: float | None = None
     """``longest_m`` where the maker already knows it (the engine: the same lengths while the same cars drive)."""
+    known_by_distance: DistanceOrder | None = None
+    """``by_distance`` where the maker sorted the rows already (the engine, in the same call that placed them)."""
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -71,6 +73,8 @@ class TrafficSnapshot:
     @lazy
     def by_distance(self) -> DistanceOrder:
         """The rows sorted by (copy, distance to the merge point), for searching relations."""
+        if self.known_by_distance is not None:
+            return self.known_by_distance
         return DistanceOrder.of(self)
 
     @lazy
