@@ -242,3 +242,24 @@ def test_observe_own_lane_matches_the_separate_calls(copies: int) -> None:
         assert b_prio.view(np.uint64).tolist() == want_prio.view(np.uint64).tolist(), trial
         want_masks = own_lane_action_masks(snap, want_egos, car_accel[agent_car])
         assert masks.dtype == want_masks.dtype and masks.tolist() == want_masks.tolist(), trial
+
+
+def test_step_ends_matches_its_parts() -> None:
+    """``_step_ends``: ``_end_codes`` of the agents' rows, how many ended, and whether any agent chose the
+    hard brake or any car brakes at the detection threshold or harder."""
+    from idas_sumo.env.kernels import _step_ends
+
+    rng = np.random.default_rng(12)
+    for trial in range(200):
+        n_cars, n = int(rng.integers(1, 20)), int(rng.integers(0, 10))
+        car_row = rng.integers(-1, 15, n_cars).astype(np.int64)
+        agent_car = rng.integers(0, n_cars, n).astype(np.int64)
+        collided = rng.random(n) < 0.1
+        dist = rng.uniform(-30.0, 100.0, 15)
+        applied = rng.integers(0, 7, n).astype(np.int64)
+        accel = rng.choice([-4.5, -3.0, -2.9, 0.0, 1.0], int(rng.integers(0, 15)))
+        otherwise = int(rng.integers(0, 2)) * 4
+        code, ended, may = _step_ends(collided, car_row, agent_car, dist, -10.0, otherwise, applied, 5, accel)
+        want = _end_codes(collided, car_row[agent_car], dist, -10.0, otherwise)
+        assert code.tolist() == want.tolist() and ended == int(np.count_nonzero(want)), trial
+        assert may == bool((applied == 5).any() or (accel <= HARD_BRAKE_DETECT_MPS2).any()), trial

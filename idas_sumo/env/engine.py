@@ -47,10 +47,9 @@ from idas_sumo.env.kernels import (
     _allowed_step,
     _book_counts,
     _checked_actions,
-    _end_codes,
     _hard_brakes,
-    _maybe_hard_brakes,
     _next_speeds,
+    _step_ends,
 )
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.observation import build_observations
@@ -559,14 +558,14 @@ class MergeEngine:
         before, rows_before = self.snapshot, self._cars.row
         applied, events = self._simulate(batch, agents, actions)
         acting = agents.acting
-        brakes = self._observe_brakes(batch, applied, before, rows_before, acting)
-        code = self._observe_ends(batch, agents, events)
-        if not len(brakes.rows) and self._paper_terms and not code.any():
+        code, ended, may_brake = self._observe_ends(batch, agents, events, applied)
+        brakes = self._observe_brakes(batch, applied, before, rows_before, acting, may_brake)
+        if not len(brakes.rows) and self._paper_terms and not ended:
             # No hard brake and nobody ended (most steps): what ``score`` gives then, without its context.
             scores = quiet_scores(len(batch), len(self.slots))
         else:
             scores = self._score(batch, agents, code, before, brakes)
-        reasons = self._terminate(batch, agents, code)
+        reasons = self._terminate(batch, agents, code) if ended else ("",) * len(code)
         self._book(batch, agents, scores, brakes, events, acting)
         return StepResult(
             rewards=scores.rewards,
@@ -647,11 +646,12 @@ class MergeEngine:
         before: TrafficSnapshot,
         rows_before: IntArray,
         acting: npt.NDArray[np.bool_],
+        may_brake: bool,
     ) -> HardBrakes:
         """The step's hard brakes: agents that chose the hard brake, then SUMO-driven cars of acting copies
         that braked hard on their own, each placed where it was when it decided."""
         k_count = len(self.slots)
-        if not _maybe_hard_brakes(applied, HARD_BRAKE, self.snapshot.accel_mps2):  # (most steps)
+        if not may_brake:  # (``_maybe_hard_brakes``: most steps)
             none = np.zeros(k_count, dtype=np.int64)
             return HardBrakes(np.zeros(0, dtype=np.int64), none, none.copy(), [[] for _ in range(k_count)])
         cars = self._cars
@@ -673,27 +673,33 @@ class MergeEngine:
             ids[k].append(before.ids[r])
         return HardBrakes(rows, per_copy, zone_per_copy, ids)
 
-    def _observe_ends(self, batch: AgentBatch, agents: _Agents, events: BatchStepEvents) -> IntArray:
+    def _observe_ends(
+        self, batch: AgentBatch, agents: _Agents, events: BatchStepEvents, applied: IntArray
+    ) -> tuple[IntArray, int, bool]:
         """Each agent's end reason code, the first that holds: collided, removed, finished, else timeout
-        (if time is up), else 0 (it goes on)."""
+        (if time is up), else 0 (it goes on); how many ended; and whether the step may have hard brakes
+        (``_maybe_hard_brakes``, checked in the same compiled call)."""
         collided = np.zeros(len(batch), dtype=np.bool_)
         if any(ev.collided for ev in events.copies):
             collided[:] = [
                 a in events.copies[k].collided for a, k in zip(batch.ids, batch.copy.tolist(), strict=True)
             ]
-        return _end_codes(
+        code, ended, may_brake = _step_ends(
             collided,
-            self._cars.row[agents.car],
+            self._cars.row,
+            agents.car,
             self.snapshot.dist_to_merge_m,
             -FINISH_DISTANCE_PAST_MERGE_M,
             _REASON_CODE["timeout" if self.timed_out() else ""],
+            applied,
+            HARD_BRAKE,
+            self.snapshot.accel_mps2,
         )
+        return code, int(ended), bool(may_brake)
 
     def _terminate(self, batch: AgentBatch, agents: _Agents, code: IntArray) -> tuple[str, ...]:
         """End the agents whose code says so: their outcome's end reason, and a finished car leaves our
         control (SUMO drives it off). Returns every agent's end reason ('' while it goes on)."""
-        if not code.any():  # (nearly every step)
-            return ("",) * len(code)
         codes = code.tolist()
         reasons = tuple(map(_REASON_BY_CODE.__getitem__, codes))
         copies = batch.copy.tolist()

@@ -205,3 +205,18 @@ def _end_codes(collided, row, dist, finish_below_m, otherwise):
         else:
             code[i] = otherwise
     return code
+
+
+@kernel
+def _step_ends(collided, car_row, agent_car, dist, finish_below_m, otherwise, applied, hard_brake, accel):
+    """The step's checks after SUMO's step, in one call: each agent's end code (``_end_codes`` of its car's
+    row), how many ended, and whether there may be hard brakes (``_maybe_hard_brakes``)."""
+    row = np.empty(agent_car.shape[0], dtype=np.int64)
+    for i in range(agent_car.shape[0]):
+        row[i] = car_row[agent_car[i]]
+    code = _end_codes(collided, row, dist, finish_below_m, otherwise)
+    ended = 0
+    for i in range(code.shape[0]):
+        if code[i] != 0:
+            ended += 1
+    return code, ended, _maybe_hard_brakes(applied, hard_brake, accel)
