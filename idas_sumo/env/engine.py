@@ -299,6 +299,20 @@ class MergeEngine:
         lo, hi = self._bounds[k], self._bounds[k + 1]
         return slice(int(lo), int(hi))
 
+    def row_and_accel(self, k: int, vehicle_id: str) -> tuple[int, float]:
+        """Slot k's ``vehicle_id``: its row in ``snapshot`` and its acceleration (an agent's: the one it
+        drives with), or (-1, NaN) when it is not on the road or not in the scenario; one lookup for
+        ``row``, ``admitted`` and ``prev_accel`` together."""
+        i = self.slots[k].order.get(vehicle_id)
+        if i is None:
+            return -1, float("nan")
+        cars = self._cars
+        c = int(cars.first[k]) + i
+        r = int(cars.row[c])
+        if r < 0:
+            return -1, float("nan")
+        return r, float(cars.accel[c] if cars.admitted[c] else self.snapshot.accel_mps2[r])
+
     def car_index(self, k: int, vehicle_id: str) -> int:
         """Slot k's ``vehicle_id`` as a car of this episode's cars (for ``car_rows``; KeyError: not in its
         scenario)."""

@@ -282,12 +282,11 @@ def agent_info(engine: MergeEngine, k: int, agent_id: str) -> dict[str, object]:
     """Raw physical values of slot k's agent now (or at its last step on the road); ``road`` "gone" once
     it left the road."""
     snap = engine.snapshot
-    i = engine.row(k, agent_id)
-    if i is not None:
-        accel = engine.prev_accel(k, agent_id) if engine.admitted(k, agent_id) else snap.accel_mps2[i]
+    i, accel = engine.row_and_accel(k, agent_id)
+    if i >= 0:
         return {
             "speed_mps": float(snap.speed_mps[i]),
-            "accel_mps2": float(accel),
+            "accel_mps2": accel,
             "dist_to_merge_m": float(snap.dist_to_merge_m[i]),
             "road": ROAD_NAMES[int(snap.road[i])],
         }
