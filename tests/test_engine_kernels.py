@@ -21,7 +21,7 @@ from idas_sumo.env.kernels import (
 )
 from idas_sumo.env.outcome import HARD_BRAKE_DETECT_MPS2
 from idas_sumo.env.rewards import RewardConfig
-from idas_sumo.env.scoring import StepContext, score
+from idas_sumo.env.scoring import StepContext, nobody_ended_scores, score
 from idas_sumo.env.snapshot import MAIN, TrafficSnapshot
 
 
@@ -127,6 +127,10 @@ def test_impede_and_flow_parts_keep_the_former_kernels_arithmetic(n_brakes: int)
     )
     got = score(ctx).parts
     assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist()
+    # The engine's one-pass version of the same step: every output bit for bit.
+    fast, slow = nobody_ended_scores(copy, egos, n_rows, k, impeded_by, zone_brakes), score(ctx)
+    for a, b in ((fast.parts, slow.parts), (fast.rewards, slow.rewards), (fast.joint, slow.joint)):
+        assert a.dtype == b.dtype and a.view(np.uint64).tolist() == b.view(np.uint64).tolist()
 
 
 def test_action_checks_match_numpy() -> None:

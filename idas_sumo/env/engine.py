@@ -62,6 +62,7 @@ from idas_sumo.env.scoring import (
     StepContext,
     check_terms,
     impeding_vehicles,
+    nobody_ended_scores,
     quiet_scores,
     score,
 )
@@ -574,9 +575,14 @@ class MergeEngine:
         acting = agents.acting
         code, ended, may_brake = self._observe_ends(batch, agents, events, applied)
         brakes = self._observe_brakes(batch, applied, before, rows_before, acting, may_brake)
-        if not len(brakes.rows) and self._paper_terms and not ended:
-            # No hard brake and nobody ended (most steps): what ``score`` gives then, without its context.
-            scores = quiet_scores(len(batch), len(self.slots))
+        if self._paper_terms and not ended:  # (most steps: what ``score`` gives then, without its context)
+            if not len(brakes.rows):
+                scores = quiet_scores(len(batch), len(self.slots))
+            else:
+                impeded_by = impeding_vehicles(before, brakes.rows)
+                scores = nobody_ended_scores(
+                    batch.copy, batch.egos, len(before), len(self.slots), impeded_by, brakes.zone_per_copy
+                )
         else:
             scores = self._score(batch, agents, code, before, brakes)
         reasons = self._terminate(batch, agents, code) if ended else ("",) * len(code)
