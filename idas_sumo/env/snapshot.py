@@ -47,7 +47,8 @@ class TrafficSnapshot:
     known_longest_m: float | None = None
     """``longest_m`` where the maker already knows it (the engine: the same lengths while the same cars drive)."""
     known_by_distance: DistanceOrder | None = None
-    """``by_distance`` where the maker sorted the rows already (the engine, in the same call that placed them)."""
+    """``by_distance`` where the maker sorted the rows already (the engine, in the same call that placed them).
+    Like ``known_longest_m``, a copy (``dataclasses.replace``) that changes distances or lengths passes None."""
 
     def __len__(self) -> int:
         return len(self.ids)
