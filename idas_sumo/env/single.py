@@ -53,11 +53,24 @@ class StepOutcome:
         self._row: dict[str, int] | None = None
         self._first: tuple[str, int] = ("", -1)
         """The first agent ``row`` was asked for, and its row (-1: none yet)."""
-        self.joint_reward = float(result.joint_reward[0])
+
+    # (Read when asked: a single-ego env never reads these.)
+    @lazy
+    def joint_reward(self) -> float:
         """Sum of the agents' rewards plus the shared flow penalty (the centralised critic's reward)."""
-        self.hard_brakes = int(result.hard_brakes[0])
-        self.hard_brakes_merge_zone = int(result.hard_brakes_merge_zone[0])
-        self.collisions: list[tuple[str, str]] = list(result.collisions[0])
+        return float(self.result.joint_reward[0])
+
+    @lazy
+    def hard_brakes(self) -> int:
+        return int(self.result.hard_brakes[0])
+
+    @lazy
+    def hard_brakes_merge_zone(self) -> int:
+        return int(self.result.hard_brakes_merge_zone[0])
+
+    @lazy
+    def collisions(self) -> list[tuple[str, str]]:
+        return list(self.result.collisions[0])
 
     def row(self, agent: str) -> int:
         """``agent``'s row in the step (KeyError: it did not act)."""
