@@ -143,8 +143,11 @@ def build_observations_checked(
     obs = np.zeros((n, OBS_DIM), dtype=np.float32)
     if n == 0:
         return obs, True
-    egos, by_dist, lo, hi = walk_start(snapshot, egos)
-    # The scalars, then the grids straight into the rows (``_draw_grids``), in one compiled call.
+    egos = np.ascontiguousarray(egos, dtype=np.int64)
+    by_dist = snapshot.by_distance
+    row_copy = _NO_COPY if snapshot.copy is None else np.ascontiguousarray(snapshot.copy, dtype=np.int64)
+    # The scalars, then the grids straight into the rows (``_draw_grids``), in one compiled call that also
+    # finds each ego's span of the distance order (``walk_start``'s).
     finite = _observations_kernel(
         obs,
         snapshot.speed_mps,
@@ -158,12 +161,16 @@ def build_observations_checked(
         snapshot.length_m,
         by_dist.order,
         by_dist.sorted_dist,
-        lo,
-        hi,
+        by_dist.starts,
+        row_copy,
         snapshot.longest_m,
         snapshot.copy is None or snapshot.copy_bounds is not None,
     )
     return obs, bool(finite)
+
+
+_NO_COPY = np.zeros(0, dtype=np.int64)
+"""``_observations_kernel``'s row copies of a one-copy snapshot (every ego's span is every row)."""
 
 
 @kernel
@@ -180,12 +187,21 @@ def _observations_kernel(
     length,
     order,
     sorted_dist,
-    lo,
-    hi,
+    starts,
+    row_copy,
     longest,
     rows_by_copy,
 ):
-    """``_write_scalars`` then ``_draw_grids_kernel`` into the rows after the scalars (one call of both)."""
+    """``_write_scalars`` then ``_draw_grids_kernel`` into the rows after the scalars (one call of both), each
+    ego's span of ``order`` its copy's (``DistanceOrder.spans``; every row without ``row_copy``)."""
+    n = egos.shape[0]
+    lo = np.zeros(n, dtype=np.int64)
+    hi = np.full(n, order.shape[0], dtype=np.int64)
+    if row_copy.shape[0] > 0:
+        for i in range(n):
+            c = row_copy[egos[i]]
+            lo[i] = starts[c]
+            hi[i] = starts[c + 1]
     finite = _write_scalars(obs, speed, dist, egos, prev_accel, b_prio, b_type, scales)
     _draw_grids_kernel(
         obs.reshape(-1),
