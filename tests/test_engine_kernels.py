@@ -7,12 +7,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from idas_sumo.env.actions import next_acceleration
 from idas_sumo.env.cars import ACTIVE, ENDED, WAITING
 from idas_sumo.env.kernels import (
     _COLLIDED,
     _FINISHED,
     _REMOVED,
-    _all_allowed,
+    _allowed_step,
     _end_codes,
     _first_outside,
     _hard_brakes,
@@ -20,7 +21,7 @@ from idas_sumo.env.kernels import (
 )
 from idas_sumo.env.outcome import HARD_BRAKE_DETECT_MPS2
 from idas_sumo.env.rewards import RewardConfig
-from idas_sumo.env.scoring import StepContext, score
+from idas_sumo.env.scoring import StepContext, nobody_ended_scores, score
 from idas_sumo.env.snapshot import MAIN, TrafficSnapshot
 
 
@@ -126,6 +127,10 @@ def test_impede_and_flow_parts_keep_the_former_kernels_arithmetic(n_brakes: int)
     )
     got = score(ctx).parts
     assert got.view(np.uint64).tolist() == want.view(np.uint64).tolist()
+    # The engine's one-pass version of the same step: every output bit for bit.
+    fast, slow = nobody_ended_scores(copy, egos, n_rows, k, impeded_by, zone_brakes), score(ctx)
+    for a, b in ((fast.parts, slow.parts), (fast.rewards, slow.rewards), (fast.joint, slow.joint)):
+        assert a.dtype == b.dtype and a.view(np.uint64).tolist() == b.view(np.uint64).tolist()
 
 
 def test_action_checks_match_numpy() -> None:
@@ -137,9 +142,16 @@ def test_action_checks_match_numpy() -> None:
         assert _first_outside(actions, 7) == (int(np.flatnonzero(wrong)[0]) if wrong.any() else -1), trial
         if not wrong.any():
             masks = (rng.random((n, 7)) < 0.9).astype(np.int8)
-            assert _all_allowed(masks, actions) == bool(masks[np.arange(n), actions].astype(bool).all()), (
-                trial
-            )
+            prev = rng.choice([-4.5, -2.0, -0.1, 0.0, 0.3, 2.0], n)
+            speed = rng.uniform(0.0, 3.0, 12)
+            egos = rng.integers(0, 12, n).astype(np.int64)
+            ok, accel, next_speed = _allowed_step(masks, actions, prev, speed, egos, 0.2)
+            assert ok == bool(masks[np.arange(n), actions].astype(bool).all()), trial
+            if ok:  # what the step computed before: next_acceleration, then _next_speeds
+                want = next_acceleration(prev, actions)
+                assert accel.view(np.uint64).tolist() == want.view(np.uint64).tolist(), trial
+                want_speed = _next_speeds(speed, egos, want, 0.2)
+                assert next_speed.view(np.uint64).tolist() == want_speed.view(np.uint64).tolist(), trial
 
 
 def test_next_speeds_match_numpy() -> None:
@@ -161,7 +173,8 @@ def test_distance_order_and_place_match_numpy() -> None:
 
     rng = np.random.default_rng(5)
     for t in range(400):
-        sizes = rng.integers(0, 12, size=rng.integers(1, 6))
+        # (spans up to 11 rows sort by insertion, longer ones by mergesort: both are checked)
+        sizes = rng.integers(0, 12 if t % 3 else 50, size=rng.integers(1, 6))
         copy = np.repeat(np.arange(len(sizes)), sizes)
         pool = [0.0, -0.0, 1.5, 2.0, np.nan, np.inf, -np.inf, 3.25]
         dist = rng.choice(pool, size=len(copy)) if t % 2 else rng.normal(size=len(copy)).round(1)
@@ -192,3 +205,65 @@ def test_distance_order_and_place_match_numpy() -> None:
     expected_out = (o, np.where(incoming, o, OUT), dist, np.where(incoming, own, limit_by[o, code]))
     for a, b in zip(got, expected_out, strict=True):
         assert np.array_equal(np.asarray(a).view(np.int64), np.asarray(b).astype(a.dtype).view(np.int64))
+
+
+@pytest.mark.parametrize("copies", [1, 3])
+def test_observe_own_lane_matches_the_separate_calls(copies: int) -> None:
+    """The engine's one-call observe (own-lane mask) gives the rows, accelerations, priorities and masks
+    of the separate numpy indexing and ``own_lane_action_masks`` it replaced, bit for bit."""
+    from idas_sumo.env.front_cars import observe_own_lane, own_lane_action_masks
+
+    rng = np.random.default_rng(11 + copies)
+    for trial in range(60):
+        sizes = rng.integers(1, 12, copies)
+        n = int(sizes.sum())
+        copy = np.repeat(np.arange(copies), sizes).astype(np.int64)
+        bounds = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+        dist = np.round(rng.uniform(-40.0, 150.0, n), 1)
+        snap = TrafficSnapshot(
+            tuple(f"v{i}" for i in range(n)),
+            np.where(dist < 0.0, 2, rng.integers(0, 2, n)).astype(np.int64),
+            dist,
+            rng.uniform(0.0, 15.0, n),
+            rng.uniform(-3.0, 2.0, n),
+            rng.choice([4.0, 5.0], n),
+            rng.choice([13.89, 16.67], n),
+            copy if copies > 1 else None,
+            bounds if copies > 1 else None,
+        )
+        car_row = rng.permutation(n).astype(np.int64)  # car c drives in row car_row[c]
+        car_accel = rng.choice([-4.5, -1.0, 0.0, 0.3, 2.0], n)
+        agent_car = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False)).astype(np.int64)
+        agent_copy = copy[car_row[agent_car]]
+        prio = rng.uniform(0.0, 1.0, (copies, 3))
+        egos, prev, b_prio, masks = observe_own_lane(
+            snap, copy, car_row, car_accel, agent_car, agent_copy, prio
+        )
+        want_egos = car_row[agent_car]
+        assert egos.tolist() == want_egos.tolist(), trial
+        assert prev.view(np.uint64).tolist() == car_accel[agent_car].view(np.uint64).tolist(), trial
+        want_prio = prio[agent_copy, snap.road[want_egos]]
+        assert b_prio.view(np.uint64).tolist() == want_prio.view(np.uint64).tolist(), trial
+        want_masks = own_lane_action_masks(snap, want_egos, car_accel[agent_car])
+        assert masks.dtype == want_masks.dtype and masks.tolist() == want_masks.tolist(), trial
+
+
+def test_step_ends_matches_its_parts() -> None:
+    """``_step_ends``: ``_end_codes`` of the agents' rows, how many ended, and whether any agent chose the
+    hard brake or any car brakes at the detection threshold or harder."""
+    from idas_sumo.env.kernels import _step_ends
+
+    rng = np.random.default_rng(12)
+    for trial in range(200):
+        n_cars, n = int(rng.integers(1, 20)), int(rng.integers(0, 10))
+        car_row = rng.integers(-1, 15, n_cars).astype(np.int64)
+        agent_car = rng.integers(0, n_cars, n).astype(np.int64)
+        collided = rng.random(n) < 0.1
+        dist = rng.uniform(-30.0, 100.0, 15)
+        applied = rng.integers(0, 7, n).astype(np.int64)
+        accel = rng.choice([-4.5, -3.0, -2.9, 0.0, 1.0], int(rng.integers(0, 15)))
+        otherwise = int(rng.integers(0, 2)) * 4
+        code, ended, may = _step_ends(collided, car_row, agent_car, dist, -10.0, otherwise, applied, 5, accel)
+        want = _end_codes(collided, car_row[agent_car], dist, -10.0, otherwise)
+        assert code.tolist() == want.tolist() and ended == int(np.count_nonzero(want)), trial
+        assert may == bool((applied == 5).any() or (accel <= HARD_BRAKE_DETECT_MPS2).any()), trial

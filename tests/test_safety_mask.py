@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, candidate_accelerations
+from idas_sumo.env.collisions import any_overlap
 from idas_sumo.env.engine import AgentBatch, EnvConfig, MergeEngine, geometric_collisions
 from idas_sumo.env.episodes import run_episodes
 from idas_sumo.env.rewards import collide_reward
@@ -133,6 +134,11 @@ def test_geometric_collisions_agree_with_the_pairwise_definition() -> None:
             and dist[j] < dist[i] + length[i]
         ]
         assert geometric_collisions(snap, origin, joined_m) == expected, trial
+        # The engine's check of every step: any pair at all, with one joining point per origin.
+        via = rng.choice([0.0, 9.4], 2)
+        row_copy = copy if copies > 1 else np.zeros(n, dtype=np.int64)
+        found = any_overlap(snap.by_distance.order, dist, row_copy, length, origin, via, snap.longest_m)
+        assert found == bool(geometric_collisions(snap, origin, via[origin])), trial
 
 
 @pytest.mark.sumo

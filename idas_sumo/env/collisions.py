@@ -86,3 +86,23 @@ def _overlapping_pairs(order, d, copy, length, origin, joined_past, reach):
         if count_only:
             found = np.empty((m, 2), dtype=np.int64)
     return found
+
+
+@kernel
+def any_overlap(order, d, copy, length, origin, joined_past_by_origin, reach):
+    """Whether ``geometric_collisions`` finds any pair (the same scan, stopping at the first), with each car's
+    ``joined_past_m`` looked up by its origin: the engine's check of every step, most of which find none,
+    without the per-car arrays the pairs' search takes."""
+    n = order.shape[0]
+    for p in range(n):
+        i = order[p]
+        for q in range(p + 1, n):
+            j = order[q]
+            if copy[j] != copy[i] or d[j] - d[i] > reach:
+                break
+            one_road = origin[i] == origin[j] or (
+                d[i] < -joined_past_by_origin[origin[i]] and d[j] < -joined_past_by_origin[origin[j]]
+            )
+            if one_road and d[i] < d[j] + length[j] and d[j] < d[i] + length[i]:
+                return True
+    return False

@@ -11,7 +11,7 @@ import numpy.typing as npt
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, RELATIVE_SPEED_SCALE_MPS
 from idas_sumo.env.lazy import lazy
-from idas_sumo.env.observation import build_observations_checked
+from idas_sumo.env.observation import build_observations_checked, speed_spread
 from idas_sumo.env.rewards import REWARD_PART_NAMES
 from idas_sumo.env.snapshot import TrafficSnapshot
 from idas_sumo.errors import SimulationError
@@ -69,9 +69,7 @@ class AgentBatch:
         )
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
         # scalars or the speeds are not is every entry tested.
-        speed = self.snapshot.speed_mps
-        # np.ptp's value, without its wrappers.
-        spread = float(speed.max() - speed.min()) if len(speed) else 0.0
+        spread = speed_spread(self.snapshot.speed_mps)  # (np.ptp's value, in one compiled pass)
         if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():

@@ -39,16 +39,17 @@ from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_sn
 from idas_sumo.env.collisions import geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.front_cars import front_cars, own_lane_action_masks
+from idas_sumo.env.front_cars import front_cars, observe_own_lane, own_lane_action_masks
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
     HardBrakes,
-    _all_allowed,
+    _allowed_step,
+    _book_counts,
     _checked_actions,
-    _end_codes,
     _hard_brakes,
     _next_speeds,
+    _step_ends,
 )
 from idas_sumo.env.layout import OBS_DIM
 from idas_sumo.env.observation import build_observations
@@ -56,8 +57,16 @@ from idas_sumo.env.outcome import END_REASONS, EpisodeOutcome, is_perfect, is_su
 from idas_sumo.env.rewards import FINISH_DISTANCE_PAST_MERGE_M, MERGE_ZONE_RADIUS_M, REWARD_PART_NAMES
 from idas_sumo.env.routes import Routes
 from idas_sumo.env.scenario import Road, Scenario, VehicleSpec
-from idas_sumo.env.scoring import Scores, StepContext, check_terms, impeding_vehicles, score
-from idas_sumo.env.snapshot import TrafficSnapshot
+from idas_sumo.env.scoring import (
+    Scores,
+    StepContext,
+    check_terms,
+    impeding_vehicles,
+    nobody_ended_scores,
+    quiet_scores,
+    score,
+)
+from idas_sumo.env.snapshot import DistanceOrder, TrafficSnapshot
 from idas_sumo.env.solo import _SoloBackend
 from idas_sumo.env.state_layout import critic_state
 from idas_sumo.errors import SimulationError
@@ -91,6 +100,7 @@ class _RoadLayout(NamedTuple):
     origin: IntArray
     controlled: npt.NDArray[np.bool_]
     length_m: FloatArray
+    longest_m: float
 
 
 class MergeEngine:
@@ -123,6 +133,8 @@ class MergeEngine:
             raise ValueError("sumo-gui shows one simulation: copies must be 1 with gui")
         self.config = config or EnvConfig()
         check_terms(self.config.reward)
+        self._paper_terms = self.config.reward.part_names == REWARD_PART_NAMES
+        """The paper's four terms, in order: a quiet step's scores are then ``quiet_scores``."""
         self.site = as_site(net, self.config.junction)
         # libsumo holds one simulation per process: when it is taken (another environment is open), run
         # the episodes one at a time in a SUMO child process; a net netconvert cannot copy faithfully
@@ -150,6 +162,10 @@ class MergeEngine:
         self.snapshot = _empty_snapshot()
         self._controlled = np.zeros(0, dtype=np.bool_)
         self._origin = np.zeros(0, dtype=np.int64)
+        self._may_overlap = False
+        """Whether two bodies of the snapshot may overlap (``any_overlap``): the cross-check looks then."""
+        self._row_copies = np.zeros(0, dtype=np.int64)
+        """Each snapshot row's copy (zeros with one copy, where the snapshot has no ``copy``)."""
         self._cars = _Cars.of((), lambda k, vid: vid)
         self._car = np.zeros(0, dtype=np.int64)
         """Each snapshot row's car (``_Cars``)."""
@@ -284,6 +300,20 @@ class MergeEngine:
         lo, hi = self._bounds[k], self._bounds[k + 1]
         return slice(int(lo), int(hi))
 
+    def row_and_accel(self, k: int, vehicle_id: str) -> tuple[int, float]:
+        """Slot k's ``vehicle_id``: its row in ``snapshot`` and its acceleration (an agent's: the one it
+        drives with), or (-1, NaN) when it is not on the road or not in the scenario; one lookup for
+        ``row``, ``admitted`` and ``prev_accel`` together."""
+        i = self.slots[k].order.get(vehicle_id)
+        if i is None:
+            return -1, float("nan")
+        cars = self._cars
+        c = int(cars.first[k]) + i
+        r = int(cars.row[c])
+        if r < 0:
+            return -1, float("nan")
+        return r, float(cars.accel[c] if cars.admitted[c] else self.snapshot.accel_mps2[r])
+
     def car_index(self, k: int, vehicle_id: str) -> int:
         """Slot k's ``vehicle_id`` as a car of this episode's cars (for ``car_rows``; KeyError: not in its
         scenario)."""
@@ -358,10 +388,12 @@ class MergeEngine:
         one road (``geometric_collisions``). Both count as collided, as in a SUMO-reported
         collision (their episodes end with r_collide), and leave the road as SUMO's ``--collision.action
         remove`` would take them; the snapshot is then read again without them."""
-        pairs = geometric_collisions(self.snapshot, self._origin, self._routes.via_length_m[self._origin])
-        if not pairs:
+        if not self._may_overlap:  # (``any_overlap``, found as the snapshot was read: nearly every step)
             return
         snap = self.snapshot
+        pairs = geometric_collisions(snap, self._origin, self._routes.via_length_m[self._origin])
+        if not pairs:
+            return
         removed = False
         for i, j in pairs:
             k = int(self._copy_of(snap, i))
@@ -398,14 +430,25 @@ class MergeEngine:
             for a in (car, row, length):
                 a.flags.writeable = False
             layout = self._layout = _RoadLayout(
-                states.vehicle, cars, car, row, cars.origin[car], cars.controlled[car], length
+                states.vehicle,
+                cars,
+                car,
+                row,
+                cars.origin[car],
+                cars.controlled[car],
+                length,
+                float(length.max()) if n else 0.0,
             )
         cars.row = layout.row
         self._car = layout.car
-        origin, road, dist, limit = self._routes.place(states, layout.origin)
+        origin, road, dist, limit, order, sorted_dist, overlap = self._routes.place_in_order(
+            states, layout.origin, layout.length_m, layout.longest_m
+        )
+        self._may_overlap = overlap
         self._bounds = bounds
         self._controlled = layout.controlled
         self._origin = origin
+        self._row_copies = copy
         self.snapshot = TrafficSnapshot(
             ids=states.ids,
             road=road,
@@ -416,6 +459,8 @@ class MergeEngine:
             speed_limit_mps=limit,
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
+            known_longest_m=layout.longest_m,
+            known_by_distance=DistanceOrder(order, sorted_dist, bounds),
         )
 
     # -- observation ---------------------------------------------------------------------------
@@ -425,16 +470,24 @@ class MergeEngine:
         if agents is None:
             agents = self._agents = self._gather_agents()
         cars = self._cars
-        egos = cars.row[agents.car]
-        prev = cars.accel[agents.car]
+        snap = self.snapshot
+        if self.config.safety_mask == "own_lane" and len(agents.car):  # (the default: one compiled call)
+            egos, prev, b_prio, masks = observe_own_lane(
+                snap, self._row_copies, cars.row, cars.accel, agents.car, agents.copy, self._prio_by_road
+            )
+        else:
+            egos = cars.row[agents.car]
+            prev = cars.accel[agents.car]
+            masks = self._masks(egos, prev)
+            b_prio = self._prio_by_road[agents.copy, snap.road[egos]]
         batch = AgentBatch(
             ids=agents.ids,
             copy=agents.copy,
             egos=egos,
             prev_accel=prev,
-            masks=self._masks(egos, prev),
-            snapshot=self.snapshot,
-            b_prio=self._prio_by_road[agents.copy, self.snapshot.road[egos]],
+            masks=masks,
+            snapshot=snap,
+            b_prio=b_prio,
             b_type=agents.b_type,
             time_s=self._time_s,
         )
@@ -520,9 +573,38 @@ class MergeEngine:
         before, rows_before = self.snapshot, self._cars.row
         applied, events = self._simulate(batch, agents, actions)
         acting = agents.acting
-        brakes = self._observe_brakes(batch, applied, before, rows_before, acting)
-        code = self._observe_ends(batch, agents, events)
-        scores = score(
+        code, ended, may_brake = self._observe_ends(batch, agents, events, applied)
+        brakes = self._observe_brakes(batch, applied, before, rows_before, acting, may_brake)
+        if self._paper_terms and not ended:  # (most steps: what ``score`` gives then, without its context)
+            if not len(brakes.rows):
+                scores = quiet_scores(len(batch), len(self.slots))
+            else:
+                impeded_by = impeding_vehicles(before, brakes.rows)
+                scores = nobody_ended_scores(
+                    batch.copy, batch.egos, len(before), len(self.slots), impeded_by, brakes.zone_per_copy
+                )
+        else:
+            scores = self._score(batch, agents, code, before, brakes)
+        reasons = self._terminate(batch, agents, code) if ended else ("",) * len(code)
+        self._book(batch, agents, scores, brakes, events, acting)
+        return StepResult(
+            rewards=scores.rewards,
+            reward_parts=scores.parts,
+            end_reason=reasons,
+            applied=np.asarray(applied, dtype=np.int64),
+            joint_reward=scores.joint,
+            collisions=[events.copies[k].collision_pairs for k in range(len(self.slots))],
+            hard_brakes=brakes.per_copy,
+            hard_brakes_merge_zone=brakes.zone_per_copy,
+            hard_brake_ids=brakes.ids,
+            part_names=self.config.reward.part_names,
+        )
+
+    def _score(
+        self, batch: AgentBatch, agents: _Agents, code: IntArray, before: TrafficSnapshot, brakes: HardBrakes
+    ) -> Scores:
+        """The step's named reward terms (``score``)."""
+        return score(
             StepContext(
                 config=self.config.reward,
                 copies=len(self.slots),
@@ -536,20 +618,6 @@ class MergeEngine:
                 zone_brakes=brakes.zone_per_copy,
                 impeded_by=impeding_vehicles(before, brakes.rows),
             )
-        )
-        reasons = self._terminate(batch, agents, code)
-        self._book(batch, agents, scores, brakes, events, acting)
-        return StepResult(
-            rewards=scores.rewards,
-            reward_parts=scores.parts,
-            end_reason=reasons,
-            applied=np.asarray(applied, dtype=np.int64),
-            joint_reward=scores.joint,
-            collisions=[events.copies[k].collision_pairs for k in range(len(self.slots))],
-            hard_brakes=brakes.per_copy,
-            hard_brakes_merge_zone=brakes.zone_per_copy,
-            hard_brake_ids=brakes.ids,
-            part_names=self.config.reward.part_names,
         )
 
     def _take_batch(self) -> tuple[AgentBatch, _Agents]:
@@ -572,13 +640,17 @@ class MergeEngine:
         applied = requested
         if len(batch):
             masks, prev = batch.masks, batch.prev_accel
-            if not _all_allowed(masks, requested):
+            speed = self.snapshot.speed_mps
+            allowed_all, new_accel, next_speed = _allowed_step(  # (one compiled pass, most steps)
+                masks, requested, prev, speed, batch.egos, STEP_LENGTH_S
+            )
+            if not allowed_all:
                 rows = np.arange(len(batch))
                 allowed = masks[rows, requested].astype(bool)
                 wanted = candidate_accelerations(prev)[rows, requested]
                 applied = np.where(allowed, requested, closest_allowed_action(wanted, prev, masks))
-            new_accel = next_acceleration(prev, applied)
-            next_speed = _next_speeds(self.snapshot.speed_mps, batch.egos, new_accel, STEP_LENGTH_S)
+                new_accel = next_acceleration(prev, applied)
+                next_speed = _next_speeds(speed, batch.egos, new_accel, STEP_LENGTH_S)
             self.backend.set_speeds(agents.global_ids, next_speed)
             self._cars.accel[agents.car] = new_accel
         events = self.backend.step()
@@ -594,9 +666,14 @@ class MergeEngine:
         before: TrafficSnapshot,
         rows_before: IntArray,
         acting: npt.NDArray[np.bool_],
+        may_brake: bool,
     ) -> HardBrakes:
         """The step's hard brakes: agents that chose the hard brake, then SUMO-driven cars of acting copies
         that braked hard on their own, each placed where it was when it decided."""
+        k_count = len(self.slots)
+        if not may_brake:  # (``_maybe_hard_brakes``: most steps)
+            none = np.zeros(k_count, dtype=np.int64)
+            return HardBrakes(np.zeros(0, dtype=np.int64), none, none.copy(), [[] for _ in range(k_count)])
         cars = self._cars
         rows, copy, _, per_copy, zone_per_copy = _hard_brakes(
             batch.egos,
@@ -611,34 +688,40 @@ class MergeEngine:
             before.dist_to_merge_m,
             MERGE_ZONE_RADIUS_M,
         )
-        ids: list[list[str]] = [[] for _ in self.slots]
+        ids: list[list[str]] = [[] for _ in range(k_count)]
         for r, k in zip(rows.tolist(), copy.tolist(), strict=True):
             ids[k].append(before.ids[r])
         return HardBrakes(rows, per_copy, zone_per_copy, ids)
 
-    def _observe_ends(self, batch: AgentBatch, agents: _Agents, events: BatchStepEvents) -> IntArray:
+    def _observe_ends(
+        self, batch: AgentBatch, agents: _Agents, events: BatchStepEvents, applied: IntArray
+    ) -> tuple[IntArray, int, bool]:
         """Each agent's end reason code, the first that holds: collided, removed, finished, else timeout
-        (if time is up), else 0 (it goes on)."""
+        (if time is up), else 0 (it goes on); how many ended; and whether the step may have hard brakes
+        (``_maybe_hard_brakes``, checked in the same compiled call)."""
         collided = np.zeros(len(batch), dtype=np.bool_)
         if any(ev.collided for ev in events.copies):
             collided[:] = [
                 a in events.copies[k].collided for a, k in zip(batch.ids, batch.copy.tolist(), strict=True)
             ]
-        return _end_codes(
+        code, ended, may_brake = _step_ends(
             collided,
-            self._cars.row[agents.car],
+            self._cars.row,
+            agents.car,
             self.snapshot.dist_to_merge_m,
             -FINISH_DISTANCE_PAST_MERGE_M,
             _REASON_CODE["timeout" if self.timed_out() else ""],
+            applied,
+            HARD_BRAKE,
+            self.snapshot.accel_mps2,
         )
+        return code, int(ended), bool(may_brake)
 
     def _terminate(self, batch: AgentBatch, agents: _Agents, code: IntArray) -> tuple[str, ...]:
         """End the agents whose code says so: their outcome's end reason, and a finished car leaves our
         control (SUMO drives it off). Returns every agent's end reason ('' while it goes on)."""
         codes = code.tolist()
         reasons = tuple(map(_REASON_BY_CODE.__getitem__, codes))
-        if not any(codes):  # (nearly every step)
-            return reasons
         copies = batch.copy.tolist()
         for i in [i for i, c in enumerate(codes) if c]:
             a, k, reason = batch.ids[i], copies[i], reasons[i]
@@ -665,18 +748,26 @@ class MergeEngine:
         k_count = len(self.slots)
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
-        first_action = ~cars.scored[agents.car]
-        scored = scores.rewards.nonzero()[0]
-        if first_action.any() or len(scored):
+        # (One compiled pass for the counts; it marks the first-timers' cars scored.)
+        first_action, scored, impede_counts, active_counts = _book_counts(
+            agents.car,
+            cars.scored,
+            scores.rewards,
+            scores.parts[:, _IMPEDE],
+            batch.copy,
+            cars.copy,
+            cars.state,
+            k_count,
+        )
+        if len(first_action) or len(scored):
             copies = batch.copy.tolist()
-            for i in first_action.nonzero()[0].tolist():
+            for i in first_action.tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
-            cars.scored[agents.car] = True
             for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
-        impedes = np.bincount(batch.copy[scores.parts[:, _IMPEDE] < 0], minlength=k_count).tolist()
+        impedes = impede_counts.tolist()
         agents_per_copy = agents.per_copy
-        active_per_copy = np.bincount(cars.copy[cars.state == ACTIVE], minlength=k_count).tolist()
+        active_per_copy = active_counts.tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
         timed_out = self.timed_out()

@@ -134,3 +134,98 @@ def _own_lane_masks_kernel(
         time_headway,
         delta,
     )
+
+
+def observe_own_lane(
+    snap: TrafficSnapshot,
+    row_copy: IntArray,
+    car_row: IntArray,
+    car_accel: FloatArray,
+    agent_car: IntArray,
+    agent_copy: IntArray,
+    prio_by_road: FloatArray,
+    params: IDMParams = DEFAULT_IDM,
+) -> tuple[IntArray, FloatArray, FloatArray, npt.NDArray[np.int8]]:
+    """The engine's ``observe`` under the 'own_lane' mask in one compiled call: each agent's row (its car's
+    ``car_row``), the acceleration it drives with (``car_accel``), its road's priority in its copy
+    (``prio_by_road[copy, road]``) and ``own_lane_action_masks`` of those rows. ``row_copy``: each snapshot
+    row's copy (zeros in a one-copy snapshot)."""
+    by_dist = snap.by_distance
+    return _observe_own_lane_kernel(
+        car_row,
+        car_accel,
+        agent_car,
+        agent_copy,
+        prio_by_road,
+        row_copy,
+        by_dist.starts,
+        snap.road,
+        snap.dist_to_merge_m,
+        snap.length_m,
+        snap.speed_mps,
+        snap.speed_limit_mps,
+        by_dist.order,
+        by_dist.sorted_dist,
+        params.max_accel_mps2,
+        params.comfortable_decel_mps2,
+        params.min_gap_m,
+        params.time_headway_s,
+        params.delta,
+    )
+
+
+@kernel
+def _observe_own_lane_kernel(
+    car_row,
+    car_accel,
+    agent_car,
+    agent_copy,
+    prio_by_road,
+    row_copy,
+    starts,
+    road,
+    dist,
+    length,
+    speed,
+    limit,
+    order,
+    sorted_dist,
+    max_accel,
+    comfortable_decel,
+    min_gap,
+    time_headway,
+    delta,
+):
+    n = agent_car.shape[0]
+    egos = np.empty(n, dtype=np.int64)
+    prev = np.empty(n)
+    b_prio = np.empty(n)
+    lo = np.empty(n, dtype=np.int64)
+    hi = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        e = car_row[agent_car[i]]
+        egos[i] = e
+        prev[i] = car_accel[agent_car[i]]
+        b_prio[i] = prio_by_road[agent_copy[i], road[e]]
+        c = row_copy[e]  # (``DistanceOrder.spans``: the ego's copy's span of the distance order)
+        lo[i] = starts[c]
+        hi[i] = starts[c + 1]
+    masks = _own_lane_masks_kernel(
+        road,
+        dist,
+        length,
+        speed,
+        limit,
+        order,
+        sorted_dist,
+        lo,
+        hi,
+        egos,
+        prev,
+        max_accel,
+        comfortable_decel,
+        min_gap,
+        time_headway,
+        delta,
+    )
+    return egos, prev, b_prio, masks

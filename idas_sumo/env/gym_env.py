@@ -135,6 +135,8 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         is left 0 for the caller to fill."""
         batch = self.sim.batch
         actions = np.zeros(len(batch), dtype=np.int64)
+        if len(batch) == (ego_row >= 0):  # nobody but the ego (every step among robots)
+            return actions
         rows = np.arange(len(batch), dtype=np.int64)
         if ego_row >= 0:
             rows = np.concatenate((rows[:ego_row], rows[ego_row + 1 :]))  # (np.delete's, without its checks)

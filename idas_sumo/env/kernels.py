@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.env.actions import N_ACTIONS
+from idas_sumo.env.actions import N_ACTIONS, _candidate
 from idas_sumo.env.cars import ACTIVE
 from idas_sumo.env.contracts import AgentBatch
 from idas_sumo.env.jit import kernel
@@ -75,12 +75,21 @@ def _first_outside(actions, n_actions):
 
 
 @kernel
-def _all_allowed(masks, actions):
-    """Whether each agent's action (all in range: ``_checked_actions``) is allowed by its mask row."""
-    for i in range(actions.shape[0]):  # noqa: SIM110 (numba compiles the loop, not a generator in all())
+def _allowed_step(masks, actions, prev, speed, egos, step_s):
+    """When every agent's action is allowed by its mask row (nearly every step): (True, ``next_acceleration``,
+    ``_next_speeds`` of it) in one pass; else (False, and two arrays to ignore)."""
+    n = actions.shape[0]
+    accel = np.empty(n)
+    next_speed = np.empty(n)
+    for i in range(n):
         if masks[i, actions[i]] == 0:
-            return False
-    return True
+            return False, accel, next_speed
+    for i in range(n):
+        a = _candidate(prev[i], actions[i])
+        accel[i] = a
+        v = speed[egos[i]] + a * step_s
+        next_speed[i] = v if v > 0.0 or v != v else 0.0
+    return True, accel, next_speed
 
 
 @kernel
@@ -141,6 +150,46 @@ def _hard_brakes(
 
 
 @kernel
+def _maybe_hard_brakes(applied, hard_brake, accel):
+    """Whether ``_hard_brakes`` can find any: an agent chose ``hard_brake``, or some car now brakes at
+    ``HARD_BRAKE_DETECT_MPS2`` or harder (most steps neither: the step then skips the full search)."""
+    for i in range(applied.shape[0]):
+        if applied[i] == hard_brake:
+            return True
+    for r in range(accel.shape[0]):  # noqa: SIM110
+        if accel[r] <= HARD_BRAKE_DETECT_MPS2:
+            return True
+    return False
+
+
+@kernel
+def _book_counts(agent_car, car_scored, rewards, impede, agent_copy, car_copy, car_state, k_count):
+    """``MergeEngine._book``'s counts in one pass: the agents acting for the first time (batch rows; their
+    cars marked scored), those with a nonzero reward (batch rows), and per copy the agents with an impede
+    penalty and the cars still acting."""
+    n = agent_car.shape[0]
+    first = np.empty(n, dtype=np.int64)
+    scored = np.empty(n, dtype=np.int64)
+    n_first = n_scored = 0
+    impedes = np.zeros(k_count, dtype=np.int64)
+    for i in range(n):
+        if not car_scored[agent_car[i]]:
+            first[n_first] = i
+            n_first += 1
+            car_scored[agent_car[i]] = True
+        if rewards[i] != 0.0:
+            scored[n_scored] = i
+            n_scored += 1
+        if impede[i] < 0.0:
+            impedes[agent_copy[i]] += 1
+    active = np.zeros(k_count, dtype=np.int64)
+    for c in range(car_state.shape[0]):
+        if car_state[c] == ACTIVE:
+            active[car_copy[c]] += 1
+    return first[:n_first], scored[:n_scored], impedes, active
+
+
+@kernel
 def _end_codes(collided, row, dist, finish_below_m, otherwise):
     """Each agent's end reason (``_REASON_CODE``), the first that holds: collided, removed (no ``row`` in
     the new snapshot), finished (its distance to the merge point at or below ``finish_below_m``), else
@@ -156,3 +205,18 @@ def _end_codes(collided, row, dist, finish_below_m, otherwise):
         else:
             code[i] = otherwise
     return code
+
+
+@kernel
+def _step_ends(collided, car_row, agent_car, dist, finish_below_m, otherwise, applied, hard_brake, accel):
+    """The step's checks after SUMO's step, in one call: each agent's end code (``_end_codes`` of its car's
+    row), how many ended, and whether there may be hard brakes (``_maybe_hard_brakes``)."""
+    row = np.empty(agent_car.shape[0], dtype=np.int64)
+    for i in range(agent_car.shape[0]):
+        row[i] = car_row[agent_car[i]]
+    code = _end_codes(collided, row, dist, finish_below_m, otherwise)
+    ended = 0
+    for i in range(code.shape[0]):
+        if code[i] != 0:
+            ended += 1
+    return code, ended, _maybe_hard_brakes(applied, hard_brake, accel)

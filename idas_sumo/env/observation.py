@@ -141,8 +141,14 @@ def build_observations_checked(
     observations then only has to look at the grids)."""
     n = len(egos)
     obs = np.zeros((n, OBS_DIM), dtype=np.float32)
+    if n == 0:
+        return obs, True
     egos = np.ascontiguousarray(egos, dtype=np.int64)
-    finite = _write_scalars(
+    by_dist = snapshot.by_distance
+    row_copy = _NO_COPY if snapshot.copy is None else np.ascontiguousarray(snapshot.copy, dtype=np.int64)
+    # The scalars, then the grids straight into the rows (``_draw_grids``), in one compiled call that also
+    # finds each ego's span of the distance order (``walk_start``'s).
+    finite = _observations_kernel(
         obs,
         snapshot.speed_mps,
         snapshot.dist_to_merge_m,
@@ -151,9 +157,87 @@ def build_observations_checked(
         per_row(b_prio, n),
         per_row(b_type, n),
         _SCALES,
+        snapshot.road,
+        snapshot.length_m,
+        by_dist.order,
+        by_dist.sorted_dist,
+        by_dist.starts,
+        row_copy,
+        snapshot.longest_m,
+        snapshot.copy is None or snapshot.copy_bounds is not None,
     )
-    _draw_grids(obs.reshape(-1), OBS_DIM, N_SCALARS, snapshot, egos)  # straight into the rows
     return obs, bool(finite)
+
+
+_NO_COPY = np.zeros(0, dtype=np.int64)
+"""``_observations_kernel``'s row copies of a one-copy snapshot (every ego's span is every row)."""
+
+
+@kernel
+def _observations_kernel(
+    obs,
+    speed,
+    dist,
+    egos,
+    prev_accel,
+    b_prio,
+    b_type,
+    scales,
+    road,
+    length,
+    order,
+    sorted_dist,
+    starts,
+    row_copy,
+    longest,
+    rows_by_copy,
+):
+    """``_write_scalars`` then ``_draw_grids_kernel`` into the rows after the scalars (one call of both), each
+    ego's span of ``order`` its copy's (``DistanceOrder.spans``; every row without ``row_copy``)."""
+    n = egos.shape[0]
+    lo = np.zeros(n, dtype=np.int64)
+    hi = np.full(n, order.shape[0], dtype=np.int64)
+    if row_copy.shape[0] > 0:
+        for i in range(n):
+            c = row_copy[egos[i]]
+            lo[i] = starts[c]
+            hi[i] = starts[c + 1]
+    finite = _write_scalars(obs, speed, dist, egos, prev_accel, b_prio, b_type, scales)
+    _draw_grids_kernel(
+        obs.reshape(-1),
+        OBS_DIM,
+        N_SCALARS,
+        road,
+        dist,
+        length,
+        speed,
+        order,
+        sorted_dist,
+        lo,
+        hi,
+        egos,
+        longest,
+        rows_by_copy,
+    )
+    return finite
+
+
+@kernel
+def speed_spread(speed):
+    """``speed.max() - speed.min()`` (NaN if any speed is NaN; 0.0 without speeds) in one compiled pass
+    instead of two numpy reductions."""
+    if speed.shape[0] == 0:
+        return 0.0
+    lo = hi = speed[0]
+    for i in range(speed.shape[0]):
+        v = speed[i]
+        if v != v:
+            return np.nan
+        if v < lo:
+            lo = v
+        if v > hi:
+            hi = v
+    return hi - lo
 
 
 _SCALES = np.asarray(SCALAR_SCALES, dtype=np.float64)

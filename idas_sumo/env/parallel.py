@@ -128,9 +128,9 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         """Each agent's info: its raw physical values (``agent_info``), and with ``outcome`` the step's
         reward parts, joint reward, end reason and replaced action."""
         infos: dict[str, dict[str, Any]] = {}
-        for agent, info in zip(agents, self.sim.agent_infos(agents), strict=True):
-            road = info["road"]
-            info["road"] = ROAD_NAMES.index(road) if road in ROAD_NAMES else GONE
+        if not agents:  # (no agent entered: most steps)
+            return infos
+        for agent, info in zip(agents, self._physical(agents), strict=True):
             if outcome is not None:
                 info["reward_parts"] = outcome.reward_parts[agent]
                 info["joint_reward"] = outcome.joint_reward
@@ -140,6 +140,24 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
                     info["replaced_action"] = outcome.replaced_actions[agent]
             infos[agent] = info
         return infos
+
+    def _physical(self, agents: list[str]) -> list[dict[str, Any]]:
+        """``agent_infos`` of these agents with the road as its index (``GONE`` once off the road), read
+        straight from the engine's values (not through the road's name and back)."""
+        engine = self.sim.engine
+        if not len(engine.snapshot):
+            infos = self.sim.agent_infos(agents)
+            for info in infos:
+                road = info["road"]
+                info["road"] = ROAD_NAMES.index(road) if road in ROAD_NAMES else GONE
+            return infos
+        nan = float("nan")
+        return [
+            {"speed_mps": s, "accel_mps2": a, "dist_to_merge_m": d, "road": r}
+            if r >= 0
+            else {"speed_mps": nan, "accel_mps2": nan, "dist_to_merge_m": nan, "road": GONE}
+            for s, a, d, r in zip(*engine.agent_values(0, agents), strict=True)
+        ]
 
     def step(
         self, actions: dict[str, int]
@@ -169,7 +187,8 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
                     "observation": self.sim.last_observation(a),
                     "action_mask": placeholder_mask(),
                 }
-        new_agents = [a for a in self.agents if a not in acting]
+        acted = set(acting)
+        new_agents = [a for a in self.agents if a not in acted]
         infos.update(self._infos(new_agents))
         if self.sim.timed_out():
             self.agents = []

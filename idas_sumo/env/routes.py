@@ -9,8 +9,9 @@ import numpy as np
 import numpy.typing as npt
 
 from idas_sumo.env.actions import MERGE_EXEMPTION_M
+from idas_sumo.env.collisions import any_overlap
 from idas_sumo.env.jit import kernel
-from idas_sumo.env.snapshot import MAIN, MERGE, OUT
+from idas_sumo.env.snapshot import MAIN, MERGE, OUT, _sort_spans
 from idas_sumo.sim.batch import BatchStates
 from idas_sumo.sim.merge_detect import MergeSite
 
@@ -55,6 +56,27 @@ class Routes:
         """(origin, road, distance to the merge point m, speed limit m/s) of each car of ``states``, given
         the road it started on (``origin``; a merging car that changed onto the main road's lane comes back
         as MAIN)."""
+        # One compiled pass, bit for bit the numpy formulas it replaced (tests/test_engine_kernels.py).
+        return _place_kernel(*self._place_args(states, origin))
+
+    def place_in_order(
+        self, states: BatchStates, origin: IntArray, length_m: FloatArray, longest_m: float
+    ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, IntArray, FloatArray, bool]:
+        """``place``, then the rows sorted by (copy, distance) (``DistanceOrder``'s order and sorted distances;
+        the copies' spans are ``states.bounds``) and whether any two bodies overlap (``any_overlap``; each
+        car ``length_m`` long, the longest ``longest_m``), in one compiled call: the engine's every read."""
+        args = (
+            *self._place_args(states, origin),
+            states.bounds,
+            length_m,
+            states.copy,
+            self.via_length_m,
+            longest_m,
+        )
+        return _place_in_order_kernel(*args)
+
+    def _place_args(self, states: BatchStates, origin: IntArray) -> tuple[object, ...]:
+        """``_place_kernel``'s arguments for these cars."""
         n = len(states.ids)
         if self._code_by_edge_index is not None:
             if states.edge_index is not self._last_edge_index:  # (the backend hands out the same array
@@ -68,9 +90,7 @@ class Routes:
             code = np.fromiter(map(self._edge_code.get, states.edge, itertools.repeat(unknown)), np.int64, n)
             self._last_edges, self._last_code = states.edge, code
         lane_index = states.lane_index if states.lane_index is not None and n else _NO_LANES
-        # One compiled pass: (origin, road, distance, limit), bit for bit the numpy formulas it replaced
-        # (tests/test_engine_kernels.py).
-        return _place_kernel(
+        return (
             code,
             np.ascontiguousarray(states.lane_pos_m, dtype=np.float64),
             np.ascontiguousarray(origin, dtype=np.int64),
@@ -85,6 +105,33 @@ class Routes:
 
 
 _NO_LANES = np.zeros(0, dtype=np.int64)
+
+
+@kernel
+def _place_in_order_kernel(
+    code,
+    lane_pos,
+    origin,
+    lane_index,
+    merged_lane,
+    incoming_by,
+    start_by,
+    limit_by,
+    out_limit,
+    exempt_m,
+    starts,
+    length,
+    row_copy,
+    joined_past_by_origin,
+    longest,
+):
+    """``Routes.place_in_order``: ``_place_kernel``, ``_sort_spans`` and ``any_overlap`` in one call."""
+    out_origin, road, dist, limit = _place_kernel(
+        code, lane_pos, origin, lane_index, merged_lane, incoming_by, start_by, limit_by, out_limit, exempt_m
+    )
+    order, sorted_dist = _sort_spans(dist, starts)
+    overlap = any_overlap(order, dist, row_copy, length, out_origin, joined_past_by_origin, longest)
+    return out_origin, road, dist, limit, order, sorted_dist, overlap
 
 
 @kernel

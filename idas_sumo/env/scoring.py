@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from idas_sumo.env.jit import kernel
 from idas_sumo.env.kernels import _REASON_CODE
 from idas_sumo.env.layout import VISIBILITY_M
 from idas_sumo.env.rewards import (
@@ -118,7 +119,7 @@ def score(ctx: StepContext) -> Scores:
     names = ctx.config.part_names
     if names == REWARD_PART_NAMES and not ctx.end_code.any():
         if not (len(ctx.impeded_by) or ctx.zone_brakes.any()):
-            return _quiet(len(ctx.copy), ctx.copies)
+            return quiet_scores(len(ctx.copy), ctx.copies)
         return _nobody_ended(ctx)
     n = len(ctx.copy)
     parts = np.zeros((n, len(names)))
@@ -142,7 +143,7 @@ def score(ctx: StepContext) -> Scores:
     return Scores(parts, rewards, joint)
 
 
-def _quiet(n: int, copies: int) -> Scores:
+def quiet_scores(n: int, copies: int) -> Scores:
     """``score`` of the paper's four terms in a step where no agent ended, no hard brake had a car ahead
     and none was in the merging zone (most steps): what the terms give then, bit for bit (impede and flow
     are -5·0 and -1·0, i.e. -0.0; every sum 0.0), without calling them."""
@@ -162,6 +163,67 @@ def _nobody_ended(ctx: StepContext) -> Scores:
     rewards = impede + 0.0
     joint = np.bincount(ctx.copy, weights=rewards, minlength=ctx.copies).astype(np.float64) + per_copy
     return Scores(parts, rewards, joint)
+
+
+def nobody_ended_scores(
+    copy: IntArray, egos: IntArray, n_rows: int, copies: int, impeded_by: IntArray, zone_brakes: IntArray
+) -> Scores:
+    """``score`` of the paper's four terms in a step where no agent ended (``_nobody_ended``, and
+    ``quiet_scores``' values when nothing was impeded and no brake was in the zone), in one compiled pass:
+    the agents' rows ``egos`` of the ``n_rows``-row snapshot they decided in, their ``copy``, and the
+    ``StepContext`` fields of the same names."""
+    parts, rewards, joint = _nobody_ended_kernel(
+        copy,
+        egos,
+        n_rows,
+        copies,
+        impeded_by,
+        zone_brakes,
+        IMPEDE_PENALTY,
+        FLOW_PENALTY_PER_HARD_BRAKE,
+        _IMPEDE_COLUMN,
+        _FLOW_COLUMN,
+        len(REWARD_PART_NAMES),
+    )
+    return Scores(parts, rewards, joint)
+
+
+@kernel
+def _nobody_ended_kernel(
+    copy,
+    egos,
+    n_rows,
+    copies,
+    impeded_by,
+    zone_brakes,
+    impede_penalty,
+    flow_penalty,
+    impede_col,
+    flow_col,
+    n_parts,
+):
+    """``_nobody_ended``'s arithmetic, in its order: impede = penalty · brakes caused (bincount), flow =
+    penalty · zone brakes per copy, reward = impede + 0.0, joint = the copy's rewards summed in row order
+    from 0.0 (bincount's weights), then + flow."""
+    caused = np.zeros(n_rows, dtype=np.int64)
+    for j in range(impeded_by.shape[0]):
+        caused[impeded_by[j]] += 1
+    per_copy = np.empty(copies)
+    for k in range(copies):
+        per_copy[k] = flow_penalty * zone_brakes[k]
+    n = egos.shape[0]
+    parts = np.zeros((n, n_parts))
+    rewards = np.empty(n)
+    joint = np.zeros(copies)
+    for i in range(n):
+        impede = impede_penalty * caused[egos[i]]
+        parts[i, impede_col] = impede
+        parts[i, flow_col] = per_copy[copy[i]]
+        rewards[i] = impede + 0.0
+        joint[copy[i]] += rewards[i]
+    for k in range(copies):
+        joint[k] = joint[k] + per_copy[k]
+    return parts, rewards, joint
 
 
 def impeding_vehicles(before: TrafficSnapshot, brake_rows: IntArray) -> IntArray:

@@ -53,11 +53,24 @@ class StepOutcome:
         self._row: dict[str, int] | None = None
         self._first: tuple[str, int] = ("", -1)
         """The first agent ``row`` was asked for, and its row (-1: none yet)."""
-        self.joint_reward = float(result.joint_reward[0])
+
+    # (Read when asked: a single-ego env never reads these.)
+    @lazy
+    def joint_reward(self) -> float:
         """Sum of the agents' rewards plus the shared flow penalty (the centralised critic's reward)."""
-        self.hard_brakes = int(result.hard_brakes[0])
-        self.hard_brakes_merge_zone = int(result.hard_brakes_merge_zone[0])
-        self.collisions: list[tuple[str, str]] = list(result.collisions[0])
+        return float(self.result.joint_reward[0])
+
+    @lazy
+    def hard_brakes(self) -> int:
+        return int(self.result.hard_brakes[0])
+
+    @lazy
+    def hard_brakes_merge_zone(self) -> int:
+        return int(self.result.hard_brakes_merge_zone[0])
+
+    @lazy
+    def collisions(self) -> list[tuple[str, str]]:
+        return list(self.result.collisions[0])
 
     def row(self, agent: str) -> int:
         """``agent``'s row in the step (KeyError: it did not act)."""
@@ -115,10 +128,12 @@ class StepOutcome:
     @lazy
     def replaced_actions(self) -> dict[str, int]:
         """Agents whose requested action was masked, and the action applied instead."""
+        requested, applied = (
+            self._requested.tolist(),
+            self.result.applied.tolist(),
+        )  # (plain ints compare fast)
         return {
-            a: int(applied)
-            for a, wanted, applied in zip(self.acting, self._requested, self.result.applied, strict=True)
-            if wanted != applied
+            a: got for a, wanted, got in zip(self.acting, requested, applied, strict=True) if wanted != got
         }
 
 
@@ -280,12 +295,11 @@ def agent_info(engine: MergeEngine, k: int, agent_id: str) -> dict[str, object]:
     """Raw physical values of slot k's agent now (or at its last step on the road); ``road`` "gone" once
     it left the road."""
     snap = engine.snapshot
-    i = engine.row(k, agent_id)
-    if i is not None:
-        accel = engine.prev_accel(k, agent_id) if engine.admitted(k, agent_id) else snap.accel_mps2[i]
+    i, accel = engine.row_and_accel(k, agent_id)
+    if i >= 0:
         return {
             "speed_mps": float(snap.speed_mps[i]),
-            "accel_mps2": float(accel),
+            "accel_mps2": accel,
             "dist_to_merge_m": float(snap.dist_to_merge_m[i]),
             "road": ROAD_NAMES[int(snap.road[i])],
         }

@@ -298,7 +298,7 @@ def run_options(seed: int) -> list[str]:
     ]
 
 
-@dataclass
+@dataclass(slots=True)  # (slots: built once per copy and step, about half the cost)
 class StepEvents:
     """What happened in one simulation step."""
 

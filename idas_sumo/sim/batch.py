@@ -284,13 +284,9 @@ class BatchBackend:
         except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
             raise SimulationError(f"SUMO failed during a step: {err}") from None
         time_s = float(simulation.getTime())
-        # (every field given: StepEvents' default factories cost more, once per copy and step)
-        events = [
-            StepEvents(
-                collided=set(), collision_pairs=[], departed=[], arrived=[], teleported=[], time_s=time_s
-            )
-            for _ in range(self._active_copies)
-        ]
+        # (every field given, by position: collided, collision_pairs, departed, arrived, teleported, time_s;
+        # StepEvents' default factories and keywords cost more, once per copy and step)
+        events = [StepEvents(set(), [], [], [], [], time_s) for _ in range(self._active_copies)]
         cleared = self._cleared
         departed = simulation.getDepartedIDList()
         for vid in departed:
