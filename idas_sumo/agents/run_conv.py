@@ -22,35 +22,44 @@ from idas_sumo.env.jit import kernel
 
 __all__ = ["RunConv", "RunPieces", "actor_logits"]
 
+PIECES_PER_ROW_GUESS = 16
+"""Room for this many pieces per observation on ``RunPieces.of``'s first scan (real ones hold about 5.5)."""
+
 
 def _runs(
-    grids: npt.NDArray[np.float32], rows_in: int, piece: int, capacity: int
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """The pieces of the runs of equal non-zero cells in ``grids`` (B · rows_in grid rows, cells): each run cut
-    into pieces of at most ``piece`` cells. Per piece: its table row ((length - 1) · rows_in + input row), its
-    value, its batch row and its first cell. ``capacity``: at least the number of pieces (the non-zero cells)."""
-    n_rows, cells = grids.shape
+    obs: npt.NDArray[np.float32], first: int, rows_in: int, cells: int, piece: int, capacity: int
+) -> tuple[
+    npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64], bool
+]:
+    """The pieces of the runs of equal non-zero cells in the grids of ``obs`` (B rows; from column ``first``,
+    ``rows_in`` grid rows of ``cells`` cells each), read in place: each run cut into pieces of at most ``piece``
+    cells. Per piece: its table row ((length - 1) · rows_in + input row), its value, its batch row and its
+    first cell; and whether they all fitted in ``capacity`` (else the caller asks again with more)."""
     table_row = np.empty(capacity, dtype=np.int64)
     value = np.empty(capacity, dtype=np.float32)
     grid_row = np.empty(capacity, dtype=np.int64)
     start = np.empty(capacity, dtype=np.int64)
     j = 0
-    for i in range(n_rows):
-        c = 0
-        while c < cells:
-            v = grids[i, c]
-            if v == 0.0:
-                c += 1
-                continue
-            e = c + 1
-            while e < cells and grids[i, e] == v:
-                e += 1
-            for s in range(c, e, piece):
-                table_row[j] = (min(piece, e - s) - 1) * rows_in + i % rows_in
-                value[j], grid_row[j], start[j] = v, i // rows_in, s
-                j += 1
-            c = e
-    return table_row[:j], value[:j], grid_row[:j], start[:j]
+    for b in range(obs.shape[0]):
+        for i in range(rows_in):
+            base = first + i * cells
+            c = 0
+            while c < cells:
+                v = obs[b, base + c]
+                if v == 0.0:
+                    c += 1
+                    continue
+                e = c + 1
+                while e < cells and obs[b, base + e] == v:
+                    e += 1
+                for s in range(c, e, piece):
+                    if j == capacity:
+                        return table_row[:j], value[:j], grid_row[:j], start[:j], False
+                    table_row[j] = (min(piece, e - s) - 1) * rows_in + i
+                    value[j], grid_row[j], start[j] = v, b, s
+                    j += 1
+                c = e
+    return table_row[:j], value[:j], grid_row[:j], start[:j], True
 
 
 def _forward(
@@ -262,12 +271,18 @@ class RunPieces:
     """Each piece's first cell."""
 
     @classmethod
-    def of(cls, grids: torch.Tensor, rows_in: int, piece: int) -> RunPieces:
-        """The pieces of a (B · rows_in, cells) float32 tensor's runs, at most ``piece`` cells long."""
-        cells = np.ascontiguousarray(grids.detach().cpu().numpy(), dtype=np.float32)
-        # A piece holds at least one non-zero cell: their count bounds the pieces (a few % of the cells).
-        capacity = int(np.count_nonzero(cells))
-        table_row, value, grid_row, start = _runs_kernel(cells, rows_in, piece, capacity)
+    def of(cls, obs: torch.Tensor, first: int, rows_in: int, cells: int, piece: int) -> RunPieces:
+        """The pieces of the runs in a (B, features) float32 tensor's grids (from column ``first``, ``rows_in``
+        grid rows of ``cells`` cells each), at most ``piece`` cells long."""
+        rows = np.ascontiguousarray(obs.detach().cpu().numpy(), dtype=np.float32)
+        # A rollout's observations hold about 5.5 pieces each; a batch with more is scanned again with room for
+        # a piece per non-zero cell (a piece holds at least one), which always suffices.
+        table_row, value, grid_row, start, fitted = _runs_kernel(
+            rows, first, rows_in, cells, piece, rows.shape[0] * PIECES_PER_ROW_GUESS
+        )
+        if not fitted:
+            capacity = int(np.count_nonzero(rows[:, first : first + rows_in * cells]))
+            table_row, value, grid_row, start, _ = _runs_kernel(rows, first, rows_in, cells, piece, capacity)
         return cls(table_row=table_row, value=value, grid_row=grid_row, start=start)
 
 
