@@ -227,8 +227,11 @@ def test_run_pieces_of_a_batch_past_the_first_guess_are_each_rows_own() -> None:
     obs = torch.zeros(4, OBS_DIM)
     obs[1] = torch.rand(OBS_DIM, generator=torch.Generator().manual_seed(3))
     obs[2, N_SCALARS + 10 : N_SCALARS + 50] = 0.5  # one run of 40 cells: three pieces
+    obs[3, N_SCALARS : N_SCALARS + 300] = -0.0  # empty, as 0.0 is (the scans skip empty blocks by their bits)
+    obs[3, OBS_DIM - 1] = 2.0  # the very last cell: one piece
     whole = RunPieces.of(obs, N_SCALARS, 4, GRID_CELLS, 16)
-    assert len(whole.value) == (OBS_DIM - N_SCALARS) + 3 > 4 * PIECES_PER_ROW_GUESS
+    assert len(whole.value) == (OBS_DIM - N_SCALARS) + 3 + 1 > 4 * PIECES_PER_ROW_GUESS
+    assert (whole.grid_row[-1], whole.start[-1], whole.value[-1]) == (3, GRID_CELLS - 1, 2.0)
     alone = [RunPieces.of(obs[i : i + 1], N_SCALARS, 4, GRID_CELLS, 16) for i in range(4)]
     assert np.array_equal(
         whole.grid_row, np.concatenate([np.full(len(a.value), i) for i, a in enumerate(alone)])
