@@ -535,6 +535,12 @@ class Learner:
         self.anchor: Actor | None = None
         """π₀ of ``anchor_coef``: a frozen copy of the actor the stage started from; None without one."""
 
+    def build_optimisers(self) -> None:
+        """Build the three Adam optimisers now, each of which ``_LazyAdam`` would build on first use: the training
+        process calls this while its rollout workers collect a round, so the first build's import of
+        ``torch._dynamo`` (about 1.5 CPU s) runs beside their work instead of after it, while they wait."""
+        _ = (self.opt_actor, self.opt_value, self.opt_central)
+
     def anchor_to_start(self) -> None:
         """Freeze a copy of the current actor as π₀, the policy ``anchor_coef`` keeps the actor near (call once,
         after the stage's starting weights are loaded)."""
