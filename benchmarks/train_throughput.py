@@ -12,7 +12,8 @@ until the timeout, so episodes are long: a pessimistic pace for later training),
 With ``--against``: the intelligent world (stage 2, 8 learning agents), from the shipped ``idas.pt`` and from
 random weights, each worker count, old code (the checkout, run with ``PYTHONPATH`` pointing at it, same
 interpreter and packages) and this code, interleaved (old, new, new, old, ...) so both see the shared
-machine's load alike. Both read the same config file and start from the same ``idas.pt``. Each cell prints the
+machine's load alike. Both read the same config file and start from the same ``idas.pt``: the older checkout's
+shipped one, which both codes read (a policy shipped later may carry config keys the older code refuses). Each cell prints the
 episodes/s of every repeat and the CPU seconds per episode (the train process and its workers), the ratio is
 new over old of the medians.
 """
@@ -135,9 +136,15 @@ def _per_stage(args: argparse.Namespace) -> None:
     print_table(table)
 
 
+def _shipped_of(checkout: Path) -> Path:
+    """The ``idas.pt`` shipped with ``checkout`` (both sides start from it), or this code's if it has none."""
+    theirs = checkout / "idas_sumo" / "policies" / "idas.pt"
+    return theirs if theirs.is_file() else POLICY_DIR / "idas.pt"
+
+
 def _against(args: argparse.Namespace) -> None:
     """Old (``--against``) and new, interleaved, intelligent world, shipped policy and random weights."""
-    shipped = str(POLICY_DIR / "idas.pt")
+    shipped = str(_shipped_of(args.against))
     starts = (("idas.pt", shipped, args.episodes), ("random weights", "", args.random_episodes))
     paces: dict[tuple[str, int, str], list[Pace]] = {}
     for code in (

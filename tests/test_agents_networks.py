@@ -22,6 +22,7 @@ from idas_sumo.agents.networks import (
     ObsWindows,
     ValueCritic,
 )
+from idas_sumo.agents.run_conv import PIECES_PER_ROW_GUESS, RunPieces
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
 from idas_sumo.env.state_layout import STATE_SLOTS
@@ -218,6 +219,25 @@ def test_conv_of_touching_runs_and_both_lanes_adds_up() -> None:
         torch.testing.assert_close(conv[0, :, :, cell], torch.full((2, 2), want), rtol=0, atol=1e-5)
     enc_random = GridEncoder()
     _assert_matches_conv2d(enc_random, obs)
+
+
+def test_run_pieces_of_a_batch_past_the_first_guess_are_each_rows_own() -> None:
+    """A batch with more pieces than ``RunPieces.of``'s first scan has room for (random cells: a piece per cell)
+    is scanned again with room for all: the pieces are those of each row found alone, in row order."""
+    obs = torch.zeros(4, OBS_DIM)
+    obs[1] = torch.rand(OBS_DIM, generator=torch.Generator().manual_seed(3))
+    obs[2, N_SCALARS + 10 : N_SCALARS + 50] = 0.5  # one run of 40 cells: three pieces
+    obs[3, N_SCALARS : N_SCALARS + 300] = -0.0  # empty, as 0.0 is (the scans skip empty blocks by their bits)
+    obs[3, OBS_DIM - 1] = 2.0  # the very last cell: one piece
+    whole = RunPieces.of(obs, N_SCALARS, 4, GRID_CELLS, 16)
+    assert len(whole.value) == (OBS_DIM - N_SCALARS) + 3 + 1 > 4 * PIECES_PER_ROW_GUESS
+    assert (whole.grid_row[-1], whole.start[-1], whole.value[-1]) == (3, GRID_CELLS - 1, 2.0)
+    alone = [RunPieces.of(obs[i : i + 1], N_SCALARS, 4, GRID_CELLS, 16) for i in range(4)]
+    assert np.array_equal(
+        whole.grid_row, np.concatenate([np.full(len(a.value), i) for i, a in enumerate(alone)])
+    )
+    for field in ("table_row", "value", "start"):
+        assert np.array_equal(getattr(whole, field), np.concatenate([getattr(a, field) for a in alone]))
 
 
 @pytest.mark.parametrize("rows", [5, ENCODER_CHUNK_ROWS + 7])

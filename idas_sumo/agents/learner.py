@@ -389,13 +389,17 @@ def _sample_grouped(
     masked action (probability exactly 0) gives 0 / q = 0 and an allowed one a positive ratio, so it never
     comes out.
     """
-    draws = [torch.empty(len(rows), probs.shape[1]).exponential_(1, generator=g) for rows, g in groups]
     order = np.concatenate([np.asarray(rows, dtype=np.int64) for rows, _ in groups])
+    drawn = torch.empty(len(order), probs.shape[1])
+    at = 0
+    for rows, g in groups:  # each group's draws into its own rows of one tensor (a contiguous block each)
+        drawn[at : at + len(rows)].exponential_(1, generator=g)
+        at += len(rows)
     if np.array_equal(order, np.arange(probs.shape[0])):  # the groups tile the rows in order
-        q = torch.cat(draws)
+        q = drawn
     else:
         q = torch.ones_like(probs)
-        q[torch.from_numpy(order)] = torch.cat(draws)
+        q[torch.from_numpy(order)] = drawn
     return (probs / q).argmax(dim=1)
 
 
@@ -531,6 +535,12 @@ class Learner:
         self.anchor: Actor | None = None
         """π₀ of ``anchor_coef``: a frozen copy of the actor the stage started from; None without one."""
 
+    def build_optimisers(self) -> None:
+        """Build the three Adam optimisers now, each of which ``_LazyAdam`` would build on first use: the training
+        process calls this while its rollout workers collect a round, so the first build's import of
+        ``torch._dynamo`` (about 1.5 CPU s) runs beside their work instead of after it, while they wait."""
+        _ = (self.opt_actor, self.opt_value, self.opt_central)
+
     def anchor_to_start(self) -> None:
         """Freeze a copy of the current actor as π₀, the policy ``anchor_coef`` keeps the actor near (call once,
         after the stage's starting weights are loaded)."""
@@ -568,24 +578,24 @@ class Learner:
             raise ValueError(
                 f"expected obs (B, {OBS_DIM}) and mask (B, {N_ACTIONS}), got {obs.shape} and {mask.shape}"
             )
-        allowed = torch.from_numpy(np.asarray(mask) != 0)
-        if not bool(allowed.any(dim=1).all()):
+        # The masks in numpy: a rollout step's few dozen rows cost torch's fixed cost per op more than the work.
+        allowed = np.asarray(mask) != 0
+        if not allowed.any(axis=1).all():
             raise ValueError("every agent needs at least one allowed action (hard brake is never masked)")
         with torch.inference_mode():
             if compiled and self.device.type == "cpu":
-                logits = torch.from_numpy(self.actor.inference_logits(obs)).masked_fill(
-                    ~allowed, MASKED_LOGIT
-                )
+                raw = self.actor.inference_logits(obs)
+                raw[~allowed] = MASKED_LOGIT  # what masked_fill writes: the float32 nearest MASKED_LOGIT
+                logits = torch.from_numpy(raw)
             else:
                 obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
-                logits = self.actor.masked_logits(obs_t, allowed.to(self.device)).cpu()
+                logits = self.actor.masked_logits(obs_t, torch.from_numpy(allowed).to(self.device)).cpu()
             if deterministic:
                 actions = logits.argmax(dim=1)
             else:
                 actions = _sample_grouped(torch.softmax(logits, dim=1), groups)
-        chosen = allowed.gather(1, actions.unsqueeze(1))
-        assert bool(chosen.all()), "sampled a masked action"
         out: npt.NDArray[np.int64] = actions.numpy().astype(np.int64)
+        assert bool(allowed[np.arange(len(out)), out].all()), "sampled a masked action"
         return out
 
     def update(self, batch: Batch) -> dict[str, float]:

@@ -158,8 +158,7 @@ class _RunChunk:
     @classmethod
     def of(cls, obs: torch.Tensor) -> _RunChunk:
         # layout.py orders the grid lane-major, [cl occ, cl rel, ol occ, ol rel]: (lane, channel) rows.
-        rows = obs[:, N_SCALARS:].reshape(obs.shape[0] * _ROWS_IN, GRID_CELLS)
-        return cls(obs=obs, pieces=RunPieces.of(rows, _ROWS_IN, RUN_PIECE))
+        return cls(obs=obs, pieces=RunPieces.of(obs, N_SCALARS, _ROWS_IN, GRID_CELLS, RUN_PIECE))
 
 
 class ObsWindows:

@@ -442,12 +442,14 @@ class _LearningPolicy:
             if not len(part):
                 continue
             # Each job's rows (ascending) with its generator, jobs in ascending order.
-            order = np.argsort(jobs[part], kind="stable")
-            present, first = np.unique(jobs[part][order], return_index=True)
+            part_jobs = jobs[part]
+            order = np.argsort(part_jobs, kind="stable")
+            sorted_jobs = part_jobs[order]
+            first = np.flatnonzero(np.diff(sorted_jobs, prepend=-1))  # where each job's rows begin
             ends = [*first[1:].tolist(), len(order)]
             groups = [
                 (order[lo:hi], self.generators[j])
-                for j, lo, hi in zip(present.tolist(), first.tolist(), ends, strict=True)
+                for j, lo, hi in zip(sorted_jobs[first].tolist(), first.tolist(), ends, strict=True)
             ]
             sel = rows[part]
             if len(sel) == len(batch) and np.array_equal(sel, np.arange(len(batch))):

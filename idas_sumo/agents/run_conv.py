@@ -22,35 +22,67 @@ from idas_sumo.env.jit import kernel
 
 __all__ = ["RunConv", "RunPieces", "actor_logits"]
 
+PIECES_PER_ROW_GUESS = 16
+"""Room for this many pieces per observation on ``RunPieces.of``'s first scan (real ones hold about 5.5)."""
+
+
+_SKIP_BLOCK = 32
+"""Cells the scans for runs test at once for being all empty (a grid row is ~97 % zeros)."""
+_MAGNITUDE = np.uint32(0x7FFFFFFF)
+"""A float32's bits but the sign: zero exactly for 0.0 and -0.0, which ``v == 0.0`` takes as empty too."""
+
+
+def _next_nonzero(bits: npt.NDArray[np.uint32], c: int, end: int) -> int:
+    """The first index in [c, end) of a non-zero float32 (its ``bits``), or ``end``. A block of cells is tested at
+    once with an OR of their bits, which vectorises (a float compare per cell does not)."""
+    while c + _SKIP_BLOCK <= end:
+        acc = np.uint32(0)
+        for q in range(c, c + _SKIP_BLOCK):
+            acc |= bits[q]
+        if acc & _MAGNITUDE:
+            break
+        c += _SKIP_BLOCK
+    while c < end and (bits[c] & _MAGNITUDE) == 0:
+        c += 1
+    return c
+
+
+_next_nonzero_kernel = kernel(_next_nonzero)
+
 
 def _runs(
-    grids: npt.NDArray[np.float32], rows_in: int, piece: int, capacity: int
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """The pieces of the runs of equal non-zero cells in ``grids`` (B · rows_in grid rows, cells): each run cut
-    into pieces of at most ``piece`` cells. Per piece: its table row ((length - 1) · rows_in + input row), its
-    value, its batch row and its first cell. ``capacity``: at least the number of pieces (the non-zero cells)."""
-    n_rows, cells = grids.shape
+    obs: npt.NDArray[np.float32], first: int, rows_in: int, cells: int, piece: int, capacity: int
+) -> tuple[
+    npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64], bool
+]:
+    """The pieces of the runs of equal non-zero cells in the grids of ``obs`` (B rows; from column ``first``,
+    ``rows_in`` grid rows of ``cells`` cells each), read in place: each run cut into pieces of at most ``piece``
+    cells. Per piece: its table row ((length - 1) · rows_in + input row), its value, its batch row and its
+    first cell; and whether they all fitted in ``capacity`` (else the caller asks again with more)."""
     table_row = np.empty(capacity, dtype=np.int64)
     value = np.empty(capacity, dtype=np.float32)
     grid_row = np.empty(capacity, dtype=np.int64)
     start = np.empty(capacity, dtype=np.int64)
     j = 0
-    for i in range(n_rows):
-        c = 0
-        while c < cells:
-            v = grids[i, c]
-            if v == 0.0:
-                c += 1
-                continue
-            e = c + 1
-            while e < cells and grids[i, e] == v:
-                e += 1
-            for s in range(c, e, piece):
-                table_row[j] = (min(piece, e - s) - 1) * rows_in + i % rows_in
-                value[j], grid_row[j], start[j] = v, i // rows_in, s
-                j += 1
-            c = e
-    return table_row[:j], value[:j], grid_row[:j], start[:j]
+    bits = obs.view(np.uint32)
+    for b in range(obs.shape[0]):
+        row, row_bits = obs[b], bits[b]
+        for i in range(rows_in):
+            base = first + i * cells
+            c = _next_nonzero_kernel(row_bits, base, base + cells) - base
+            while c < cells:
+                v = row[base + c]
+                e = c + 1
+                while e < cells and row[base + e] == v:
+                    e += 1
+                for s in range(c, e, piece):
+                    if j == capacity:
+                        return table_row[:j], value[:j], grid_row[:j], start[:j], False
+                    table_row[j] = (min(piece, e - s) - 1) * rows_in + i
+                    value[j], grid_row[j], start[j] = v, b, s
+                    j += 1
+                c = _next_nonzero_kernel(row_bits, base + e, base + cells) - base
+    return table_row[:j], value[:j], grid_row[:j], start[:j], True
 
 
 def _forward(
@@ -132,11 +164,17 @@ def _backward(
 
 
 def _dense(
-    x: npt.NDArray[np.float32], w_t: npt.NDArray[np.float32], b: npt.NDArray[np.float32], relu: bool
-) -> npt.NDArray[np.float32]:
-    """x · w_t + b (w_t: the weight transposed, (in, out)), then ReLU if ``relu``; one row, float32. Each
-    output sums its terms in input order; the loop over the outputs is the inner one, so it vectorises."""
-    out = b.copy()
+    x: npt.NDArray[np.float32],
+    w_t: npt.NDArray[np.float32],
+    b: npt.NDArray[np.float32],
+    relu: bool,
+    out: npt.NDArray[np.float32],
+) -> None:
+    """``out`` = x · w_t + b (w_t: the weight transposed, (in, out)), then ReLU if ``relu``; one row, float32,
+    into a buffer the caller reuses. Each output sums its terms in input order; the loop over the outputs is
+    the inner one, so it vectorises."""
+    for j in range(out.shape[0]):
+        out[j] = b[j]
     for i in range(w_t.shape[0]):
         xi = x[i]
         for j in range(w_t.shape[1]):
@@ -144,7 +182,6 @@ def _dense(
     if relu:
         for j in range(out.shape[0]):
             out[j] = max(out[j], np.float32(0.0))
-    return out
 
 
 _dense_kernel = kernel(_dense)
@@ -152,6 +189,7 @@ _dense_kernel = kernel(_dense)
 
 def _add_conv_row(
     grids: npt.NDArray[np.float32],
+    grid_bits: npt.NDArray[np.uint32],
     table: npt.NDArray[np.float32],
     bias: npt.NDArray[np.float32],
     joint_conv: npt.NDArray[np.float32],
@@ -161,7 +199,8 @@ def _add_conv_row(
     h: npt.NDArray[np.float32],
 ) -> None:
     """Add to ``h`` one row's Σ over conv outputs k of (ReLU(conv)_k - ReLU(bias)) · joint_conv[k], from the
-    runs of its ``grids`` (rows_in · cells_in cells). ``conv`` and ``reached``: zeroed scratch, left zeroed."""
+    runs of its ``grids`` (rows_in · cells_in cells; ``grid_bits``: the same as uint32). ``conv`` and ``reached``:
+    zeroed scratch, left zeroed."""
     rows_in, cells_in, piece = shape[0], shape[1], shape[2]
     lead = table.shape[1] // bias.shape[0] - piece
     outs = bias.shape[0]
@@ -169,14 +208,12 @@ def _add_conv_row(
     reach = table.shape[1] // outs
     zero = np.float32(0.0)
     for i in range(rows_in):
-        c = 0
+        base = i * cells_in
+        c = _next_nonzero_kernel(grid_bits, base, base + cells_in) - base
         while c < cells_in:
-            v = grids[i * cells_in + c]
-            if v == 0.0:
-                c += 1
-                continue
+            v = grids[base + c]
             e = c + 1
-            while e < cells_in and grids[i * cells_in + e] == v:
+            while e < cells_in and grids[base + e] == v:
                 e += 1
             for start in range(c, e, piece):
                 r = (min(piece, e - start) - 1) * rows_in + i
@@ -185,7 +222,7 @@ def _add_conv_row(
                     reached[first + t] = True
                     for o in range(outs):
                         conv[(first + t) * outs + o] += v * table[r, t * outs + o]
-            c = e
+            c = _next_nonzero_kernel(grid_bits, base + e, base + cells_in) - base
     for p in range(cells_out):
         if not reached[p]:
             continue
@@ -228,17 +265,35 @@ def _actor_logits(
     logits = np.empty((obs.shape[0], joint_biases[-1].shape[0]), dtype=np.float32)
     conv = np.zeros(joint_conv.shape[0], dtype=np.float32)
     reached = np.zeros(joint_conv.shape[0] // bias.shape[0], dtype=np.bool_)
+    bits = obs.view(np.uint32)
+    # Two buffers the layers write in turn (each reads the other), and the first joint layer's own.
+    width = joint_base.shape[0]
+    for w in scalar_weights + joint_weights:
+        width = max(width, w.shape[1])
+    ping, pong = np.empty(width, dtype=np.float32), np.empty(width, dtype=np.float32)
+    h = np.empty(joint_base.shape[0], dtype=np.float32)
     for b in range(obs.shape[0]):
-        s = obs[b, :n_scalars].copy()
+        x, n = obs[b, :n_scalars], n_scalars
         for layer in range(len(scalar_weights)):
-            s = _dense_kernel(s, scalar_weights[layer], scalar_biases[layer], True)
-        h = _dense_kernel(s, joint_scalars, joint_base, False)
-        _add_conv_row_kernel(obs[b, n_scalars:], table, bias, joint_conv, shape, conv, reached, h)
+            y = ping if layer % 2 == 0 else pong
+            m = scalar_weights[layer].shape[1]
+            _dense_kernel(x[:n], scalar_weights[layer], scalar_biases[layer], True, y[:m])
+            x, n = y, m
+        _dense_kernel(x[:n], joint_scalars, joint_base, False, h)
+        _add_conv_row_kernel(
+            obs[b, n_scalars:], bits[b, n_scalars:], table, bias, joint_conv, shape, conv, reached, h
+        )
         for j in range(h.shape[0]):
             h[j] = max(h[j], np.float32(0.0))
+        x, n = h, h.shape[0]
         for layer in range(len(joint_weights)):
-            h = _dense_kernel(h, joint_weights[layer], joint_biases[layer], layer < len(joint_weights) - 1)
-        logits[b] = h
+            y = ping if layer % 2 == 0 else pong
+            m = joint_weights[layer].shape[1]
+            _dense_kernel(
+                x[:n], joint_weights[layer], joint_biases[layer], layer < len(joint_weights) - 1, y[:m]
+            )
+            x, n = y, m
+        logits[b] = x[:n]
     return logits
 
 
@@ -262,12 +317,18 @@ class RunPieces:
     """Each piece's first cell."""
 
     @classmethod
-    def of(cls, grids: torch.Tensor, rows_in: int, piece: int) -> RunPieces:
-        """The pieces of a (B · rows_in, cells) float32 tensor's runs, at most ``piece`` cells long."""
-        cells = np.ascontiguousarray(grids.detach().cpu().numpy(), dtype=np.float32)
-        # A piece holds at least one non-zero cell: their count bounds the pieces (a few % of the cells).
-        capacity = int(np.count_nonzero(cells))
-        table_row, value, grid_row, start = _runs_kernel(cells, rows_in, piece, capacity)
+    def of(cls, obs: torch.Tensor, first: int, rows_in: int, cells: int, piece: int) -> RunPieces:
+        """The pieces of the runs in a (B, features) float32 tensor's grids (from column ``first``, ``rows_in``
+        grid rows of ``cells`` cells each), at most ``piece`` cells long."""
+        rows = np.ascontiguousarray(obs.detach().cpu().numpy(), dtype=np.float32)
+        # A rollout's observations hold about 5.5 pieces each; a batch with more is scanned again with room for
+        # a piece per non-zero cell (a piece holds at least one), which always suffices.
+        table_row, value, grid_row, start, fitted = _runs_kernel(
+            rows, first, rows_in, cells, piece, rows.shape[0] * PIECES_PER_ROW_GUESS
+        )
+        if not fitted:
+            capacity = int(np.count_nonzero(rows[:, first : first + rows_in * cells]))
+            table_row, value, grid_row, start, _ = _runs_kernel(rows, first, rows_in, cells, piece, capacity)
         return cls(table_row=table_row, value=value, grid_row=grid_row, start=start)
 
 

@@ -512,6 +512,7 @@ class PoolWorkers(RolloutWorkers):
                 requests[w] = dataclasses.replace(request, tasks=tasks[first:end])
         self._pool.submit(requests, shared=learner_weights(learner))
         self._holding = list(requests)
+        learner.build_optimisers()  # while the workers collect (only the first round's build costs anything)
         return self._replies(requests)
 
     def _replies(self, requests: dict[int, Any]) -> list[tuple[Any, ...]]:
