@@ -459,24 +459,32 @@ class SumoBackend:
     def step(self) -> StepEvents:
         import libsumo
 
+        _libsumo = _swig()  # (libsumo's module functions wrap these one call deeper each)
         try:
-            libsumo.simulationStep()
+            # ``libsumo.simulationStep`` is this plus its step listeners, of which idas-sumo adds none.
+            _libsumo.simulation_step(0.0)
         except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
             raise SimulationError(f"SUMO failed during a step: {err}") from None
-        events = StepEvents()
-        for collision in libsumo.simulation.getCollisions():
-            events.collision_pairs.append((collision.collider, collision.victim))
-            events.collided.update((collision.collider, collision.victim))
-        events.departed = list(libsumo.simulation.getDepartedIDList())
-        events.arrived = [v for v in libsumo.simulation.getArrivedIDList() if v not in events.collided]
-        events.teleported = list(libsumo.simulation.getStartingTeleportIDList())
-        for vid in events.departed:
+        collided: set[str] = set()
+        pairs: list[tuple[str, str]] = []
+        for collision in _libsumo.simulation_getCollisions():
+            pairs.append((collision.collider, collision.victim))
+            collided.update((collision.collider, collision.victim))
+        departed = list(_libsumo.simulation_getDepartedIDList())
+        arrived = _libsumo.simulation_getArrivedIDList()
+        for vid in departed:
             if vid in self._controlled:
                 libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
             if self._lane_keeping:
                 libsumo.vehicle.setLaneChangeMode(vid, LANE_KEEPING_MODE)
-        events.time_s = float(libsumo.simulation.getTime())
-        return events
+        return StepEvents(
+            collided,
+            pairs,
+            departed,
+            [v for v in arrived if v not in collided] if collided else list(arrived),
+            list(_libsumo.simulation_getStartingTeleportIDList()),
+            float(_libsumo.simulation_getTime()),
+        )
 
     def vehicle_states(self) -> VehicleStates:
         """Every vehicle's edge, lane position, speed and acceleration: the plain getters through libsumo's
