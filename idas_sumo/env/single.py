@@ -54,6 +54,11 @@ class StepOutcome:
         self._first: tuple[str, int] = ("", -1)
         """The first agent ``row`` was asked for, and its row (-1: none yet)."""
 
+    @property
+    def requested(self) -> IntArray:
+        """The actions asked for, in ``acting`` order (``result.applied`` has those applied)."""
+        return self._requested
+
     # (Read when asked: a single-ego env never reads these.)
     @lazy
     def joint_reward(self) -> float:
