@@ -80,6 +80,7 @@ from idas_sumo.sim.backend import (
     slot_taken,
 )
 from idas_sumo.sim.batch import BatchBackend, BatchStepEvents
+from idas_sumo.sim.frozen import built
 from idas_sumo.sim.merge_detect import MergeSite, as_site
 from idas_sumo.sim.multinet import MAX_COPIES, copies_run
 from idas_sumo.sim.netgen import MergeNet
@@ -470,7 +471,8 @@ class MergeEngine:
         self._controlled = layout.controlled
         self._origin = origin
         self._row_copies = copy
-        self.snapshot = TrafficSnapshot(
+        self.snapshot = built(  # (``TrafficSnapshot(...)``, every field given)
+            TrafficSnapshot,
             ids=states.ids,
             road=road,
             dist_to_merge_m=dist,
@@ -481,7 +483,7 @@ class MergeEngine:
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
             known_longest_m=layout.longest_m,
-            known_by_distance=DistanceOrder(order, sorted_dist, bounds),
+            known_by_distance=built(DistanceOrder, order=order, sorted_dist=sorted_dist, starts=bounds),
         )
 
     # -- observation ---------------------------------------------------------------------------

@@ -23,6 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
+from idas_sumo.sim.frozen import built
 from idas_sumo.sim.merge_detect import MergeSite, Side, as_site
 from idas_sumo.sim.netgen import MergeNet
 from idas_sumo.sim.rpc import CallBackServer, NoCallBack
@@ -500,7 +501,15 @@ class SumoBackend:
         lane_index = None
         if self._read_lanes:
             lane_index = np.fromiter(map(_libsumo.vehicle_getLaneIndex, ids), np.int64, n)
-        return VehicleStates(tuple(ids), edges, lane_pos, speed, accel, lane_index)
+        return built(  # (``VehicleStates(...)``, every field given)
+            VehicleStates,
+            ids=tuple(ids),
+            edge=edges,
+            lane_pos_m=lane_pos,
+            speed_mps=speed,
+            accel_mps2=accel,
+            lane_index=lane_index,
+        )
 
     def raw_call(self, domain: str, method: str, *args: Any) -> Any:
         """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args)."""
