@@ -59,6 +59,10 @@ class AgentBatch:
             return self.obs[rows]
         return self._build_obs(rows)
 
+    def all_obs(self) -> npt.NDArray[np.float32]:
+        """Every row's observation in a new array that the batch does not keep (``obs`` keeps its own)."""
+        return self._build_obs(None)
+
     def obs_row(self, row: int) -> npt.NDArray[np.float32]:
         """Row ``row``'s observation (a new array): ``obs_of`` for one row, its inputs taken as views."""
         if "obs" in self.__dict__:

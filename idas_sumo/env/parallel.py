@@ -208,22 +208,36 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         return observations, rewards, terminated, truncated, infos
 
     def _step_infos(self, acting: list[str], outcome: StepOutcome) -> dict[str, dict[str, Any]]:
-        """``_infos(acting, outcome)`` read from the step's rows in one pass (same entries, same order)."""
+        """``_infos(acting, outcome)`` read from the step's rows in one pass (same entries, same order):
+        each agent's dictionary made at once, not filled in entry by entry."""
+        engine = self.sim.engine
+        if not len(engine.snapshot):
+            return self._infos(acting, outcome)
         result = outcome.result
         names = result.part_names
         joint = float(result.joint_reward[0])
+        nan = float("nan")
         infos: dict[str, dict[str, Any]] = {}
-        for agent, info, parts, end, wanted, got in zip(
+        for agent, s, a, d, r, parts, end, wanted, got in zip(
             acting,
-            self._physical(acting),
+            *engine.agent_values(0, acting),
             result.reward_parts.tolist(),
             result.end_reason,
             outcome.requested.tolist(),
             result.applied.tolist(),
             strict=True,
         ):
-            info["reward_parts"] = dict(zip(names, parts, strict=True))
-            info["joint_reward"] = joint
+            if r < 0:
+                s = a = d = nan
+                r = GONE
+            info = {
+                "speed_mps": s,
+                "accel_mps2": a,
+                "dist_to_merge_m": d,
+                "road": r,
+                "reward_parts": dict(zip(names, parts, strict=True)),
+                "joint_reward": joint,
+            }
             if end:
                 info["end_reason"] = END_REASONS.index(end)
             if wanted != got:
