@@ -16,10 +16,9 @@ or time ran out.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -90,26 +89,6 @@ from idas_sumo.sim.processes import SEED_LIMIT
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 _IMPEDE = REWARD_PART_NAMES.index("impede")
-
-
-@functools.cache
-def _no_brakes(copies: int) -> IntArray:
-    """A step's hard brakes per copy when nobody may have braked (most steps): zeros, shared and read-only."""
-    return read_only(np.zeros(copies, dtype=np.int64))
-
-
-@functools.cache
-def _no_collisions(n: int) -> npt.NDArray[np.bool_]:
-    """``_step_ends``' collided flags when no car collided (most steps): shared and read-only."""
-    return read_only(np.zeros(n, dtype=np.bool_))
-
-
-def read_only(a: npt.NDArray[Any]) -> npt.NDArray[Any]:
-    a.flags.writeable = False
-    return a
-
-
-_NO_ROWS = read_only(np.zeros(0, dtype=np.int64))
 
 
 class _RoadLayout(NamedTuple):
@@ -710,8 +689,8 @@ class MergeEngine:
         that braked hard on their own, each placed where it was when it decided."""
         k_count = len(self.slots)
         if not may_brake:  # (``_maybe_hard_brakes``: most steps)
-            none = _no_brakes(k_count)
-            return HardBrakes(_NO_ROWS, none, none, [[] for _ in range(k_count)])
+            none = np.zeros(k_count, dtype=np.int64)
+            return HardBrakes(np.zeros(0, dtype=np.int64), none, none.copy(), [[] for _ in range(k_count)])
         cars = self._cars
         rows, copy, _, per_copy, zone_per_copy = _hard_brakes(
             batch.egos,
@@ -737,9 +716,8 @@ class MergeEngine:
         """Each agent's end reason code, the first that holds: collided, removed, finished, else timeout
         (if time is up), else 0 (it goes on); how many ended; and whether the step may have hard brakes
         (``_maybe_hard_brakes``, checked in the same compiled call)."""
-        collided = _no_collisions(len(batch))
+        collided = np.zeros(len(batch), dtype=np.bool_)
         if any(ev.collided for ev in events.copies):
-            collided = np.zeros(len(batch), dtype=np.bool_)
             collided[:] = [
                 a in events.copies[k].collided for a, k in zip(batch.ids, batch.copy.tolist(), strict=True)
             ]
