@@ -248,7 +248,7 @@ class SingleEpisode:
         """The observation ``agent_id`` last had (now, or in the last step it acted)."""
         for batch in (self._batch, self._prev_batch):
             if batch is not None and agent_id in batch.ids:
-                return batch.obs_of(np.array([batch.ids.index(agent_id)], dtype=np.int64))[0]
+                return batch.obs_row(batch.ids.index(agent_id))  # (as ``MergeEnv.step`` builds one)
         return self._last_obs[agent_id]
 
     def prev_accel(self, agent_id: str) -> float:
