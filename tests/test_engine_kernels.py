@@ -13,6 +13,7 @@ from idas_sumo.env.kernels import (
     _COLLIDED,
     _FINISHED,
     _REMOVED,
+    _agent_values,
     _allowed_step,
     _end_codes,
     _first_outside,
@@ -22,7 +23,8 @@ from idas_sumo.env.kernels import (
 from idas_sumo.env.outcome import HARD_BRAKE_DETECT_MPS2
 from idas_sumo.env.rewards import RewardConfig
 from idas_sumo.env.scoring import StepContext, nobody_ended_scores, score
-from idas_sumo.env.snapshot import MAIN, TrafficSnapshot
+from idas_sumo.env.snapshot import MAIN, DistanceOrder, TrafficSnapshot
+from idas_sumo.sim.frozen import built
 
 
 def numpy_hard_brakes(*args: Any) -> tuple[np.ndarray, ...]:
@@ -267,3 +269,42 @@ def test_step_ends_matches_its_parts() -> None:
         want = _end_codes(collided, car_row[agent_car], dist, -10.0, otherwise)
         assert code.tolist() == want.tolist() and ended == int(np.count_nonzero(want)), trial
         assert may == bool((applied == 5).any() or (accel <= HARD_BRAKE_DETECT_MPS2).any()), trial
+
+
+def test_agent_values_match_numpy() -> None:
+    """``MergeEngine.agent_values``' one compiled pass against the numpy gathers it replaced."""
+    rng = np.random.default_rng(5)
+    n_cars, n_rows = 12, 7
+    car_row = rng.integers(-1, n_rows, n_cars)
+    admitted = rng.random(n_cars) < 0.5
+    car_accel, speed, accel, dist = rng.normal(size=n_cars), *rng.normal(size=(3, n_rows))
+    road = rng.integers(0, 3, n_rows)
+    car = rng.permutation(n_cars)[:9]
+    rows = car_row[car]
+    r = np.where(rows >= 0, rows, 0)
+    want = (
+        speed[r],
+        np.where(admitted[car], car_accel[car], accel[r]),
+        dist[r],
+        np.where(rows >= 0, road[r], -1),
+    )
+    got = _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road)
+    assert (rows < 0).any() and admitted[car].any() and not admitted[car].all()
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
+def test_built_is_the_dataclass_made_by_its_init() -> None:
+    """``sim.frozen.built`` gives what the frozen dataclass's own ``__init__`` gives, and refuses a record
+    missing a field or with an unknown one."""
+    order = np.arange(3)
+    dist = np.array([1.0, 2.0, 3.0])
+    starts = np.array([0, 3])
+    made = built(DistanceOrder, order=order, sorted_dist=dist, starts=starts)
+    assert made == DistanceOrder(order, dist, starts) and type(made) is DistanceOrder
+    with pytest.raises(TypeError, match="exactly its fields"):
+        built(DistanceOrder, order=order, sorted_dist=dist)
+    with pytest.raises(TypeError, match="exactly its fields"):
+        built(DistanceOrder, order=order, sorted_dist=dist, starts=starts, extra=1)
+    with pytest.raises(AttributeError):  # still frozen
+        made.order = order  # type: ignore[misc]

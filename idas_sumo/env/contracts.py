@@ -59,9 +59,19 @@ class AgentBatch:
             return self.obs[rows]
         return self._build_obs(rows)
 
-    def _build_obs(self, rows: IntArray | None) -> npt.NDArray[np.float32]:
+    def all_obs(self) -> npt.NDArray[np.float32]:
+        """Every row's observation in a new array that the batch does not keep (``obs`` keeps its own)."""
+        return self._build_obs(None)
+
+    def obs_row(self, row: int) -> npt.NDArray[np.float32]:
+        """Row ``row``'s observation (a new array): ``obs_of`` for one row, its inputs taken as views."""
+        if "obs" in self.__dict__:
+            return self.obs[row].copy()
+        return self._build_obs(slice(row, row + 1))[0]
+
+    def _build_obs(self, rows: IntArray | slice | None) -> npt.NDArray[np.float32]:
         """The observations of ``rows`` (None: every row), checked finite."""
-        if not len(self.ids) or (rows is not None and not len(rows)):
+        if not len(self.ids) or (isinstance(rows, np.ndarray) and not len(rows)):
             return np.zeros((0, OBS_DIM), dtype=np.float32)
         sel = slice(None) if rows is None else rows  # a slice takes views: every row costs no copy
         obs, scalars_finite = build_observations_checked(
@@ -74,7 +84,7 @@ class AgentBatch:
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():
                 bad_row = int(np.argmin(finite))
-                bad = self.ids[bad_row if rows is None else int(rows[bad_row])]
+                bad = self.ids[bad_row if rows is None else int(np.arange(len(self.ids))[rows][bad_row])]
                 raise SimulationError(
                     f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
                 )

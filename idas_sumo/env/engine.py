@@ -44,6 +44,7 @@ from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
     HardBrakes,
+    _agent_values,
     _allowed_step,
     _book_counts,
     _checked_actions,
@@ -79,6 +80,7 @@ from idas_sumo.sim.backend import (
     slot_taken,
 )
 from idas_sumo.sim.batch import BatchBackend, BatchStepEvents
+from idas_sumo.sim.frozen import built
 from idas_sumo.sim.merge_detect import MergeSite, as_site
 from idas_sumo.sim.multinet import MAX_COPIES, copies_run
 from idas_sumo.sim.netgen import MergeNet
@@ -143,6 +145,9 @@ class MergeEngine:
             copies = 1
         self.copies = copies
         self._seed = seed
+        self._values_cars: tuple[tuple[str, ...], dict[str, int], int, IntArray] | None = None
+        """``agent_values``' last ids, their slot's order and first car, and their cars (asked again for
+        the same agents step after step)."""
         self._gui = gui
         self._backend: BatchBackend | _SoloBackend | None = None
         self.speed_limits_mps: dict[Road, float] = {
@@ -284,16 +289,27 @@ class MergeEngine:
         cars, snap = self._cars, self.snapshot
         order = self.slots[k].order
         first = int(cars.first[k])
-        car = np.array([first + order[v] for v in vehicle_ids], dtype=np.int64)
-        rows = cars.row[car]
-        on = rows >= 0
-        r = np.where(on, rows, 0)
+        ids = tuple(vehicle_ids)
+        known = self._values_cars
+        if known is not None and known[1] is order and known[2] == first and known[0] == ids:
+            car = known[3]
+        else:
+            car = np.array([first + order[v] for v in ids], dtype=np.int64)
+            self._values_cars = (ids, order, first, car)
         if not len(snap):
             nothing = [0.0] * len(car)
             return nothing, nothing, nothing, [-1] * len(car)
-        accel = np.where(cars.admitted[car], cars.accel[car], snap.accel_mps2[r])
-        road = np.where(on, snap.road[r], -1)
-        return snap.speed_mps[r].tolist(), accel.tolist(), snap.dist_to_merge_m[r].tolist(), road.tolist()
+        speed, accel, dist, road = _agent_values(
+            car,
+            cars.row,
+            cars.admitted,
+            cars.accel,
+            snap.speed_mps,
+            snap.accel_mps2,
+            snap.dist_to_merge_m,
+            snap.road,
+        )
+        return speed.tolist(), accel.tolist(), dist.tolist(), road.tolist()
 
     def rows_of(self, k: int) -> slice:
         """Slot k's vehicles in ``snapshot``."""
@@ -449,7 +465,8 @@ class MergeEngine:
         self._controlled = layout.controlled
         self._origin = origin
         self._row_copies = copy
-        self.snapshot = TrafficSnapshot(
+        self.snapshot = built(  # (``TrafficSnapshot(...)``, every field given)
+            TrafficSnapshot,
             ids=states.ids,
             road=road,
             dist_to_merge_m=dist,
@@ -460,7 +477,7 @@ class MergeEngine:
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
             known_longest_m=layout.longest_m,
-            known_by_distance=DistanceOrder(order, sorted_dist, bounds),
+            known_by_distance=built(DistanceOrder, order=order, sorted_dist=sorted_dist, starts=bounds),
         )
 
     # -- observation ---------------------------------------------------------------------------

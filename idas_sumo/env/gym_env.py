@@ -163,30 +163,38 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
     def step(self, action: int) -> tuple[npt.NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         if self._ended:  # the ego has left: there is no next step until reset() (was a KeyError)
             raise ResetFirst(EPISODE_OVER)
-        batch = self.sim.batch
-        ego_row = batch.ids.index(self.ego)
+        sim = self.sim
+        batch = sim.batch
+        ego = self.ego
+        ego_row = batch.ids.index(ego)
         actions = self._others_actions(ego_row)
-        actions[ego_row] = _checked_action(self.ego, action, batch.time_s)
-        outcome = self.sim.step_requested(actions)
-        reward = outcome.reward_of(self.ego)
-        reason = outcome.end_reason_of(self.ego)
-        terminated, truncated = reason not in ("", "timeout"), reason == "timeout"
-        extra: dict[str, Any] = {"reward_parts": outcome.parts_of(self.ego)}
-        if reason:
-            extra["end_reason"] = reason
-        if terminated or truncated:
-            self._ended = True
-            self._mask = placeholder_mask()
-            return (
-                self.sim.last_observation(self.ego),
-                reward,
-                terminated,
-                truncated,
-                self._info(self._mask, **extra),
-            )
-        obs, masks = self.sim.observe([self.ego])
-        self._mask = masks[0]
-        return obs[0], reward, False, False, self._info(self._mask, **extra)
+        if type(action) is not int or not 0 <= action < N_ACTIONS:  # (a plain int passes as it is)
+            action = _checked_action(ego, action, batch.time_s)
+        actions[ego_row] = action
+        # The ego's entries of the step's result read by its row in the batch that acted (``StepOutcome``'s
+        # lookups, without them).
+        result = sim.step_requested(actions).result
+        reward = float(result.rewards[ego_row])
+        reason = result.end_reason[ego_row]
+        info = self._info_now()
+        info["reward_parts"] = dict(
+            zip(result.part_names, result.reward_parts[ego_row].tolist(), strict=True)
+        )
+        if not reason:
+            now = sim.batch
+            row = now.ids.index(ego)
+            self._mask = mask = now.masks[row].copy()
+            info["action_mask"] = mask
+            return now.obs_row(row), reward, False, False, info
+        info["end_reason"] = reason
+        terminated, truncated = reason != "timeout", reason == "timeout"
+        self._ended = True
+        self._mask = info["action_mask"] = placeholder_mask()
+        return sim.last_observation(ego), reward, terminated, truncated, info
+
+    def _info_now(self) -> dict[str, Any]:
+        """``_info``'s entries but the mask (set by the caller), the ego's values as they are now."""
+        return {"action_mask": None, "ego": self.ego, **self.sim.agent_info(self.ego)}
 
     def render(self) -> npt.NDArray[np.uint8] | None:
         """``render_mode="rgb_array"``: the merge from above now (the drawing of ``idas-sumo replay``), a

@@ -54,6 +54,11 @@ class StepOutcome:
         self._first: tuple[str, int] = ("", -1)
         """The first agent ``row`` was asked for, and its row (-1: none yet)."""
 
+    @property
+    def requested(self) -> IntArray:
+        """The actions asked for, in ``acting`` order (``result.applied`` has those applied)."""
+        return self._requested
+
     # (Read when asked: a single-ego env never reads these.)
     @lazy
     def joint_reward(self) -> float:
@@ -227,7 +232,9 @@ class SingleEpisode:
         if agent_ids is None:
             return batch.obs, batch.masks
         if len(agent_ids) == len(batch.ids) and tuple(agent_ids) == batch.ids:  # (every agent, in order)
-            return batch.obs.copy(), batch.masks.copy()
+            # Built for the caller alone (nobody else holds it, so no copy) unless the batch has them already.
+            obs = batch.obs.copy() if "obs" in batch.__dict__ else batch.all_obs()
+            return obs, batch.masks.copy()
         if len(agent_ids) == 1:
             rows = np.array([batch.ids.index(agent_ids[0])], dtype=np.int64)
         else:
@@ -241,7 +248,7 @@ class SingleEpisode:
         """The observation ``agent_id`` last had (now, or in the last step it acted)."""
         for batch in (self._batch, self._prev_batch):
             if batch is not None and agent_id in batch.ids:
-                return batch.obs_of(np.array([batch.ids.index(agent_id)], dtype=np.int64))[0]
+                return batch.obs_row(batch.ids.index(agent_id))  # (as ``MergeEnv.step`` builds one)
         return self._last_obs[agent_id]
 
     def prev_accel(self, agent_id: str) -> float:

@@ -12,6 +12,7 @@ from idas_sumo.env.scenario import Scenario
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import Backend, StepEvents
 from idas_sumo.sim.batch import BatchStates, BatchStepEvents
+from idas_sumo.sim.frozen import built
 
 
 class _SoloBackend:
@@ -55,17 +56,18 @@ class _SoloBackend:
                 a.flags.writeable = False  # handed out with every read of the same cars
             self._read_ids = s.ids
         zeros = self._read_zeros
-        return BatchStates(
-            s.ids,
-            zeros,
-            self._read_vehicle,
-            s.edge,
-            zeros,
-            s.lane_pos_m,
-            s.speed_mps,
-            s.accel_mps2,
-            self._read_bounds,
-            s.lane_index,
+        return built(  # (``BatchStates(...)``, every field given)
+            BatchStates,
+            ids=s.ids,
+            copy=zeros,
+            vehicle=self._read_vehicle,
+            edge=s.edge,
+            edge_index=zeros,
+            lane_pos_m=s.lane_pos_m,
+            speed_mps=s.speed_mps,
+            accel_mps2=s.accel_mps2,
+            bounds=self._read_bounds,
+            lane_index=s.lane_index,
         )
 
     def set_speeds(

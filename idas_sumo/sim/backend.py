@@ -23,6 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from idas_sumo.errors import InputError, SimulationError, SumoRefusedInput
+from idas_sumo.sim.frozen import built
 from idas_sumo.sim.merge_detect import MergeSite, Side, as_site
 from idas_sumo.sim.netgen import MergeNet
 from idas_sumo.sim.rpc import CallBackServer, NoCallBack
@@ -459,24 +460,32 @@ class SumoBackend:
     def step(self) -> StepEvents:
         import libsumo
 
+        _libsumo = _swig()  # (libsumo's module functions wrap these one call deeper each)
         try:
-            libsumo.simulationStep()
+            # ``libsumo.simulationStep`` is this plus its step listeners, of which idas-sumo adds none.
+            _libsumo.simulation_step(0.0)
         except (libsumo.TraCIException, libsumo.FatalTraCIError) as err:
             raise SimulationError(f"SUMO failed during a step: {err}") from None
-        events = StepEvents()
-        for collision in libsumo.simulation.getCollisions():
-            events.collision_pairs.append((collision.collider, collision.victim))
-            events.collided.update((collision.collider, collision.victim))
-        events.departed = list(libsumo.simulation.getDepartedIDList())
-        events.arrived = [v for v in libsumo.simulation.getArrivedIDList() if v not in events.collided]
-        events.teleported = list(libsumo.simulation.getStartingTeleportIDList())
-        for vid in events.departed:
+        collided: set[str] = set()
+        pairs: list[tuple[str, str]] = []
+        for collision in libsumo.simulation.getCollisions():  # (through the module: tests silence it there)
+            pairs.append((collision.collider, collision.victim))
+            collided.update((collision.collider, collision.victim))
+        departed = list(_libsumo.simulation_getDepartedIDList())
+        arrived = _libsumo.simulation_getArrivedIDList()
+        for vid in departed:
             if vid in self._controlled:
                 libsumo.vehicle.setSpeedMode(vid, CONTROLLED_SPEED_MODE)
             if self._lane_keeping:
                 libsumo.vehicle.setLaneChangeMode(vid, LANE_KEEPING_MODE)
-        events.time_s = float(libsumo.simulation.getTime())
-        return events
+        return StepEvents(
+            collided,
+            pairs,
+            departed,
+            [v for v in arrived if v not in collided] if collided else list(arrived),
+            list(_libsumo.simulation_getStartingTeleportIDList()),
+            float(_libsumo.simulation_getTime()),
+        )
 
     def vehicle_states(self) -> VehicleStates:
         """Every vehicle's edge, lane position, speed and acceleration: the plain getters through libsumo's
@@ -492,7 +501,15 @@ class SumoBackend:
         lane_index = None
         if self._read_lanes:
             lane_index = np.fromiter(map(_libsumo.vehicle_getLaneIndex, ids), np.int64, n)
-        return VehicleStates(tuple(ids), edges, lane_pos, speed, accel, lane_index)
+        return built(  # (``VehicleStates(...)``, every field given)
+            VehicleStates,
+            ids=tuple(ids),
+            edge=edges,
+            lane_pos_m=lane_pos,
+            speed_mps=speed,
+            accel_mps2=accel,
+            lane_index=lane_index,
+        )
 
     def raw_call(self, domain: str, method: str, *args: Any) -> Any:
         """Escape hatch for tests and tools: call libsumo.<domain>.<method>(*args)."""
