@@ -286,8 +286,15 @@ def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
     try:
         tasks = [RolloutTask(generate_scenario(rng, traffic, engine.speed_limits_mps), i) for i in range(2)]
         episodes = collect_episodes(engine, learner, tasks)
+        short = [dataclasses.replace(t, max_episode_s=2.0) for t in tasks]  # validation's own timeout
+        cut = collect_episodes(engine, learner, short)
+        assert engine.config.max_episode_s == 15.0  # the engine's own limit again afterwards
+        with pytest.raises(ValueError, match="share their timeout"):
+            collect_episodes(engine, learner, [tasks[0], short[1]])
     finally:
         engine.close()
+    assert all(e.stats.timed_out and e.stats.sim_time_s <= 2.0 + 1e-9 for e in cut)
+    assert all(e.stats.sim_time_s > 2.0 for e in episodes)
     for e in episodes:
         n = len(e)
         assert n == e.stats.agent_steps > 0 and e.stats.agents == 6
@@ -851,6 +858,12 @@ def test_validation_criterion_ranks_by_return_or_by_success_first() -> None:
     assert TrainConfig().validation_criterion == "joint_return"
     with pytest.raises(ConfigValueError, match="validation_criterion"):
         TrainConfig(validation_criterion="speed")  # type: ignore[arg-type]
+    assert TrainConfig().validation_limit_s is None  # validation keeps the training episodes' timeout
+    sixty = TrainConfig(validation_max_episode_s=60.0)
+    assert (sixty.validation_limit_s, sixty.longest_episode_s) == (60.0, 60.0)
+    for bad in (-1.0, 1e6):
+        with pytest.raises(ConfigValueError, match="validation_max_episode_s"):
+            TrainConfig(validation_max_episode_s=bad)
 
 
 def test_critic_exploration_is_retired() -> None:

@@ -420,6 +420,9 @@ class RolloutTask:
     scenario: Scenario
     action_seed: int
     deterministic: bool = False
+    max_episode_s: float | None = None
+    """Another timeout for this episode than the engine's own (validation at evaluation's length); the tasks
+    of one call share it."""
 
 
 class _LearningPolicy:
@@ -540,7 +543,11 @@ def collect_episodes(
     """Run every task's scenario to its end on ``engine`` (``engine.copies`` side by side), every learning
     agent on ``actor``; the recorded episodes in task order. Each episode samples with its own generator
     (``action_seed``), so its draws do not depend on which episodes ran beside it."""
-    return record_episodes(engine, _LearningPolicy(actor, tasks), [t.scenario for t in tasks])
+    limits = {t.max_episode_s for t in tasks}
+    if len(limits) > 1:
+        raise ValueError(f"the tasks of one call share their timeout, got {sorted(map(str, limits))}")
+    with engine.episode_limit(limits.pop() if limits else None):
+        return record_episodes(engine, _LearningPolicy(actor, tasks), [t.scenario for t in tasks])
 
 
 def record_episodes(engine: MergeEngine, policy: Policy, scenarios: Sequence[Scenario]) -> list[EpisodeData]:

@@ -16,7 +16,9 @@ or time ran out.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import dataclasses
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -240,6 +242,18 @@ class MergeEngine:
 
     def timed_out(self) -> bool:
         return self._time_s >= self.config.max_episode_s - 1e-9
+
+    @contextlib.contextmanager
+    def episode_limit(self, max_episode_s: float | None) -> Iterator[None]:
+        """Episodes started inside run to ``max_episode_s`` instead of ``config.max_episode_s`` (None: the
+        engine's own); the engine's own limit again afterwards."""
+        own = self.config
+        if max_episode_s is not None:
+            self.config = dataclasses.replace(own, max_episode_s=max_episode_s)
+        try:
+            yield
+        finally:
+            self.config = own
 
     @property
     def running(self) -> list[int]:

@@ -55,7 +55,7 @@ def _check_run(args: argparse.Namespace, config: TrainConfig, source: str) -> Me
         )
     start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
     site = choose_merge(Path(args.net), config.env.junction)
-    check_road_lengths(site, road_needs(start_range, config.env.max_episode_s, source))
+    check_road_lengths(site, road_needs(start_range, config.longest_episode_s, source))
     return site
 
 

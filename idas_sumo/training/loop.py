@@ -241,7 +241,7 @@ def _check_geometry(config: TrainConfig) -> RoadNeeds:
     the bounds every drawn net is checked against."""
     assert config.geometry is not None
     start_range = max(config.robot_traffic.start_range_m, config.intelligent_traffic.start_range_m)
-    needs = road_needs(start_range, config.env.max_episode_s, GEOMETRY_SOURCE)
+    needs = road_needs(start_range, config.longest_episode_s, GEOMETRY_SOURCE)
     for params in geometry_corners(config.geometry):
         try:
             check_road_lengths(choose_merge(cached_net(params)), needs)
@@ -618,6 +618,7 @@ def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[MergeSite | Non
             config.validation_scenarios,
             config.validation_seed,
             run.start_room,
+            config.validation_limit_s,
         )
         return [(None, tasks)]
     rng = np.random.default_rng(config.validation_seed)
@@ -630,7 +631,14 @@ def _validation_groups(run: _Run, plan: StagePlan) -> list[tuple[MergeSite | Non
             groups.append(
                 (
                     site,
-                    validation_tasks(plan.traffic, _site_limits(site), scenarios, seed, start_room_m(site)),
+                    validation_tasks(
+                        plan.traffic,
+                        _site_limits(site),
+                        scenarios,
+                        seed,
+                        start_room_m(site),
+                        config.validation_limit_s,
+                    ),
                 )
             )
     return groups

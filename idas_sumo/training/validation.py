@@ -62,9 +62,11 @@ def validation_tasks(
     scenarios: int,
     seed: int,
     start_room_m: dict[Road, float] | None = None,
+    max_episode_s: float | None = None,
 ) -> list[EpisodeTask]:
     """The held-out scenarios as greedy episode tasks (the action seed is unused when greedy), on roads
-    with ``start_room_m`` (``generate_scenario``)."""
+    with ``start_room_m`` (``generate_scenario``), timed out at ``max_episode_s`` (None: the training
+    episodes' timeout)."""
     rng = np.random.default_rng(seed)
     return [
         EpisodeTask(
@@ -73,6 +75,7 @@ def validation_tasks(
             ),
             action_seed=0,
             deterministic=True,
+            max_episode_s=max_episode_s,
         )
         for i in range(scenarios)
     ]
