@@ -63,6 +63,14 @@ def _contiguous(a: npt.NDArray[np.generic], dtype: type) -> npt.NDArray[np.gener
 
 
 @kernel
+def _bodies_overlap(d, length, origin, i, j, joined_past_i, joined_past_j):
+    """Whether cars i and j collide: on one road (the same origin, or both fronts past where their lanes
+    joined) with their bodies overlapping."""
+    one_road = origin[i] == origin[j] or (d[i] < -joined_past_i and d[j] < -joined_past_j)
+    return one_road and d[i] < d[j] + length[j] and d[j] < d[i] + length[i]
+
+
+@kernel
 def _overlapping_pairs(order, d, copy, length, origin, joined_past, reach):
     """(pairs, 2) rows (lower, higher) of ``geometric_collisions``' colliding pairs, in scan order. Sorted
     by (copy, distance), each car only meets the next ones of its copy until one is farther than
@@ -77,8 +85,7 @@ def _overlapping_pairs(order, d, copy, length, origin, joined_past, reach):
                 j = order[q]
                 if copy[j] != copy[i] or d[j] - d[i] > reach:
                     break
-                one_road = origin[i] == origin[j] or (d[i] < -joined_past[i] and d[j] < -joined_past[j])
-                if one_road and d[i] < d[j] + length[j] and d[j] < d[i] + length[i]:
+                if _bodies_overlap(d, length, origin, i, j, joined_past[i], joined_past[j]):
                     if not count_only:
                         found[m, 0] = min(i, j)
                         found[m, 1] = max(i, j)
@@ -100,9 +107,7 @@ def any_overlap(order, d, copy, length, origin, joined_past_by_origin, reach):
             j = order[q]
             if copy[j] != copy[i] or d[j] - d[i] > reach:
                 break
-            one_road = origin[i] == origin[j] or (
-                d[i] < -joined_past_by_origin[origin[i]] and d[j] < -joined_past_by_origin[origin[j]]
-            )
-            if one_road and d[i] < d[j] + length[j] and d[j] < d[i] + length[i]:
+            past_i, past_j = joined_past_by_origin[origin[i]], joined_past_by_origin[origin[j]]
+            if _bodies_overlap(d, length, origin, i, j, past_i, past_j):
                 return True
     return False
