@@ -10,8 +10,8 @@ learned policy (``--sampler``: ``warm_start``, ``idas``, ...; temperature 1, one
 a random search around what those policies would do. A scenario counts as reachable when at least one of its
 runs is perfect (the paper's perfect success: every car finished and no car lost reward to a hard brake).
 
-Scenarios: those in which none of the methods of the reference evaluations (``--reference DIR``: directories of
-``evaluate``'s ``episodes.csv``, e.g. results/headline-2030/*) was perfect, plus ``--controls`` scenarios in which
+Scenarios: those in which none of the methods of the reference evaluations (``--reference PATH``: ``evaluate``'s
+``episodes.csv`` files, or directories of them, e.g. results/headline-2030/*; their rows of ``--seed``) was perfect, plus ``--controls`` scenarios in which
 every reference method was perfect (to show what sampling costs where greedy driving is perfect).
 
 Writes to ``--out``: ``samples.csv`` (scenario, sampler, sample: the episode's row of ``evaluate``'s
@@ -50,11 +50,14 @@ FORCED = "".join("1" if a == HARD_BRAKE else "0" for a in range(N_ACTIONS))
 COPIES = 16
 
 
-def _reference(dirs: list[Path]) -> pd.DataFrame:
-    frames = [pd.read_csv(p) for d in dirs for p in sorted(d.glob("*/episodes.csv"))]
-    if not frames:
-        raise SystemExit(f"no */episodes.csv under {', '.join(map(str, dirs))}")
-    return pd.concat(frames, ignore_index=True)
+def _reference(paths: list[Path], seed: int) -> pd.DataFrame:
+    """The reference episodes of ``seed``: each path an ``episodes.csv`` or a directory of ``*/episodes.csv``."""
+    files = [p for path in paths for p in ([path] if path.is_file() else sorted(path.glob("*/episodes.csv")))]
+    frames = [f for f in (pd.read_csv(p) for p in files) if len(f)]
+    episodes = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if not len(episodes) or not (episodes["seed"] == seed).any():
+        raise SystemExit(f"no reference episodes of seed {seed} in {', '.join(map(str, paths))}")
+    return episodes[episodes["seed"] == seed]
 
 
 def _chosen(cases: list[EvalCase], reference: pd.DataFrame, controls: int) -> list[EvalCase]:
@@ -105,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     cases = suite_cases(
         "paper", args.scenarios, args.seed, limits, config.traffic, lengths, start_room_m(site)
     )
-    chosen = _chosen(cases, _reference(args.reference), args.controls)
+    chosen = _chosen(cases, _reference(args.reference, args.seed), args.controls)
     samplers: dict[str, Policy] = {
         name: ActorPolicy(
             load_actor(POLICY_DIR / LEARNED_METHODS[name]), seed=args.sample_seed, deterministic=args.greedy
