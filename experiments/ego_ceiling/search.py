@@ -15,7 +15,8 @@ Scenarios: those in which none of the methods of the reference evaluations (``--
 every reference method was perfect (to show what sampling costs where greedy driving is perfect).
 
 Writes to ``--out``: ``samples.csv`` (scenario, sampler, sample: the episode's row of ``evaluate``'s
-``episodes.csv`` plus the hard brakes of the ego and of the other cars, and how many of them the mask forced) and
+``episodes.csv`` plus the hard brakes of the ego and of the other cars, how many of them the mask forced, and how
+many of the other cars' came before the ego's first decision, where nothing it does can matter) and
 ``scenarios.csv`` (per scenario and sampler: runs, perfect runs, successful runs).
 
     python experiments/ego_ceiling/search.py --seed 2030 --reference results/headline-2030 \\
@@ -74,11 +75,14 @@ def _brakes(result: EpisodeResult) -> dict[str, int]:
     brake = t[t["action"] == HARD_BRAKE]
     ego = brake["method"] != "others"
     forced = brake["allowed_actions"] == FORCED
+    ego_decides = t.loc[(t["method"] != "others") & (t["action"] >= 0), "time_s"]
+    first = float(ego_decides.min()) if len(ego_decides) else float("inf")
     return {
         "ego_brakes": int(ego.sum()),
         "ego_brakes_forced": int((ego & forced).sum()),
         "others_brakes": int((~ego).sum()),
         "others_brakes_forced": int((~ego & forced).sum()),
+        "others_brakes_before_ego": int((~ego & (brake["time_s"] < first)).sum()),
     }
 
 
