@@ -212,8 +212,11 @@ def test_distance_order_and_place_match_numpy() -> None:
 @pytest.mark.parametrize("copies", [1, 3])
 def test_observe_own_lane_matches_the_separate_calls(copies: int) -> None:
     """The engine's one-call observe (own-lane mask) gives the rows, accelerations, priorities and masks
-    of the separate numpy indexing and ``own_lane_action_masks`` it replaced, bit for bit."""
-    from idas_sumo.env.front_cars import observe_own_lane, own_lane_action_masks
+    of the separate numpy indexing and ``own_lane_action_masks`` it replaced, bit for bit; with the
+    observations (``observe_own_lane_obs``) those of ``build_observations_checked`` too."""
+    from idas_sumo.env.front_cars import observe_own_lane, observe_own_lane_obs, own_lane_action_masks
+    from idas_sumo.env.layout import OBS_DIM
+    from idas_sumo.env.observation import build_observations_checked
 
     rng = np.random.default_rng(11 + copies)
     for trial in range(60):
@@ -248,6 +251,17 @@ def test_observe_own_lane_matches_the_separate_calls(copies: int) -> None:
         assert b_prio.view(np.uint64).tolist() == want_prio.view(np.uint64).tolist(), trial
         want_masks = own_lane_action_masks(snap, want_egos, car_accel[agent_car])
         assert masks.dtype == want_masks.dtype and masks.tolist() == want_masks.tolist(), trial
+        # With the observations in the same call: the same four, and ``build_observations_checked``'s rows.
+        b_type = rng.choice([0.0, 1.0], len(agent_car))
+        obs = np.zeros((len(agent_car), OBS_DIM), dtype=np.float32)
+        *same, finite, spread = observe_own_lane_obs(
+            snap, copy, car_row, car_accel, agent_car, agent_copy, prio, b_type, obs
+        )
+        for got, want in zip(same, (egos, prev, b_prio, masks), strict=True):
+            assert got.dtype == want.dtype and got.tobytes() == want.tobytes(), trial
+        want_obs, want_finite = build_observations_checked(snap, want_egos, prev, b_prio, b_type)
+        assert obs.tobytes() == want_obs.tobytes() and finite == want_finite, trial
+        assert spread == np.ptp(snap.speed_mps), trial
 
 
 def test_step_ends_matches_its_parts() -> None:

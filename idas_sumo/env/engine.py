@@ -41,7 +41,7 @@ from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_sn
 from idas_sumo.env.collisions import geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.front_cars import front_cars, observe_own_lane, own_lane_action_masks
+from idas_sumo.env.front_cars import front_cars, observe_own_lane, observe_own_lane_obs, own_lane_action_masks
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
@@ -151,6 +151,9 @@ class MergeEngine:
         """``agent_values``' last ids, their slot's order and first car, and their cars (asked again for
         the same agents step after step)."""
         self._gui = gui
+        self.eager_obs = False
+        """``observe()`` builds every agent's observation in the same compiled call as the masks (the
+        single-world envs, which read them every step; rule-based policies never need them)."""
         self._backend: BatchBackend | _SoloBackend | None = None
         self.speed_limits_mps: dict[Road, float] = {
             "main": self.site.main.road.speed_limit_mps,
@@ -502,10 +505,25 @@ class MergeEngine:
             agents = self._agents = self._gather_agents()
         cars = self._cars
         snap = self.snapshot
+        obs = None
         if self.config.safety_mask == "own_lane" and len(agents.car):  # (the default: one compiled call)
-            egos, prev, b_prio, masks = observe_own_lane(
-                snap, self._row_copies, cars.row, cars.accel, agents.car, agents.copy, self._prio_by_road
-            )
+            if self.eager_obs:  # (the observations in the same call)
+                obs = np.zeros((len(agents.car), OBS_DIM), dtype=np.float32)
+                egos, prev, b_prio, masks, finite, spread = observe_own_lane_obs(
+                    snap,
+                    self._row_copies,
+                    cars.row,
+                    cars.accel,
+                    agents.car,
+                    agents.copy,
+                    self._prio_by_road,
+                    agents.b_type,
+                    obs,
+                )
+            else:
+                egos, prev, b_prio, masks = observe_own_lane(
+                    snap, self._row_copies, cars.row, cars.accel, agents.car, agents.copy, self._prio_by_road
+                )
         else:
             egos = cars.row[agents.car]
             prev = cars.accel[agents.car]
@@ -522,6 +540,8 @@ class MergeEngine:
             b_type=agents.b_type,
             time_s=self._time_s,
         )
+        if obs is not None:
+            batch.keep_obs(obs, finite, spread)
         self._batch = batch
         self._batch_agents = agents
         return batch

@@ -82,6 +82,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         self.render_mode = render_mode
         config = with_safety_mask(config, safety_mask)
         self.sim = SingleEpisode(net, seed=seed or 0, config=config, gui=gui)
+        self.sim.engine.eager_obs = True  # (every agent's observation is handed out every step)
         self.fixed_scenario = scenario
         self.traffic = traffic or TrafficConfig()
         if scenario is not None:
