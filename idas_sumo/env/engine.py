@@ -800,7 +800,8 @@ class MergeEngine:
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
         # (One compiled pass for the counts; it marks the first-timers' cars scored.)
-        first_action, scored, impede_counts, active_counts = _book_counts(
+        rows, per_copy = np.empty((2, len(batch)), dtype=np.int64), np.zeros((2, k_count), dtype=np.int64)
+        n_first, n_scored = _book_counts(
             agents.car,
             cars.scored,
             scores.rewards,
@@ -808,17 +809,18 @@ class MergeEngine:
             batch.copy,
             cars.copy,
             cars.state,
-            k_count,
+            rows,
+            per_copy,
         )
-        if len(first_action) or len(scored):
+        if n_first or n_scored:
             copies = batch.copy.tolist()
-            for i in first_action.tolist():
+            for i in rows[0, :n_first].tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
+            scored = rows[1, :n_scored]
             for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
-        impedes = impede_counts.tolist()
+        impedes, active_per_copy = per_copy.tolist()
         agents_per_copy = agents.per_copy
-        active_per_copy = active_counts.tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
         timed_out = self.timed_out()
