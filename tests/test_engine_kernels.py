@@ -302,7 +302,9 @@ def test_agent_values_match_numpy() -> None:
         dist[r],
         np.where(rows >= 0, road[r], -1),
     )
-    got = _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road)
+    values, got_road = np.empty((3, len(car))), np.empty(len(car), dtype=np.int64)
+    _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road, values, got_road)
+    got = (*values, got_road)
     assert (rows < 0).any() and admitted[car].any() and not admitted[car].all()
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, w)

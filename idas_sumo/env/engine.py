@@ -316,7 +316,9 @@ class MergeEngine:
         if not len(snap):
             nothing = [0.0] * len(car)
             return nothing, nothing, nothing, [-1] * len(car)
-        speed, accel, dist, road = _agent_values(
+        # (Filled, not returned: a compiled call's every returned array costs about 0.5 µs of boxing.)
+        values, road = np.empty((3, len(car))), np.empty(len(car), dtype=np.int64)
+        _agent_values(
             car,
             cars.row,
             cars.admitted,
@@ -325,8 +327,11 @@ class MergeEngine:
             snap.accel_mps2,
             snap.dist_to_merge_m,
             snap.road,
+            values,
+            road,
         )
-        return speed.tolist(), accel.tolist(), dist.tolist(), road.tolist()
+        speed, accel, dist = values.tolist()
+        return speed, accel, dist, road.tolist()
 
     def rows_of(self, k: int) -> slice:
         """Slot k's vehicles in ``snapshot``."""

@@ -221,22 +221,17 @@ def _step_ends(collided, car_row, agent_car, dist, finish_below_m, otherwise, ap
 
 
 @kernel
-def _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road):
+def _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road, out, out_road):
     """``MergeEngine.agent_values``' gathers in one pass: per car its speed, acceleration (an admitted car's
-    own), distance and road (-1 off the road, where the others are row 0's, which the caller ignores)."""
-    n = car.shape[0]
-    out_speed = np.empty(n)
-    out_accel = np.empty(n)
-    out_dist = np.empty(n)
-    out_road = np.empty(n, dtype=np.int64)
-    for i in range(n):
+    own) and distance into the rows of ``out`` (3, n), its road into ``out_road`` (-1 off the road, where
+    the others are row 0's, which the caller ignores)."""
+    for i in range(car.shape[0]):
         c = car[i]
         r = car_row[c]
         on = r >= 0
         if not on:
             r = 0
-        out_speed[i] = speed[r]
-        out_accel[i] = car_accel[c] if admitted[c] else accel[r]
-        out_dist[i] = dist[r]
+        out[0, i] = speed[r]
+        out[1, i] = car_accel[c] if admitted[c] else accel[r]
+        out[2, i] = dist[r]
         out_road[i] = road[r] if on else -1
-    return out_speed, out_accel, out_dist, out_road

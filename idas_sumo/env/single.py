@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -339,8 +340,10 @@ def _fast_actions(values: list[object]) -> IntArray | None:
     if not values:
         return np.zeros(0, dtype=np.int64)
     # (The range checked on the list: numpy's comparisons and ``all`` cost more than the list's min and max.)
-    if set(map(type, values)) <= _PLAIN_INTS and min(values) >= 0 and max(values) < N_ACTIONS:  # type: ignore[type-var]
-        return np.array(values, dtype=np.int64)
+    if set(map(type, values)) <= _PLAIN_INTS:
+        ints = cast(list[int], values)
+        if min(ints) >= 0 and max(ints) < N_ACTIONS:
+            return np.array(ints, dtype=np.int64)
     return None
 
 
