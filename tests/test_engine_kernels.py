@@ -75,7 +75,13 @@ def test_hard_brakes_match_numpy() -> None:
             dist,
             50.0,
         )
-        for got, want in zip(_hard_brakes(*args), numpy_hard_brakes(*args), strict=True):
+        most = len(egos) + len(accel)
+        rows, got_copy, in_zone = np.empty(most, np.int64), np.empty(most, np.int64), np.empty(most, np.bool_)
+        per_copy = np.zeros((2, k), dtype=np.int64)
+        m = _hard_brakes(*args, rows, got_copy, in_zone, per_copy)
+        for got, want in zip(
+            (rows[:m], got_copy[:m], in_zone[:m], *per_copy), numpy_hard_brakes(*args), strict=True
+        ):
             assert got.dtype == want.dtype and got.tolist() == want.tolist(), trial
 
 
@@ -147,7 +153,9 @@ def test_action_checks_match_numpy() -> None:
             prev = rng.choice([-4.5, -2.0, -0.1, 0.0, 0.3, 2.0], n)
             speed = rng.uniform(0.0, 3.0, 12)
             egos = rng.integers(0, 12, n).astype(np.int64)
-            ok, accel, next_speed = _allowed_step(masks, actions, prev, speed, egos, 0.2)
+            out = np.empty((2, n))
+            ok = _allowed_step(masks, actions, prev, speed, egos, 0.2, out)
+            accel, next_speed = out
             assert ok == bool(masks[np.arange(n), actions].astype(bool).all()), trial
             if ok:  # what the step computed before: next_acceleration, then _next_speeds
                 want = next_acceleration(prev, actions)

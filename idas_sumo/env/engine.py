@@ -697,10 +697,11 @@ class MergeEngine:
         if len(batch):
             masks, prev = batch.masks, batch.prev_accel
             speed = self.snapshot.speed_mps
-            allowed_all, new_accel, next_speed = _allowed_step(  # (one compiled pass, most steps)
-                masks, requested, prev, speed, batch.egos, STEP_LENGTH_S
-            )
-            if not allowed_all:
+            out = np.empty((2, len(batch)))
+            # (One compiled pass, most steps.)
+            if _allowed_step(masks, requested, prev, speed, batch.egos, STEP_LENGTH_S, out):
+                new_accel, next_speed = out[0], out[1]
+            else:
                 rows = np.arange(len(batch))
                 allowed = masks[rows, requested].astype(bool)
                 wanted = candidate_accelerations(prev)[rows, requested]
@@ -731,10 +732,14 @@ class MergeEngine:
             none = np.zeros(k_count, dtype=np.int64)
             return HardBrakes(np.zeros(0, dtype=np.int64), none, none.copy(), [[] for _ in range(k_count)])
         cars = self._cars
-        rows, copy, _, per_copy, zone_per_copy = _hard_brakes(
+        accel = self.snapshot.accel_mps2
+        most = len(batch.egos) + len(accel)
+        rows, copy = np.empty(most, dtype=np.int64), np.empty(most, dtype=np.int64)
+        per_copy = np.zeros((2, k_count), dtype=np.int64)
+        m = _hard_brakes(
             batch.egos,
             applied == HARD_BRAKE,
-            self.snapshot.accel_mps2,
+            accel,
             self._car,
             acting,
             cars.copy,
@@ -743,11 +748,16 @@ class MergeEngine:
             self._row_copy(before),
             before.dist_to_merge_m,
             MERGE_ZONE_RADIUS_M,
+            rows,
+            copy,
+            np.empty(most, dtype=np.bool_),
+            per_copy,
         )
+        rows = rows[:m]
         ids: list[list[str]] = [[] for _ in range(k_count)]
-        for r, k in zip(rows.tolist(), copy.tolist(), strict=True):
+        for r, k in zip(rows.tolist(), copy[:m].tolist(), strict=True):
             ids[k].append(before.ids[r])
-        return HardBrakes(rows, per_copy, zone_per_copy, ids)
+        return HardBrakes(rows, per_copy[0], per_copy[1], ids)
 
     def _observe_ends(
         self, batch: AgentBatch, agents: _Agents, events: BatchStepEvents, applied: IntArray

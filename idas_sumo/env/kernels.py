@@ -75,21 +75,20 @@ def _first_outside(actions, n_actions):
 
 
 @kernel
-def _allowed_step(masks, actions, prev, speed, egos, step_s):
-    """When every agent's action is allowed by its mask row (nearly every step): (True, ``next_acceleration``,
-    ``_next_speeds`` of it) in one pass; else (False, and two arrays to ignore)."""
+def _allowed_step(masks, actions, prev, speed, egos, step_s, out):
+    """When every agent's action is allowed by its mask row (nearly every step): True, with
+    ``next_acceleration`` and ``_next_speeds`` of it in the rows of ``out`` (2, n), in one pass (filled, not
+    returned: a compiled call's every returned array costs about 0.5 µs of boxing); else False."""
     n = actions.shape[0]
-    accel = np.empty(n)
-    next_speed = np.empty(n)
     for i in range(n):
         if masks[i, actions[i]] == 0:
-            return False, accel, next_speed
+            return False
     for i in range(n):
         a = _candidate(prev[i], actions[i])
-        accel[i] = a
+        out[0, i] = a
         v = speed[egos[i]] + a * step_s
-        next_speed[i] = v if v > 0.0 or v != v else 0.0
-    return True, accel, next_speed
+        out[1, i] = v if v > 0.0 or v != v else 0.0
+    return True
 
 
 @kernel
@@ -116,14 +115,19 @@ def _hard_brakes(
     copy_before,
     dist_before,
     zone_m,
+    rows,
+    copy,
+    in_zone,
+    per_copy,
 ):
     """The step's hard brakes as rows of the step's first snapshot: the agents' (``agent_brake``, batch
     order), then those of the cars now braking at ``HARD_BRAKE_DETECT_MPS2`` or harder (rows of the new
     snapshot, in order) that are no agents, drive in an acting copy and were on the road before.
 
-    Returns (rows, their copies, within ``zone_m`` of the merge point, brakes per copy, of those within
-    ``zone_m`` per copy); ``acting`` has one entry per copy."""
-    rows = np.empty(egos.shape[0] + accel.shape[0], dtype=np.int64)
+    Fills (rows, their copies, within ``zone_m`` of the merge point; each as long as ``egos`` and ``accel``
+    together) and ``per_copy`` (zeros, (2, K): brakes per copy, of those within ``zone_m`` per copy), and
+    returns how many rows it found (filled, not returned: a compiled call's every returned array costs
+    about 0.5 µs of boxing); ``acting`` has one entry per copy."""
     m = 0
     for i in range(egos.shape[0]):
         if agent_brake[i]:
@@ -135,18 +139,13 @@ def _hard_brakes(
             if acting[car_copy[c]] and car_state[c] != ACTIVE and rows_before[c] >= 0:
                 rows[m] = rows_before[c]
                 m += 1
-    rows = rows[:m].copy()
-    copy = np.empty(m, dtype=np.int64)
-    in_zone = np.empty(m, dtype=np.bool_)
-    per_copy = np.zeros(acting.shape[0], dtype=np.int64)
-    zone_per_copy = np.zeros(acting.shape[0], dtype=np.int64)
     for i in range(m):
         copy[i] = copy_before[rows[i]]
         in_zone[i] = np.abs(dist_before[rows[i]]) <= zone_m
-        per_copy[copy[i]] += 1
+        per_copy[0, copy[i]] += 1
         if in_zone[i]:
-            zone_per_copy[copy[i]] += 1
-    return rows, copy, in_zone, per_copy, zone_per_copy
+            per_copy[1, copy[i]] += 1
+    return m
 
 
 @kernel
