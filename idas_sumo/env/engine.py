@@ -487,7 +487,8 @@ class MergeEngine:
         self._controlled = layout.controlled
         self._origin = origin
         self._row_copies = copy
-        self.snapshot = built(  # (``TrafficSnapshot(...)``, every field given)
+        by_distance = built(DistanceOrder, order=order, sorted_dist=sorted_dist, starts=bounds)
+        snap = self.snapshot = built(  # (``TrafficSnapshot(...)``, every field given)
             TrafficSnapshot,
             ids=states.ids,
             road=road,
@@ -499,8 +500,10 @@ class MergeEngine:
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
             known_longest_m=layout.longest_m,
-            known_by_distance=built(DistanceOrder, order=order, sorted_dist=sorted_dist, starts=bounds),
+            known_by_distance=by_distance,
         )
+        # Its two ``lazy`` values every step reads, set as their first read would (without its call).
+        snap.__dict__.update(by_distance=by_distance, longest_m=layout.longest_m)
 
     # -- observation ---------------------------------------------------------------------------
     def observe(self) -> AgentBatch:
