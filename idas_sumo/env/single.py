@@ -233,8 +233,11 @@ class SingleEpisode:
         if agent_ids is None:
             return batch.obs, batch.masks
         if len(agent_ids) == len(batch.ids) and tuple(agent_ids) == batch.ids:  # (every agent, in order)
-            # Built for the caller alone (nobody else holds it, so no copy) unless the batch has them already.
-            obs = batch.obs.copy() if "obs" in batch.__dict__ else batch.all_obs()
+            # Built for the caller alone (nobody else holds it, so no copy): the engine's eager observations
+            # are handed over (the batch builds its own again if asked), else built now.
+            obs = batch.__dict__.pop("obs", None)
+            if obs is None:
+                obs = batch.all_obs()
             return obs, batch.masks.copy()
         if len(agent_ids) == 1:
             rows = np.array([batch.ids.index(agent_ids[0])], dtype=np.int64)
