@@ -75,7 +75,13 @@ def test_hard_brakes_match_numpy() -> None:
             dist,
             50.0,
         )
-        for got, want in zip(_hard_brakes(*args), numpy_hard_brakes(*args), strict=True):
+        most = len(egos) + len(accel)
+        rows, got_copy, in_zone = np.empty(most, np.int64), np.empty(most, np.int64), np.empty(most, np.bool_)
+        per_copy = np.zeros((2, k), dtype=np.int64)
+        m = _hard_brakes(*args, rows, got_copy, in_zone, per_copy)
+        for got, want in zip(
+            (rows[:m], got_copy[:m], in_zone[:m], *per_copy), numpy_hard_brakes(*args), strict=True
+        ):
             assert got.dtype == want.dtype and got.tolist() == want.tolist(), trial
 
 
@@ -147,7 +153,9 @@ def test_action_checks_match_numpy() -> None:
             prev = rng.choice([-4.5, -2.0, -0.1, 0.0, 0.3, 2.0], n)
             speed = rng.uniform(0.0, 3.0, 12)
             egos = rng.integers(0, 12, n).astype(np.int64)
-            ok, accel, next_speed = _allowed_step(masks, actions, prev, speed, egos, 0.2)
+            out = np.empty((2, n))
+            ok = _allowed_step(masks, actions, prev, speed, egos, 0.2, out)
+            accel, next_speed = out
             assert ok == bool(masks[np.arange(n), actions].astype(bool).all()), trial
             if ok:  # what the step computed before: next_acceleration, then _next_speeds
                 want = next_acceleration(prev, actions)
@@ -212,8 +220,11 @@ def test_distance_order_and_place_match_numpy() -> None:
 @pytest.mark.parametrize("copies", [1, 3])
 def test_observe_own_lane_matches_the_separate_calls(copies: int) -> None:
     """The engine's one-call observe (own-lane mask) gives the rows, accelerations, priorities and masks
-    of the separate numpy indexing and ``own_lane_action_masks`` it replaced, bit for bit."""
-    from idas_sumo.env.front_cars import observe_own_lane, own_lane_action_masks
+    of the separate numpy indexing and ``own_lane_action_masks`` it replaced, bit for bit; with the
+    observations (``observe_own_lane_obs``) those of ``build_observations_checked`` too."""
+    from idas_sumo.env.front_cars import observe_own_lane, observe_own_lane_obs, own_lane_action_masks
+    from idas_sumo.env.layout import OBS_DIM
+    from idas_sumo.env.observation import build_observations_checked
 
     rng = np.random.default_rng(11 + copies)
     for trial in range(60):
@@ -248,6 +259,17 @@ def test_observe_own_lane_matches_the_separate_calls(copies: int) -> None:
         assert b_prio.view(np.uint64).tolist() == want_prio.view(np.uint64).tolist(), trial
         want_masks = own_lane_action_masks(snap, want_egos, car_accel[agent_car])
         assert masks.dtype == want_masks.dtype and masks.tolist() == want_masks.tolist(), trial
+        # With the observations in the same call: the same four, and ``build_observations_checked``'s rows.
+        b_type = rng.choice([0.0, 1.0], len(agent_car))
+        obs = np.zeros((len(agent_car), OBS_DIM), dtype=np.float32)
+        *same, finite, spread = observe_own_lane_obs(
+            snap, copy, car_row, car_accel, agent_car, agent_copy, prio, b_type, obs
+        )
+        for got, want in zip(same, (egos, prev, b_prio, masks), strict=True):
+            assert got.dtype == want.dtype and got.tobytes() == want.tobytes(), trial
+        want_obs, want_finite = build_observations_checked(snap, want_egos, prev, b_prio, b_type)
+        assert obs.tobytes() == want_obs.tobytes() and finite == want_finite, trial
+        assert spread == np.ptp(snap.speed_mps), trial
 
 
 def test_step_ends_matches_its_parts() -> None:
@@ -288,7 +310,9 @@ def test_agent_values_match_numpy() -> None:
         dist[r],
         np.where(rows >= 0, road[r], -1),
     )
-    got = _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road)
+    values, got_road = np.empty((3, len(car))), np.empty(len(car), dtype=np.int64)
+    _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road, values, got_road)
+    got = (*values, got_road)
     assert (rows < 0).any() and admitted[car].any() and not admitted[car].all()
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, w)

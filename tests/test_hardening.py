@@ -662,6 +662,7 @@ def test_invalid_action_names_the_agent(parallel_env: Any, bad: Any) -> None:
 @pytest.mark.sumo
 def test_non_finite_observation_names_the_agent(parallel_env: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     import idas_sumo.env.contracts as contracts
+    import idas_sumo.env.engine as engine_module
     from idas_sumo.errors import SimulationError
 
     real = contracts.build_observations_checked
@@ -672,6 +673,17 @@ def test_non_finite_observation_names_the_agent(parallel_env: Any, monkeypatch: 
         return real(snapshot, egos, prev_accel, *args)
 
     monkeypatch.setattr(contracts, "build_observations_checked", poisoned)
+    # The env's engine builds the observations with the masks (``observe_own_lane_obs``): poisoned there too.
+    real_observe = engine_module.observe_own_lane_obs
+
+    def poisoned_observe(
+        snap: Any, row_copy: Any, car_row: Any, car_accel: Any, agent_car: Any, *args: Any
+    ) -> Any:
+        car_accel = np.array(car_accel, dtype=np.float64)
+        car_accel[agent_car[-1]] = np.nan
+        return real_observe(snap, row_copy, car_row, car_accel, agent_car, *args)
+
+    monkeypatch.setattr(engine_module, "observe_own_lane_obs", poisoned_observe)
     with pytest.raises(SimulationError, match=r"non-finite observation for agent 'g0' at t = "):
         parallel_env.step(dict.fromkeys(parallel_env.agents, 2))
 

@@ -77,9 +77,26 @@ class AgentBatch:
         obs, scalars_finite = build_observations_checked(
             self.snapshot, self.egos[sel], self.prev_accel[sel], self.b_prio[sel], self.b_type[sel]
         )
+        # (np.ptp's value, in one compiled pass)
+        self._check_finite(obs, rows, scalars_finite, speed_spread(self.snapshot.speed_mps))
+        return obs
+
+    def keep_obs(self, obs: npt.NDArray[np.float32], scalars_finite: bool, spread: float) -> None:
+        """Every row's observations, built by the caller as ``obs`` builds them (the engine's one-call
+        observe of a single world, ``observe_own_lane_obs``), checked and kept as ``obs``."""
+        self._check_finite(obs, None, scalars_finite, spread)
+        self.__dict__["obs"] = obs
+
+    def _check_finite(
+        self,
+        obs: npt.NDArray[np.float32],
+        rows: IntArray | slice | None,
+        scalars_finite: bool,
+        spread: float,
+    ) -> None:
+        """A SimulationError naming the first agent whose observation is not finite."""
         # The grids hold 1s and relative speeds, finite whenever the speeds' spread is: only when the
         # scalars or the speeds are not is every entry tested.
-        spread = speed_spread(self.snapshot.speed_mps)  # (np.ptp's value, in one compiled pass)
         if not (scalars_finite and spread / RELATIVE_SPEED_SCALE_MPS < _FLOAT32_SAFE):
             finite = np.isfinite(obs).all(axis=1)
             if not finite.all():
@@ -88,7 +105,6 @@ class AgentBatch:
                 raise SimulationError(
                     f"non-finite observation for agent {bad!r} at t = {self.time_s:.1f} s (a bug)"
                 )
-        return obs
 
     @lazy
     def copy_runs(self) -> list[tuple[int, int, int]]:

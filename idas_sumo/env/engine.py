@@ -41,7 +41,7 @@ from idas_sumo.env.cars import ACTIVE, ENDED, WAITING, _Agents, _Cars, _empty_sn
 from idas_sumo.env.collisions import geometric_collisions
 from idas_sumo.env.config import DEFAULT_MAX_EPISODE_S, EnvConfig, with_safety_mask
 from idas_sumo.env.contracts import AgentBatch, Policy, StepResult, placeholder_mask
-from idas_sumo.env.front_cars import front_cars, observe_own_lane, own_lane_action_masks
+from idas_sumo.env.front_cars import front_cars, observe_own_lane, observe_own_lane_obs, own_lane_action_masks
 from idas_sumo.env.kernels import (
     _REASON_BY_CODE,
     _REASON_CODE,
@@ -151,6 +151,9 @@ class MergeEngine:
         """``agent_values``' last ids, their slot's order and first car, and their cars (asked again for
         the same agents step after step)."""
         self._gui = gui
+        self.eager_obs = False
+        """``observe()`` builds every agent's observation in the same compiled call as the masks (the
+        single-world envs, which read them every step; rule-based policies never need them)."""
         self._backend: BatchBackend | _SoloBackend | None = None
         self.speed_limits_mps: dict[Road, float] = {
             "main": self.site.main.road.speed_limit_mps,
@@ -313,7 +316,9 @@ class MergeEngine:
         if not len(snap):
             nothing = [0.0] * len(car)
             return nothing, nothing, nothing, [-1] * len(car)
-        speed, accel, dist, road = _agent_values(
+        # (Filled, not returned: a compiled call's every returned array costs about 0.5 µs of boxing.)
+        values, road = np.empty((3, len(car))), np.empty(len(car), dtype=np.int64)
+        _agent_values(
             car,
             cars.row,
             cars.admitted,
@@ -322,8 +327,11 @@ class MergeEngine:
             snap.accel_mps2,
             snap.dist_to_merge_m,
             snap.road,
+            values,
+            road,
         )
-        return speed.tolist(), accel.tolist(), dist.tolist(), road.tolist()
+        speed, accel, dist = values.tolist()
+        return speed, accel, dist, road.tolist()
 
     def rows_of(self, k: int) -> slice:
         """Slot k's vehicles in ``snapshot``."""
@@ -479,7 +487,8 @@ class MergeEngine:
         self._controlled = layout.controlled
         self._origin = origin
         self._row_copies = copy
-        self.snapshot = built(  # (``TrafficSnapshot(...)``, every field given)
+        by_distance = built(DistanceOrder, order=order, sorted_dist=sorted_dist, starts=bounds)
+        snap = self.snapshot = built(  # (``TrafficSnapshot(...)``, every field given)
             TrafficSnapshot,
             ids=states.ids,
             road=road,
@@ -491,8 +500,10 @@ class MergeEngine:
             copy=copy if len(self.slots) > 1 else None,
             known_copy_bounds=bounds,
             known_longest_m=layout.longest_m,
-            known_by_distance=built(DistanceOrder, order=order, sorted_dist=sorted_dist, starts=bounds),
+            known_by_distance=by_distance,
         )
+        # Its two ``lazy`` values every step reads, set as their first read would (without its call).
+        snap.__dict__.update(by_distance=by_distance, longest_m=layout.longest_m)
 
     # -- observation ---------------------------------------------------------------------------
     def observe(self) -> AgentBatch:
@@ -502,10 +513,25 @@ class MergeEngine:
             agents = self._agents = self._gather_agents()
         cars = self._cars
         snap = self.snapshot
+        obs = None
         if self.config.safety_mask == "own_lane" and len(agents.car):  # (the default: one compiled call)
-            egos, prev, b_prio, masks = observe_own_lane(
-                snap, self._row_copies, cars.row, cars.accel, agents.car, agents.copy, self._prio_by_road
-            )
+            if self.eager_obs:  # (the observations in the same call)
+                obs = np.zeros((len(agents.car), OBS_DIM), dtype=np.float32)
+                egos, prev, b_prio, masks, finite, spread = observe_own_lane_obs(
+                    snap,
+                    self._row_copies,
+                    cars.row,
+                    cars.accel,
+                    agents.car,
+                    agents.copy,
+                    self._prio_by_road,
+                    agents.b_type,
+                    obs,
+                )
+            else:
+                egos, prev, b_prio, masks = observe_own_lane(
+                    snap, self._row_copies, cars.row, cars.accel, agents.car, agents.copy, self._prio_by_road
+                )
         else:
             egos = cars.row[agents.car]
             prev = cars.accel[agents.car]
@@ -522,6 +548,8 @@ class MergeEngine:
             b_type=agents.b_type,
             time_s=self._time_s,
         )
+        if obs is not None:
+            batch.keep_obs(obs, finite, spread)
         self._batch = batch
         self._batch_agents = agents
         return batch
@@ -672,10 +700,11 @@ class MergeEngine:
         if len(batch):
             masks, prev = batch.masks, batch.prev_accel
             speed = self.snapshot.speed_mps
-            allowed_all, new_accel, next_speed = _allowed_step(  # (one compiled pass, most steps)
-                masks, requested, prev, speed, batch.egos, STEP_LENGTH_S
-            )
-            if not allowed_all:
+            out = np.empty((2, len(batch)))
+            # (One compiled pass, most steps.)
+            if _allowed_step(masks, requested, prev, speed, batch.egos, STEP_LENGTH_S, out):
+                new_accel, next_speed = out[0], out[1]
+            else:
                 rows = np.arange(len(batch))
                 allowed = masks[rows, requested].astype(bool)
                 wanted = candidate_accelerations(prev)[rows, requested]
@@ -706,10 +735,14 @@ class MergeEngine:
             none = np.zeros(k_count, dtype=np.int64)
             return HardBrakes(np.zeros(0, dtype=np.int64), none, none.copy(), [[] for _ in range(k_count)])
         cars = self._cars
-        rows, copy, _, per_copy, zone_per_copy = _hard_brakes(
+        accel = self.snapshot.accel_mps2
+        most = len(batch.egos) + len(accel)
+        rows, copy = np.empty(most, dtype=np.int64), np.empty(most, dtype=np.int64)
+        per_copy = np.zeros((2, k_count), dtype=np.int64)
+        m = _hard_brakes(
             batch.egos,
             applied == HARD_BRAKE,
-            self.snapshot.accel_mps2,
+            accel,
             self._car,
             acting,
             cars.copy,
@@ -718,11 +751,16 @@ class MergeEngine:
             self._row_copy(before),
             before.dist_to_merge_m,
             MERGE_ZONE_RADIUS_M,
+            rows,
+            copy,
+            np.empty(most, dtype=np.bool_),
+            per_copy,
         )
+        rows = rows[:m]
         ids: list[list[str]] = [[] for _ in range(k_count)]
-        for r, k in zip(rows.tolist(), copy.tolist(), strict=True):
+        for r, k in zip(rows.tolist(), copy[:m].tolist(), strict=True):
             ids[k].append(before.ids[r])
-        return HardBrakes(rows, per_copy, zone_per_copy, ids)
+        return HardBrakes(rows, per_copy[0], per_copy[1], ids)
 
     def _observe_ends(
         self, batch: AgentBatch, agents: _Agents, events: BatchStepEvents, applied: IntArray
@@ -780,7 +818,8 @@ class MergeEngine:
         # An agent's entry in the returns from its first action on, in batch order; a zero reward leaves a
         # sum as it is (x + 0.0 == x: a sum is never -0.0), so only the others are added.
         # (One compiled pass for the counts; it marks the first-timers' cars scored.)
-        first_action, scored, impede_counts, active_counts = _book_counts(
+        rows, per_copy = np.empty((2, len(batch)), dtype=np.int64), np.zeros((2, k_count), dtype=np.int64)
+        n_first, n_scored = _book_counts(
             agents.car,
             cars.scored,
             scores.rewards,
@@ -788,17 +827,18 @@ class MergeEngine:
             batch.copy,
             cars.copy,
             cars.state,
-            k_count,
+            rows,
+            per_copy,
         )
-        if len(first_action) or len(scored):
+        if n_first or n_scored:
             copies = batch.copy.tolist()
-            for i in first_action.tolist():
+            for i in rows[0, :n_first].tolist():
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] = 0.0
+            scored = rows[1, :n_scored]
             for i, r in zip(scored.tolist(), scores.rewards[scored].tolist(), strict=True):
                 self.slots[copies[i]].outcome.returns[batch.ids[i]] += r
-        impedes = impede_counts.tolist()
+        impedes, active_per_copy = per_copy.tolist()
         agents_per_copy = agents.per_copy
-        active_per_copy = active_counts.tolist()
         hard_brakes, zone_brakes = brakes.per_copy.tolist(), brakes.zone_per_copy.tolist()
         acting_list = acting.tolist()
         timed_out = self.timed_out()

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from idas_sumo.env.actions import SafetyMask, _action_masks_kernel, safety_bound
+from idas_sumo.env.actions import N_ACTIONS, SafetyMask, _action_masks_kernel, safety_bound
 from idas_sumo.env.jit import kernel
 from idas_sumo.env.layout import VISIBILITY_M
+from idas_sumo.env.observation import _NO_COPY, _SCALES, _observations_kernel, speed_spread
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.env.snapshot import (
     MERGE,
@@ -172,6 +173,140 @@ def observe_own_lane(
         params.time_headway_s,
         params.delta,
     )
+
+
+def observe_own_lane_obs(
+    snap: TrafficSnapshot,
+    row_copy: IntArray,
+    car_row: IntArray,
+    car_accel: FloatArray,
+    agent_car: IntArray,
+    agent_copy: IntArray,
+    prio_by_road: FloatArray,
+    b_type: FloatArray,
+    obs: npt.NDArray[np.float32],
+    params: IDMParams = DEFAULT_IDM,
+) -> tuple[IntArray, FloatArray, FloatArray, npt.NDArray[np.int8], bool, float]:
+    """``observe_own_lane`` and the agents' observations, written into ``obs`` ((n, OBS_DIM) float32 zeros)
+    as ``build_observations_checked`` writes them, in one compiled call (a single world's every step);
+    then whether every scalar came out finite, and the speeds' spread (``speed_spread``)."""
+    by_dist = snap.by_distance
+    # The kernel fills arrays handed in rather than returning four (each returned array costs about 0.5 µs
+    # of boxing): the rows, the accelerations and priorities as two rows of one array, the masks.
+    n = len(agent_car)
+    egos, floats, masks = np.empty(n, dtype=np.int64), np.empty((2, n)), np.empty((n, N_ACTIONS), np.int8)
+    finite, spread = _observe_own_lane_obs_kernel(
+        car_row,
+        car_accel,
+        agent_car,
+        agent_copy,
+        prio_by_road,
+        row_copy,
+        by_dist.starts,
+        snap.road,
+        snap.dist_to_merge_m,
+        snap.length_m,
+        snap.speed_mps,
+        snap.speed_limit_mps,
+        by_dist.order,
+        by_dist.sorted_dist,
+        params.max_accel_mps2,
+        params.comfortable_decel_mps2,
+        params.min_gap_m,
+        params.time_headway_s,
+        params.delta,
+        b_type,
+        obs,
+        _SCALES,
+        _NO_COPY if snap.copy is None else snap.copy,
+        snap.longest_m,
+        snap.copy is None or snap.copy_bounds is not None,
+        egos,
+        floats,
+        masks,
+    )
+    return egos, floats[0], floats[1], masks, finite, spread
+
+
+@kernel
+def _observe_own_lane_obs_kernel(
+    car_row,
+    car_accel,
+    agent_car,
+    agent_copy,
+    prio_by_road,
+    row_copy,
+    starts,
+    road,
+    dist,
+    length,
+    speed,
+    limit,
+    order,
+    sorted_dist,
+    max_accel,
+    comfortable_decel,
+    min_gap,
+    time_headway,
+    delta,
+    b_type,
+    obs,
+    scales,
+    obs_row_copy,
+    longest,
+    rows_by_copy,
+    out_egos,
+    out_floats,
+    out_masks,
+):
+    """``_observe_own_lane_kernel`` then ``_observations_kernel`` of its rows (``observe_own_lane_obs``); the
+    rows, accelerations, priorities and masks into the ``out_`` arrays."""
+    egos, prev, b_prio, masks = _observe_own_lane_kernel(
+        car_row,
+        car_accel,
+        agent_car,
+        agent_copy,
+        prio_by_road,
+        row_copy,
+        starts,
+        road,
+        dist,
+        length,
+        speed,
+        limit,
+        order,
+        sorted_dist,
+        max_accel,
+        comfortable_decel,
+        min_gap,
+        time_headway,
+        delta,
+    )
+    finite = _observations_kernel(
+        obs,
+        speed,
+        dist,
+        egos,
+        prev,
+        b_prio,
+        b_type,
+        scales,
+        road,
+        length,
+        order,
+        sorted_dist,
+        starts,
+        obs_row_copy,
+        longest,
+        rows_by_copy,
+    )
+    for i in range(egos.shape[0]):
+        out_egos[i] = egos[i]
+        out_floats[0, i] = prev[i]
+        out_floats[1, i] = b_prio[i]
+        for j in range(masks.shape[1]):
+            out_masks[i, j] = masks[i, j]
+    return finite, speed_spread(speed)
 
 
 @kernel

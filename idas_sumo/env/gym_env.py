@@ -73,6 +73,8 @@ class MergeEnv(Env[npt.NDArray[np.float32], int]):
         self._frames: TopViewFrames | None = None
         gui = gui or render_mode == "human"
         self.sim = SingleEpisode(net, config=with_safety_mask(config, safety_mask), gui=gui)
+        # Among robots the ego is the only agent, and its observation is handed out every step.
+        self.sim.engine.eager_obs = others is None
         if scenario is not None:
             engine = self.sim.engine
             check_against_net(scenario, engine.speed_limits_mps, start_room_m(engine.site), scenario.name)

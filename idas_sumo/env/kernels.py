@@ -75,21 +75,20 @@ def _first_outside(actions, n_actions):
 
 
 @kernel
-def _allowed_step(masks, actions, prev, speed, egos, step_s):
-    """When every agent's action is allowed by its mask row (nearly every step): (True, ``next_acceleration``,
-    ``_next_speeds`` of it) in one pass; else (False, and two arrays to ignore)."""
+def _allowed_step(masks, actions, prev, speed, egos, step_s, out):
+    """When every agent's action is allowed by its mask row (nearly every step): True, with
+    ``next_acceleration`` and ``_next_speeds`` of it in the rows of ``out`` (2, n), in one pass (filled, not
+    returned: a compiled call's every returned array costs about 0.5 µs of boxing); else False."""
     n = actions.shape[0]
-    accel = np.empty(n)
-    next_speed = np.empty(n)
     for i in range(n):
         if masks[i, actions[i]] == 0:
-            return False, accel, next_speed
+            return False
     for i in range(n):
         a = _candidate(prev[i], actions[i])
-        accel[i] = a
+        out[0, i] = a
         v = speed[egos[i]] + a * step_s
-        next_speed[i] = v if v > 0.0 or v != v else 0.0
-    return True, accel, next_speed
+        out[1, i] = v if v > 0.0 or v != v else 0.0
+    return True
 
 
 @kernel
@@ -116,14 +115,19 @@ def _hard_brakes(
     copy_before,
     dist_before,
     zone_m,
+    rows,
+    copy,
+    in_zone,
+    per_copy,
 ):
     """The step's hard brakes as rows of the step's first snapshot: the agents' (``agent_brake``, batch
     order), then those of the cars now braking at ``HARD_BRAKE_DETECT_MPS2`` or harder (rows of the new
     snapshot, in order) that are no agents, drive in an acting copy and were on the road before.
 
-    Returns (rows, their copies, within ``zone_m`` of the merge point, brakes per copy, of those within
-    ``zone_m`` per copy); ``acting`` has one entry per copy."""
-    rows = np.empty(egos.shape[0] + accel.shape[0], dtype=np.int64)
+    Fills (rows, their copies, within ``zone_m`` of the merge point; each as long as ``egos`` and ``accel``
+    together) and ``per_copy`` (zeros, (2, K): brakes per copy, of those within ``zone_m`` per copy), and
+    returns how many rows it found (filled, not returned: a compiled call's every returned array costs
+    about 0.5 µs of boxing); ``acting`` has one entry per copy."""
     m = 0
     for i in range(egos.shape[0]):
         if agent_brake[i]:
@@ -135,18 +139,13 @@ def _hard_brakes(
             if acting[car_copy[c]] and car_state[c] != ACTIVE and rows_before[c] >= 0:
                 rows[m] = rows_before[c]
                 m += 1
-    rows = rows[:m].copy()
-    copy = np.empty(m, dtype=np.int64)
-    in_zone = np.empty(m, dtype=np.bool_)
-    per_copy = np.zeros(acting.shape[0], dtype=np.int64)
-    zone_per_copy = np.zeros(acting.shape[0], dtype=np.int64)
     for i in range(m):
         copy[i] = copy_before[rows[i]]
         in_zone[i] = np.abs(dist_before[rows[i]]) <= zone_m
-        per_copy[copy[i]] += 1
+        per_copy[0, copy[i]] += 1
         if in_zone[i]:
-            zone_per_copy[copy[i]] += 1
-    return rows, copy, in_zone, per_copy, zone_per_copy
+            per_copy[1, copy[i]] += 1
+    return m
 
 
 @kernel
@@ -163,30 +162,28 @@ def _maybe_hard_brakes(applied, hard_brake, accel):
 
 
 @kernel
-def _book_counts(agent_car, car_scored, rewards, impede, agent_copy, car_copy, car_state, k_count):
-    """``MergeEngine._book``'s counts in one pass: the agents acting for the first time (batch rows; their
-    cars marked scored), those with a nonzero reward (batch rows), and per copy the agents with an impede
-    penalty and the cars still acting."""
+def _book_counts(agent_car, car_scored, rewards, impede, agent_copy, car_copy, car_state, rows, per_copy):
+    """``MergeEngine._book``'s counts in one pass: into ``rows[0]`` the agents acting for the first time
+    (batch rows; their cars marked scored), into ``rows[1]`` those with a nonzero reward (batch rows), into
+    ``per_copy`` (zeros, (2, K)) per copy the agents with an impede penalty and the cars still acting;
+    returns how many rows each of the first two has (filled, not returned: a compiled call's every
+    returned array costs about 0.5 µs of boxing)."""
     n = agent_car.shape[0]
-    first = np.empty(n, dtype=np.int64)
-    scored = np.empty(n, dtype=np.int64)
     n_first = n_scored = 0
-    impedes = np.zeros(k_count, dtype=np.int64)
     for i in range(n):
         if not car_scored[agent_car[i]]:
-            first[n_first] = i
+            rows[0, n_first] = i
             n_first += 1
             car_scored[agent_car[i]] = True
         if rewards[i] != 0.0:
-            scored[n_scored] = i
+            rows[1, n_scored] = i
             n_scored += 1
         if impede[i] < 0.0:
-            impedes[agent_copy[i]] += 1
-    active = np.zeros(k_count, dtype=np.int64)
+            per_copy[0, agent_copy[i]] += 1
     for c in range(car_state.shape[0]):
         if car_state[c] == ACTIVE:
-            active[car_copy[c]] += 1
-    return first[:n_first], scored[:n_scored], impedes, active
+            per_copy[1, car_copy[c]] += 1
+    return n_first, n_scored
 
 
 @kernel
@@ -223,22 +220,17 @@ def _step_ends(collided, car_row, agent_car, dist, finish_below_m, otherwise, ap
 
 
 @kernel
-def _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road):
+def _agent_values(car, car_row, admitted, car_accel, speed, accel, dist, road, out, out_road):
     """``MergeEngine.agent_values``' gathers in one pass: per car its speed, acceleration (an admitted car's
-    own), distance and road (-1 off the road, where the others are row 0's, which the caller ignores)."""
-    n = car.shape[0]
-    out_speed = np.empty(n)
-    out_accel = np.empty(n)
-    out_dist = np.empty(n)
-    out_road = np.empty(n, dtype=np.int64)
-    for i in range(n):
+    own) and distance into the rows of ``out`` (3, n), its road into ``out_road`` (-1 off the road, where
+    the others are row 0's, which the caller ignores)."""
+    for i in range(car.shape[0]):
         c = car[i]
         r = car_row[c]
         on = r >= 0
         if not on:
             r = 0
-        out_speed[i] = speed[r]
-        out_accel[i] = car_accel[c] if admitted[c] else accel[r]
-        out_dist[i] = dist[r]
+        out[0, i] = speed[r]
+        out[1, i] = car_accel[c] if admitted[c] else accel[r]
+        out[2, i] = dist[r]
         out_road[i] = road[r] if on else -1
-    return out_speed, out_accel, out_dist, out_road

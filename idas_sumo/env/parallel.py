@@ -82,6 +82,7 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         self.render_mode = render_mode
         config = with_safety_mask(config, safety_mask)
         self.sim = SingleEpisode(net, seed=seed or 0, config=config, gui=gui)
+        self.sim.engine.eager_obs = True  # (every agent's observation is handed out every step)
         self.fixed_scenario = scenario
         self.traffic = traffic or TrafficConfig()
         if scenario is not None:
@@ -122,7 +123,9 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
 
     def _observations(self) -> dict[str, dict[str, np.ndarray]]:
         obs, masks = self.sim.observe(self.agents)
-        return {a: {"observation": obs[i], "action_mask": masks[i]} for i, a in enumerate(self.agents)}
+        return {
+            a: {"observation": o, "action_mask": m} for a, o, m in zip(self.agents, obs, masks, strict=True)
+        }
 
     def _infos(self, agents: list[str], outcome: StepOutcome | None = None) -> dict[str, dict[str, Any]]:
         """Each agent's info: its raw physical values (``agent_info``), and with ``outcome`` the step's
@@ -194,17 +197,17 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
             self.agents = []
         # ``outcome``'s rewards, terminated and truncated, read from the step's rows in one pass (its
         # per-agent dictionaries cost more than the step's SUMO call); agents that entered get 0.0 and False.
+        # (Every agent that acted has an observation: the dictionaries' order is the observations'.)
         result = outcome.result
-        reward_of = dict(zip(outcome.acting, result.rewards.tolist(), strict=True))
-        end_of = {a: r for a, r in zip(outcome.acting, result.end_reason, strict=True) if r}
-        rewards: dict[str, float] = {}
-        terminated: dict[str, bool] = {}
-        truncated: dict[str, bool] = {}
-        for a in observations:
-            rewards[a] = reward_of.get(a, 0.0)
-            end = end_of.get(a)
-            terminated[a] = end is not None and end != "timeout"
-            truncated[a] = end == "timeout"
+        rewards: dict[str, float] = dict.fromkeys(observations, 0.0)
+        rewards.update(zip(outcome.acting, result.rewards.tolist(), strict=True))
+        terminated: dict[str, bool] = dict.fromkeys(observations, False)
+        truncated: dict[str, bool] = dict.fromkeys(observations, False)
+        if any(result.end_reason):
+            for a, end in zip(outcome.acting, result.end_reason, strict=True):
+                if end:
+                    terminated[a] = end != "timeout"
+                    truncated[a] = end == "timeout"
         return observations, rewards, terminated, truncated, infos
 
     def _step_infos(self, acting: list[str], outcome: StepOutcome) -> dict[str, dict[str, Any]]:
@@ -218,19 +221,13 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
         joint = float(result.joint_reward[0])
         nan = float("nan")
         infos: dict[str, dict[str, Any]] = {}
-        for agent, s, a, d, r, parts, end, wanted, got in zip(
-            acting,
-            *engine.agent_values(0, acting),
-            result.reward_parts.tolist(),
-            result.end_reason,
-            outcome.requested.tolist(),
-            result.applied.tolist(),
-            strict=True,
+        for agent, s, a, d, r, parts in zip(
+            acting, *engine.agent_values(0, acting), result.reward_parts.tolist(), strict=True
         ):
             if r < 0:
                 s = a = d = nan
                 r = GONE
-            info = {
+            infos[agent] = {
                 "speed_mps": s,
                 "accel_mps2": a,
                 "dist_to_merge_m": d,
@@ -238,11 +235,16 @@ class MergeParallelEnv(ParallelEnv[str, dict[str, np.ndarray], int]):
                 "reward_parts": dict(zip(names, parts, strict=True)),
                 "joint_reward": joint,
             }
-            if end:
-                info["end_reason"] = END_REASONS.index(end)
-            if wanted != got:
-                info["replaced_action"] = got
-            infos[agent] = info
+        # The rare entries after the others (most steps nobody ends and no action is replaced).
+        if any(result.end_reason):
+            for agent, end in zip(acting, result.end_reason, strict=True):
+                if end:
+                    infos[agent]["end_reason"] = END_REASONS.index(end)
+        requested, applied = outcome.requested.tolist(), result.applied.tolist()
+        if requested != applied:
+            for agent, wanted, got in zip(acting, requested, applied, strict=True):
+                if wanted != got:
+                    infos[agent]["replaced_action"] = got
         return infos
 
     def state(self) -> np.ndarray:

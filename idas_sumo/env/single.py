@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -232,8 +233,11 @@ class SingleEpisode:
         if agent_ids is None:
             return batch.obs, batch.masks
         if len(agent_ids) == len(batch.ids) and tuple(agent_ids) == batch.ids:  # (every agent, in order)
-            # Built for the caller alone (nobody else holds it, so no copy) unless the batch has them already.
-            obs = batch.obs.copy() if "obs" in batch.__dict__ else batch.all_obs()
+            # Built for the caller alone (nobody else holds it, so no copy): the engine's eager observations
+            # are handed over (the batch builds its own again if asked), else built now.
+            obs = batch.__dict__.pop("obs", None)
+            if obs is None:
+                obs = batch.all_obs()
             return obs, batch.masks.copy()
         if len(agent_ids) == 1:
             rows = np.array([batch.ids.index(agent_ids[0])], dtype=np.int64)
@@ -338,10 +342,11 @@ def _fast_actions(values: list[object]) -> IntArray | None:
     """The actions as int64 when every one is a plain int (or numpy integer) in [0, 7), else None."""
     if not values:
         return np.zeros(0, dtype=np.int64)
+    # (The range checked on the list: numpy's comparisons and ``all`` cost more than the list's min and max.)
     if set(map(type, values)) <= _PLAIN_INTS:
-        out = np.array(values, dtype=np.int64)
-        if ((out >= 0) & (out < N_ACTIONS)).all():
-            return out
+        ints = cast(list[int], values)
+        if min(ints) >= 0 and max(ints) < N_ACTIONS:
+            return np.array(ints, dtype=np.int64)
     return None
 
 
