@@ -555,3 +555,45 @@ def test_paired_margin_by_hand() -> None:
     assert paired_margin(episodes, "idm", "idas").margin_pts == -50.0
     with pytest.raises(ValueError, match="share 0 scenarios"):
         paired_margin(episodes, "idas", "fsm_idm")
+
+
+@pytest.mark.sumo
+def test_others_policy_replaces_the_others_file_in_process_and_in_workers(
+    tmp_path: Path, net_path: Path
+) -> None:
+    """``--others idas --others-policy F`` runs the other cars on F: the same episodes as ``--others idas_v`` when F
+    is the shipped ``idas_v.pt``, in this process and in two workers alike; the replay record and the settings name
+    F, so that a replay loads the very weights the others ran."""
+    import json
+
+    common = ["evaluate", "--net", str(net_path), "--baseline", "idm", "--scenarios", "3", "--no-progress"]
+    by_name, by_file = tmp_path / "by_name", tmp_path / "by_file"
+    assert main([*common, "--out", str(by_name), "--others", "idas_v"]) == 0
+    idas_v = shipped("policies/idas_v.pt")
+    others_policy = ["--others", "idas", "--others-policy", str(idas_v), "--workers", "2"]
+    assert main([*common, "--out", str(by_file), *others_policy]) == 0
+    for name in CSV_NAMES:
+        a, b = pd.read_csv(by_name / name), pd.read_csv(by_file / name)
+        pd.testing.assert_frame_equal(a, b)
+    record = json.loads((by_file / "replay" / "run.json").read_text())["others"]
+    assert (record["method"], Path(record["path"])) == ("idas", idas_v.resolve())
+    assert json.loads((by_file / "settings.json").read_text())["others_policy"] == str(idas_v)
+
+
+def test_others_policy_for_rule_based_others_is_refused(
+    tmp_path: Path, net_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = [
+        "evaluate",
+        "--net",
+        str(net_path),
+        "--baseline",
+        "idm",
+        "--out",
+        str(tmp_path / "out"),
+        "--no-progress",
+    ]
+    assert main([*args, "--others", "idm", "--others-policy", str(shipped("policies/idas.pt"))]) == 2
+    err = capsys.readouterr().err
+    assert "--others-policy" in err and "idm" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()

@@ -122,6 +122,12 @@ def _add_scenario_flags(ev: argparse.ArgumentParser) -> None:
         type=input_file,
         help="checkpoint for the learned method instead of the shipped one",
     )
+    ev.add_argument(
+        "--others-policy",
+        type=input_file,
+        help="checkpoint the other vehicles' learned method loads instead of the shipped one (the paper runs "
+        "them on the learned IDAS: e.g. --policy X --others-policy X evaluates X among its own kind)",
+    )
 
 
 def _add_output_flags(ev: argparse.ArgumentParser) -> None:
@@ -159,6 +165,9 @@ def run(args: argparse.Namespace) -> int:
     methods = PAPER_METHODS if args.baseline == "all" else (args.baseline,)
     if args.others is not None:
         check_method(args.others, "--others")
+    others = args.others or default_others()
+    if args.others_policy is not None and others not in LEARNED_METHODS:
+        raise InputError(f"--others-policy: the other vehicles run {others}, which reads no policy file")
     if args.policy is not None and not any(m in LEARNED_METHODS for m in methods):
         # Silently ignored, a typo'd or missing file would pass unnoticed as "the policy evaluated".
         raise InputError(
@@ -172,7 +181,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         site = _check_eval_net(args, env)
     out = args.out if args.out is not None else _default_out(args)
-    others = args.others or default_others()
     request = EvalRequest(
         net=Path(args.net),
         env=env,
@@ -183,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         others=others,
         policy=args.policy,
+        others_policy=args.others_policy,
         out=out,
         force=args.force,
         fresh_out=args.out is None and not args.force,

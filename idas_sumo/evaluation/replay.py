@@ -103,6 +103,7 @@ def write_replay_data(
     methods: Sequence[str],
     policy: Path | None,
     others: str,
+    others_policy: Path | None,
     seed: int,
     env: EnvConfig,
 ) -> str:
@@ -121,7 +122,7 @@ def write_replay_data(
         "net_sha256": file_digest(folder / NET_NAME),
         "junction": env.junction,
         "methods": {m: asdict(policy_record(m, policy)) for m in methods},
-        "others": asdict(policy_record(others)),
+        "others": asdict(policy_record(others, others_policy)),
     }
     with atomic_open(folder / RUN_NAME) as f:
         json.dump(run, f, indent=2)

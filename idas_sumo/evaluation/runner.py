@@ -73,6 +73,8 @@ class EvalRequest:
     others: str | None = None
     """Method for every non-ego vehicle; None: the shipped IDAS policy if present, else IDM."""
     policy: Path | None = None
+    others_policy: Path | None = None
+    """Checkpoint the others' learned method loads instead of the shipped file (``--others-policy``)."""
     out: Path = Path("results")
     force: bool = False
     """Write into an existing, non-empty ``out`` (its files are overwritten)."""
@@ -134,7 +136,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
     policies: dict[str, Policy] = {
         m: resolve_policy(m, req.policy if m in LEARNED_METHODS else None, req.seed) for m in req.methods
     }
-    others_policy = resolve_policy(others_name, None, req.seed)
+    others_policy = resolve_policy(others_name, req.others_policy, req.seed)
     _check_gui(req)
     with output_directory(req.out, req.force, fresh=req.fresh_out, writes=("sumo", "replay")) as out:
         cases = _cases(req, site, eval_config)
@@ -176,6 +178,7 @@ def run_evaluation(req: EvalRequest) -> EvalOutput:
                 req.methods,
                 req.policy,
                 others_name,
+                req.others_policy,
                 req.seed,
                 replace(env, junction=site.junction_id),
             )
@@ -234,6 +237,7 @@ def _settings(req: EvalRequest, others: str, eval_config: EvalConfig, env: EnvCo
         "seed": req.seed,
         "others": others,
         "policy": str(req.policy) if req.policy is not None else None,
+        "others_policy": str(req.others_policy) if req.others_policy is not None else None,
         "config": str(req.config) if req.config is not None else None,
         "traffic": asdict(eval_config.traffic),
         "max_episode_s": env.max_episode_s,
@@ -294,6 +298,7 @@ def _in_workers(
             methods=req.methods,
             policy=req.policy,
             others=others_name,
+            others_policy=req.others_policy,
             seed=req.seed,
             copies=_copies(req),
             tripinfo_dir=tripinfo_dir,

@@ -35,6 +35,7 @@ class WorkerTask:
     methods: tuple[str, ...]
     policy: Path | None
     others: str
+    others_policy: Path | None
     seed: int
     copies: int
     tripinfo_dir: Path | None
@@ -57,7 +58,7 @@ def run_task(task: WorkerTask) -> Iterator[tuple[int, EpisodeResult]]:
     methods = {
         m: resolve_policy(m, task.policy if m in LEARNED_METHODS else None, task.seed) for m in task.methods
     }
-    others = resolve_policy(task.others, None, task.seed)
+    others = resolve_policy(task.others, task.others_policy, task.seed)
     engine = MergeEngine(task.site, copies=task.copies, seed=task.seed, config=task.env)
     try:
         for i, (_, result) in enumerate(run_jobs(engine, task.jobs, methods, others, task.tripinfo_dir)):
