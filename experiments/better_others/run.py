@@ -20,6 +20,7 @@ import idas_sumo  # noqa: F401  (first: its OMP_WAIT_POLICY must be set before t
 
 # isort: split
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,11 +29,11 @@ import torch
 
 from idas_sumo.env.contracts import Policy
 from idas_sumo.env.engine import MergeEngine
-from idas_sumo.env.scenario import start_room_m
 from idas_sumo.evaluation.policies import learned_policy, resolve_policy
-from idas_sumo.evaluation.protocol import EvalConfig, eval_jobs, run_jobs, suite_cases
-from idas_sumo.resources import DEFAULT_NET
-from idas_sumo.sim.merge_detect import choose_merge
+from idas_sumo.evaluation.protocol import eval_jobs, run_jobs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "ego_ceiling"))
+from search import headline_cases  # the headline's cases, built as the ceiling search builds them
 
 COPIES = 16
 
@@ -87,13 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    site = choose_merge(DEFAULT_NET, None)
-    config = EvalConfig()
-    limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
-    lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
-    cases = suite_cases(
-        "paper", args.scenarios, args.seed, limits, config.traffic, lengths, start_room_m(site)
-    )
+    site, config, cases = headline_cases(args.seed, args.scenarios)
     frames = []
     for spec in args.others:
         label, path = _labelled(spec)

@@ -44,11 +44,21 @@ from idas_sumo.env.scenario import start_room_m
 from idas_sumo.evaluation.policies import LEARNED_METHODS, resolve_policy
 from idas_sumo.evaluation.protocol import EpisodeResult, EvalCase, EvalConfig, EvalJob, run_jobs, suite_cases
 from idas_sumo.resources import DEFAULT_NET, POLICY_DIR
-from idas_sumo.sim.merge_detect import choose_merge
+from idas_sumo.sim.merge_detect import MergeSite, choose_merge
 
 FORCED = "".join("1" if a == HARD_BRAKE else "0" for a in range(N_ACTIONS))
 """The allowed-actions string of a step where the mask leaves only the hard brake."""
 COPIES = 16
+
+
+def headline_cases(seed: int, scenarios: int) -> tuple[MergeSite, EvalConfig, list[EvalCase]]:
+    """The shipped merge, ``evaluate``'s default episode rules and the paper suite's cases of ``seed``."""
+    site = choose_merge(DEFAULT_NET, None)
+    config = EvalConfig()
+    limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
+    lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
+    cases = suite_cases("paper", scenarios, seed, limits, config.traffic, lengths, start_room_m(site))
+    return site, config, cases
 
 
 def _reference(paths: list[Path], seed: int) -> pd.DataFrame:
@@ -105,13 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    site = choose_merge(DEFAULT_NET, None)
-    config = EvalConfig()
-    limits = {"main": site.main.road.speed_limit_mps, "merge": site.merge.road.speed_limit_mps}
-    lengths = {"main": site.main.length_m, "merge": site.merge.length_m}
-    cases = suite_cases(
-        "paper", args.scenarios, args.seed, limits, config.traffic, lengths, start_room_m(site)
-    )
+    site, config, cases = headline_cases(args.seed, args.scenarios)
     chosen = _chosen(cases, _reference(args.reference, args.seed), args.controls)
     samplers: dict[str, Policy] = {
         name: ActorPolicy(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
 
@@ -151,8 +153,24 @@ def observe_own_lane(
     ``car_row``), the acceleration it drives with (``car_accel``), its road's priority in its copy
     (``prio_by_road[copy, road]``) and ``own_lane_action_masks`` of those rows. ``row_copy``: each snapshot
     row's copy (zeros in a one-copy snapshot)."""
-    by_dist = snap.by_distance
     return _observe_own_lane_kernel(
+        *_own_lane_operands(snap, row_copy, car_row, car_accel, agent_car, agent_copy, prio_by_road, params)
+    )
+
+
+def _own_lane_operands(
+    snap: TrafficSnapshot,
+    row_copy: IntArray,
+    car_row: IntArray,
+    car_accel: FloatArray,
+    agent_car: IntArray,
+    agent_copy: IntArray,
+    prio_by_road: FloatArray,
+    params: IDMParams,
+) -> tuple[Any, ...]:
+    """``_observe_own_lane_kernel``'s arguments (the first of ``_observe_own_lane_obs_kernel``'s)."""
+    by_dist = snap.by_distance
+    return (
         car_row,
         car_accel,
         agent_car,
@@ -190,31 +208,13 @@ def observe_own_lane_obs(
     """``observe_own_lane`` and the agents' observations, written into ``obs`` ((n, OBS_DIM) float32 zeros)
     as ``build_observations_checked`` writes them, in one compiled call (a single world's every step);
     then whether every scalar came out finite, and the speeds' spread (``speed_spread``)."""
-    by_dist = snap.by_distance
     # The kernel fills arrays handed in rather than returning four (each returned array costs about 0.5 µs
     # of boxing): the rows, the accelerations and priorities as two rows of one array, the masks.
     n = len(agent_car)
     egos, floats, masks = np.empty(n, dtype=np.int64), np.empty((2, n)), np.empty((n, N_ACTIONS), np.int8)
-    finite, spread = _observe_own_lane_obs_kernel(
-        car_row,
-        car_accel,
-        agent_car,
-        agent_copy,
-        prio_by_road,
-        row_copy,
-        by_dist.starts,
-        snap.road,
-        snap.dist_to_merge_m,
-        snap.length_m,
-        snap.speed_mps,
-        snap.speed_limit_mps,
-        by_dist.order,
-        by_dist.sorted_dist,
-        params.max_accel_mps2,
-        params.comfortable_decel_mps2,
-        params.min_gap_m,
-        params.time_headway_s,
-        params.delta,
+    obs_kernel: Any = _observe_own_lane_obs_kernel  # (mypy cannot count the arguments a star hands on)
+    finite, spread = obs_kernel(
+        *_own_lane_operands(snap, row_copy, car_row, car_accel, agent_car, agent_copy, prio_by_road, params),
         b_type,
         obs,
         _SCALES,
