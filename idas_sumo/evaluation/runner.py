@@ -237,7 +237,8 @@ def _settings(req: EvalRequest, others: str, eval_config: EvalConfig, env: EnvCo
         "seed": req.seed,
         "others": others,
         "policy": str(req.policy) if req.policy is not None else None,
-        "others_policy": str(req.others_policy) if req.others_policy is not None else None,
+        # Only when given: a record without it reads as before (the replay record names the file either way).
+        **({"others_policy": str(req.others_policy)} if req.others_policy is not None else {}),
         "config": str(req.config) if req.config is not None else None,
         "traffic": asdict(eval_config.traffic),
         "max_episode_s": env.max_episode_s,
