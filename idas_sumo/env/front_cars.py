@@ -10,7 +10,7 @@ import numpy.typing as npt
 from idas_sumo.env.actions import N_ACTIONS, SafetyMask, _action_masks_kernel, safety_bound
 from idas_sumo.env.jit import kernel
 from idas_sumo.env.layout import VISIBILITY_M
-from idas_sumo.env.observation import _NO_COPY, _SCALES, _observations_kernel, speed_spread
+from idas_sumo.env.observation import _SCALES, _observations_kernel, copy_operands, speed_spread
 from idas_sumo.env.rewards import MERGE_ZONE_RADIUS_M
 from idas_sumo.env.snapshot import (
     MERGE,
@@ -218,9 +218,7 @@ def observe_own_lane_obs(
         b_type,
         obs,
         _SCALES,
-        _NO_COPY if snap.copy is None else snap.copy,
-        snap.longest_m,
-        snap.copy is None or snap.copy_bounds is not None,
+        *copy_operands(snap),
         egos,
         floats,
         masks,

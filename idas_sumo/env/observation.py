@@ -145,7 +145,6 @@ def build_observations_checked(
         return obs, True
     egos = np.ascontiguousarray(egos, dtype=np.int64)
     by_dist = snapshot.by_distance
-    row_copy = _NO_COPY if snapshot.copy is None else np.ascontiguousarray(snapshot.copy, dtype=np.int64)
     # The scalars, then the grids straight into the rows (``_draw_grids``), in one compiled call that also
     # finds each ego's span of the distance order (``walk_start``'s).
     finite = _observations_kernel(
@@ -162,15 +161,20 @@ def build_observations_checked(
         by_dist.order,
         by_dist.sorted_dist,
         by_dist.starts,
-        row_copy,
-        snapshot.longest_m,
-        snapshot.copy is None or snapshot.copy_bounds is not None,
+        *copy_operands(snapshot),
     )
     return obs, bool(finite)
 
 
 _NO_COPY = np.zeros(0, dtype=np.int64)
 """``_observations_kernel``'s row copies of a one-copy snapshot (every ego's span is every row)."""
+
+
+def copy_operands(snapshot: TrafficSnapshot) -> tuple[npt.NDArray[np.int64], float, bool]:
+    """``_observations_kernel``'s last three arguments: each row's copy (``_NO_COPY`` in a one-copy snapshot), the
+    longest car, and whether the rows come copy by copy."""
+    row_copy = _NO_COPY if snapshot.copy is None else np.ascontiguousarray(snapshot.copy, dtype=np.int64)
+    return row_copy, snapshot.longest_m, snapshot.copy is None or snapshot.copy_bounds is not None
 
 
 @kernel
