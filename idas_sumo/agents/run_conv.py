@@ -50,6 +50,19 @@ def _next_nonzero(bits: npt.NDArray[np.uint32], c: int, end: int) -> int:
 _next_nonzero_kernel = kernel(_next_nonzero)
 
 
+def _run_end(values: npt.NDArray[np.float32], base: int, c: int, cells: int) -> int:
+    """The end (exclusive, counted from ``base``) of the run of cells equal to cell ``c`` of the grid row that
+    starts at ``values[base]`` and holds ``cells`` cells."""
+    v = values[base + c]
+    e = c + 1
+    while e < cells and values[base + e] == v:
+        e += 1
+    return e
+
+
+_run_end_kernel = kernel(_run_end)
+
+
 def _runs(
     obs: npt.NDArray[np.float32], first: int, rows_in: int, cells: int, piece: int, capacity: int
 ) -> tuple[
@@ -72,9 +85,7 @@ def _runs(
             c = _next_nonzero_kernel(row_bits, base, base + cells) - base
             while c < cells:
                 v = row[base + c]
-                e = c + 1
-                while e < cells and row[base + e] == v:
-                    e += 1
+                e = _run_end_kernel(row, base, c, cells)
                 for s in range(c, e, piece):
                     if j == capacity:
                         return table_row[:j], value[:j], grid_row[:j], start[:j], False
@@ -212,9 +223,7 @@ def _add_conv_row(
         c = _next_nonzero_kernel(grid_bits, base, base + cells_in) - base
         while c < cells_in:
             v = grids[base + c]
-            e = c + 1
-            while e < cells_in and grids[base + e] == v:
-                e += 1
+            e = _run_end_kernel(grids, base, c, cells_in)
             for start in range(c, e, piece):
                 r = (min(piece, e - start) - 1) * rows_in + i
                 first = start - lead
