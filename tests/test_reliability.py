@@ -830,3 +830,26 @@ def test_workers_start_run_their_entry_and_stop() -> None:
     procs = list(pool.procs)
     pool.close()
     assert [p.returncode for p in procs] == [0, 0]
+
+
+def test_ctrl_c_caught_inside_exec_source_still_exits_130_under_python_m(tmp_path: Path) -> None:
+    """A Ctrl-C that lands in source run by ``exec`` (a dataclass built during an import) marked the
+    interpreter's Ctrl-C as unhandled though the command caught it: ``python -m`` then died of SIGINT
+    (returncode -2) after printing the usual line, in about one run of twenty while workers started."""
+    (tmp_path / "exec_stop.py").write_text(
+        "import os, signal, sys, time\n"
+        "from idas_sumo import cli\n"
+        "from idas_sumo.cli import netgen as command\n"
+        "def netgen(args):\n"
+        "    exec('os.kill(os.getpid(), signal.SIGINT)\\ntime.sleep(0.3)')\n"
+        "    return 0\n"
+        "command.run = netgen\n"
+        "sys.argv = ['idas-sumo', 'netgen', '--out', 'n.net.xml']\n"
+        "sys.exit(cli.main())\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+    result = subprocess.run(
+        [sys.executable, "-m", "exec_stop"], capture_output=True, text=True, cwd=tmp_path, env=env
+    )
+    assert result.returncode == 130, result.stderr
+    assert result.stderr.splitlines() == ["idas-sumo: interrupted; completed outputs were kept"]

@@ -10,7 +10,13 @@ from types import ModuleType
 
 from idas_sumo.cli import cosim, evaluate, export, netgen, nets, plot, replay, sweep, train
 from idas_sumo.cli.common import Parser, VersionAction
-from idas_sumo.cli.exits import LateSignals, exit_code, in_main_thread, sigterm_as_interrupt
+from idas_sumo.cli.exits import (
+    LateSignals,
+    exit_code,
+    forget_caught_interrupt,
+    in_main_thread,
+    sigterm_as_interrupt,
+)
 
 __all__ = ["build_parser", "main"]
 
@@ -48,6 +54,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with ``argv`` (a caller in Python) the caller's signal handlers are left alone."""
     late = LateSignals() if argv is None and in_main_thread() else None
     code = exit_code(lambda: _parse_and_run(argv), late)
+    forget_caught_interrupt()
     return late.exit_code(code) if late is not None else code
 
 

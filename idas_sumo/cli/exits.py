@@ -77,6 +77,14 @@ def sigterm_as_interrupt() -> Iterator[None]:
                 signal.signal(signum, handler)
 
 
+def forget_caught_interrupt() -> None:
+    """Clear CPython's mark of an unhandled Ctrl-C. A KeyboardInterrupt raised inside source run by
+    ``exec`` (a dataclass or namedtuple being built during an import) sets that mark even when the
+    command catches it, and under ``python -m`` the interpreter then ends itself by SIGINT (returncode
+    -2) instead of with our exit code; evaluating any source clears the mark."""
+    exec("None")  # a constant source: the reset is all it is for
+
+
 def stopped(signum: int) -> int:
     """Say that a signal stopped the run; its exit code (130 for Ctrl-C, 143 for SIGTERM, ...)."""
     line = INTERRUPTED if signum == signal.SIGINT else TERMINATED.format(signal.Signals(signum).name)
