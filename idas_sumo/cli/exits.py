@@ -56,8 +56,8 @@ def sigterm_as_interrupt() -> Iterator[None]:
         stops.raise_stop(Terminated(signum))
 
     handlers: dict[int, Callable[[int, object], None]] = dict.fromkeys(STOP_SIGNALS, terminate)
-    # Ctrl-C keeps Python's own handler: recording it too made a stopped `train --workers 2` die of a
-    # late SIGINT in CI (returncode -2, cause not found); a swallowed Ctrl-C stays possible.
+    # Ctrl-C keeps Python's own handler, so a Ctrl-C that Python swallows stays possible. (Its returncode
+    # -2 in CI, once blamed on recording it here, was CPython's mark: ``forget_caught_interrupt``.)
     previous = {
         signum: signal.signal(signum, handler)
         for signum, handler in handlers.items()
