@@ -469,12 +469,16 @@ class _Collector:
     def __init__(self, n_jobs: int) -> None:
         self.recorders = [_EpisodeRecorder() for _ in range(n_jobs)]
         self.episodes: dict[int, EpisodeData] = {}
+        self.agent_slots = np.zeros(0, dtype=np.int64)
+        """The last decided batch's agents' state slots (``MergeEngine.state_slots``)."""
 
     def decided(
         self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: npt.NDArray[np.int64]
     ) -> None:
-        for k in np.unique(batch.copy).tolist():
-            self.recorders[jobs[k]].state = engine.state(k)
+        copies = np.unique(batch.copy)
+        for k, state in zip(copies.tolist(), engine.states(copies), strict=True):
+            self.recorders[jobs[k]].state = state
+        self.agent_slots = engine.state_slots(batch.egos)  # read before the step replaces the snapshot
 
     def stepped(
         self,
@@ -487,12 +491,7 @@ class _Collector:
         if not len(batch):
             return
         copy = batch.copy
-        slots = engine.slots
-        agent_slots = np.fromiter(
-            (slots[k].state_slot.get(a, -1) for k, a in zip(copy.tolist(), batch.ids, strict=True)),
-            dtype=np.int64,
-            count=len(batch),
-        )
+        agent_slots = self.agent_slots
         others = _others_actions(copy, agent_slots, result.applied)
         # Each copy's rows as one slice of the step's arrays (the batch lists its agents copy by copy; else
         # sorted so, stably): views, where a row index per copy copied every column.

@@ -11,7 +11,6 @@ import numpy.typing as npt
 from idas_sumo.env.outcome import EpisodeOutcome
 from idas_sumo.env.scenario import Scenario, VehicleSpec
 from idas_sumo.env.snapshot import MAIN, MERGE, TrafficSnapshot
-from idas_sumo.env.state_layout import STATE_SLOTS
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -26,19 +25,18 @@ class _Slot:
     spec: dict[str, VehicleSpec]
     order: dict[str, int]
     """Vehicle id -> its index in the scenario."""
-    state_slot: dict[str, int]
     outcome: EpisodeOutcome
     over: bool = False
     started: bool = False
 
     @staticmethod
     def of(scenario: Scenario) -> _Slot:
-        """A fresh episode of ``scenario``; its first STATE_SLOTS cars have a row in the critic's state."""
+        """A fresh episode of ``scenario`` (its first STATE_SLOTS cars have a row in the critic's state:
+        ``MergeEngine.state_slots``)."""
         return _Slot(
             scenario=scenario,
             spec={v.id: v for v in scenario.vehicles},
             order={v.id: i for i, v in enumerate(scenario.vehicles)},
-            state_slot={v.id: i for i, v in enumerate(scenario.vehicles) if i < STATE_SLOTS},
             outcome=EpisodeOutcome(scenario),
         )
 

@@ -71,7 +71,7 @@ from idas_sumo.env.scoring import (
 )
 from idas_sumo.env.snapshot import DistanceOrder, TrafficSnapshot
 from idas_sumo.env.solo import _SoloBackend
-from idas_sumo.env.state_layout import critic_state
+from idas_sumo.env.state_layout import STATE_SLOTS, critic_states
 from idas_sumo.errors import SimulationError
 from idas_sumo.sim.backend import (
     STEP_LENGTH_S,
@@ -621,9 +621,30 @@ class MergeEngine:
 
     def state(self, k: int) -> npt.NDArray[np.float32]:
         """Slot k's global state for the centralised critic (layout in ``env/state_layout.py``)."""
-        slot, rows = self.slots[k], self.rows_of(k)
-        acting = self._cars.state[self._car[rows]] == ACTIVE
-        return critic_state(self.snapshot, rows, slot.state_slot, slot.spec, self._prio_by_road[k], acting)
+        return self.states(np.array([k]))[0]
+
+    def state_slots(self, egos: IntArray) -> IntArray:
+        """The state slot (``env/state_layout.py``) of the car at each row ``egos`` of ``snapshot``: its place
+        in its scenario, or -1 past STATE_SLOTS (it has none)."""
+        cars = self._cars
+        car = self._car[egos]
+        slot = car - cars.first[cars.copy[car]]
+        out: IntArray = np.where(slot < STATE_SLOTS, slot, -1)
+        return out
+
+    def states(self, copies: IntArray) -> npt.NDArray[np.float32]:
+        """``state(k)`` of each k of ``copies``, one row each, in one compiled call."""
+        cars = self._cars
+        return critic_states(
+            self.snapshot,
+            self._bounds,
+            copies,
+            self._car,
+            cars.first,
+            cars.b_type,
+            cars.state == ACTIVE,
+            self._prio_by_road,
+        )
 
     # -- stepping: simulate -> observe -> score -> terminate -> info ----------------------------
     def step(self, actions: npt.ArrayLike) -> StepResult:

@@ -13,14 +13,12 @@ critic gets besides the state (the other agents' actions, its own slot) is agent
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import numpy as np
 import numpy.typing as npt
 
+from idas_sumo.env.jit import kernel
 from idas_sumo.env.layout import ACCEL_SCALE_MPS2, B_TYPE_SCALE, DIST_SCALE_M, SPEED_SCALE_MPS
-from idas_sumo.env.scenario import VehicleSpec
-from idas_sumo.env.snapshot import MAIN, MERGE, OUT, TrafficSnapshot
+from idas_sumo.env.snapshot import MAIN, MERGE, OUT, FloatArray, IntArray, TrafficSnapshot
 
 # 8 learning agents in stage 2 plus room for SUMO's own cars in stage 1 (2 to 8 per road).
 STATE_SLOTS = 16
@@ -40,35 +38,72 @@ STATE_FEATURES = len(STATE_FEATURE_NAMES)  # 10
 STATE_DIM = STATE_SLOTS * STATE_FEATURES  # 160
 
 
-def critic_state(
+def critic_states(
     snap: TrafficSnapshot,
-    rows: slice,
-    place: Mapping[str, int],
-    spec: Mapping[str, VehicleSpec],
-    prio_by_road: npt.NDArray[np.float64],
+    bounds: IntArray,
+    copies: IntArray,
+    car: IntArray,
+    first: IntArray,
+    b_type: FloatArray,
     acting: npt.NDArray[np.bool_],
+    prio_by_road: FloatArray,
 ) -> npt.NDArray[np.float32]:
-    """One episode's state: its cars (``rows`` of ``snap``) that have a ``place``, each in its slot.
+    """The state of each of ``copies`` (rows of the result, STATE_DIM each): the copy's cars (rows
+    ``bounds[k]:bounds[k + 1]`` of ``snap``), car ``car[i]`` of row i in the slot of its place in its
+    scenario (``car[i] - first[k]``; cars past STATE_SLOTS are left out).
 
-    ``prio_by_road``: b_prio of MAIN, MERGE and OUT; ``acting``: per row of ``rows``, whether the car is an
-    agent still acting (the ``controlled`` feature)."""
-    state = np.zeros((STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
-    for i in range(rows.start, rows.stop):
-        vid = snap.ids[i]
-        slot = place.get(vid)
-        if slot is None:
-            continue
-        road = int(snap.road[i])
-        state[slot] = (
-            1.0,
-            road == MAIN,
-            road == MERGE,
-            road == OUT,
-            snap.dist_to_merge_m[i] / DIST_SCALE_M,
-            snap.speed_mps[i] / SPEED_SCALE_MPS,
-            snap.accel_mps2[i] / ACCEL_SCALE_MPS2,
-            prio_by_road[road],
-            spec[vid].b_type / B_TYPE_SCALE,
-            float(acting[i - rows.start]),
-        )
-    return state.reshape(STATE_DIM)
+    ``b_type``, ``acting`` (an agent still acting: the ``controlled`` feature): per car;
+    ``prio_by_road``: (K, 3), each copy's b_prio of MAIN, MERGE and OUT. One compiled loop over every
+    copy of a step: a car's row was a Python tuple."""
+    out = np.zeros((len(copies), STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
+    _critic_states_kernel(
+        snap.road,
+        snap.dist_to_merge_m,
+        snap.speed_mps,
+        snap.accel_mps2,
+        bounds,
+        np.ascontiguousarray(copies, dtype=np.int64),
+        car,
+        first,
+        b_type,
+        acting,
+        prio_by_road,
+        out,
+    )
+    return out.reshape(len(copies), STATE_DIM)
+
+
+@kernel
+def _critic_states_kernel(
+    road: IntArray,
+    dist: FloatArray,
+    speed: FloatArray,
+    accel: FloatArray,
+    bounds: IntArray,
+    copies: IntArray,
+    car: IntArray,
+    first: IntArray,
+    b_type: FloatArray,
+    acting: npt.NDArray[np.bool_],
+    prio_by_road: FloatArray,
+    out: npt.NDArray[np.float32],
+) -> None:
+    for j in range(len(copies)):
+        k = copies[j]
+        for i in range(bounds[k], bounds[k + 1]):
+            c = car[i]
+            slot = c - first[k]
+            if slot >= STATE_SLOTS:
+                continue
+            r = road[i]
+            row = out[j, slot]
+            row[0] = 1.0
+            row[1] = r == MAIN
+            row[2] = r == MERGE
+            row[3] = r == OUT
+            row[4] = dist[i] / DIST_SCALE_M
+            row[5] = speed[i] / SPEED_SCALE_MPS
+            row[6] = accel[i] / ACCEL_SCALE_MPS2
+            row[7] = prio_by_road[k, r]
+            row[8] = b_type[c] / B_TYPE_SCALE
+            row[9] = acting[c]
