@@ -332,3 +332,38 @@ def test_built_is_the_dataclass_made_by_its_init() -> None:
         built(DistanceOrder, order=order, sorted_dist=dist, starts=starts, extra=1)
     with pytest.raises(AttributeError):  # still frozen
         made.order = order  # type: ignore[misc]
+
+
+def test_critic_states_place_each_car_in_its_slot_with_hand_worked_features() -> None:
+    """Copy 0 holds cars 0-17, copy 1 cars 18-23. On the road: copy 0's car 0 (slot 0, outgoing road) and
+    car 17 (past the 16 slots: left out), copy 1's car 20 (slot 2, merge road, acting). The states come
+    in the order asked for (copy 1, then copy 0)."""
+    from idas_sumo.env.snapshot import MERGE, OUT
+    from idas_sumo.env.state_layout import STATE_DIM, STATE_FEATURES, STATE_SLOTS, critic_states
+
+    snap = TrafficSnapshot(
+        ids=("v0", "v17", "v2"),
+        road=np.array([OUT, MAIN, MERGE]),
+        dist_to_merge_m=np.array([-25.0, 50.0, 125.0]),
+        speed_mps=np.array([5.0, 1.0, 10.0]),
+        accel_mps2=np.array([1.0, 0.0, -2.0]),
+        length_m=np.full(3, 5.0),
+        speed_limit_mps=np.full(3, 20.0),
+    )
+    bounds, first, car = np.array([0, 2, 3]), np.array([0, 18, 24]), np.array([0, 17, 20])
+    b_type = np.zeros(24)
+    b_type[0], b_type[20] = 2.0, 1.0
+    acting = np.zeros(24, dtype=np.bool_)
+    acting[20] = True
+    prio_by_road = np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
+    states = critic_states(snap, bounds, np.array([1, 0]), car, first, b_type, acting, prio_by_road)
+
+    assert states.shape == (2, STATE_DIM) and states.dtype == np.float32
+    copy1, copy0 = states.reshape(2, STATE_SLOTS, STATE_FEATURES)
+    # present, main, merge, out, 125 / 250 m, 10 / 20 m/s, -2 / 4 m/s², copy 1's b_prio on MERGE, 1 / 2, acting
+    expected = np.array([1, 0, 1, 0, 0.5, 0.5, -0.5, 1.0, 0.5, 1], dtype=np.float32)
+    np.testing.assert_array_equal(copy1[2], expected)
+    assert not np.delete(copy1, 2, axis=0).any()
+    expected = np.array([1, 0, 0, 1, -0.1, 0.25, 0.25, 1.0, 1.0, 0], dtype=np.float32)
+    np.testing.assert_array_equal(copy0[0], expected)
+    assert not copy0[1:].any(), "car 17 has no slot"
