@@ -43,6 +43,7 @@ from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint, s
 from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig, ValidationCriterion
 from idas_sumo.training.curriculum import StagePlan, plan_stages
 from idas_sumo.training.geometry import GEOMETRY_COLUMNS, GeometryConfig, draw_geometry, geometry_corners
+from idas_sumo.training.heap import keep_freed_blocks
 from idas_sumo.training.metrics import METRICS_NAME, TENSORBOARD_DIR, MetricsSink
 from idas_sumo.training.validation import (
     VALIDATION_COLUMNS,
@@ -92,6 +93,7 @@ def run_training(
     """
     out_dir = Path(out_dir)
     net_path = net.path if isinstance(net, MergeSite) else Path(net)
+    keep_freed_blocks()
     _check_request(net_path, config, out_dir, resume=resume, gui=gui, force=force, ray_address=ray_address)
     resumed = _read_resume_point(out_dir) if resume else None
     if resumed is not None:

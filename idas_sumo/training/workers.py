@@ -58,6 +58,7 @@ from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed
 from idas_sumo.training.config import EPISODES_PER_WORKER
+from idas_sumo.training.heap import keep_freed_blocks
 
 __all__ = [
     "EpisodeTask",
@@ -418,6 +419,7 @@ class RolloutServer:
     def __init__(self, init: tuple[MergeSite, EnvConfig, int, int]) -> None:
         site, env_config, seed, copies = init
         torch.set_num_threads(1)
+        keep_freed_blocks()
         self.engines = _NetEngine(site, env_config, seed, copies)
         self.learner = Learner(LearnerConfig(), seed=0)
         self._pending: list[PendingPart] = []
