@@ -53,8 +53,8 @@ def critic_states(
     scenario (``car[i] - first[k]``; cars past STATE_SLOTS are left out).
 
     ``b_type``, ``acting`` (an agent still acting: the ``controlled`` feature): per car;
-    ``prio_by_road``: (K, 3), each copy's b_prio of MAIN, MERGE and OUT. One compiled loop over every
-    copy of a step: a car's row was a Python tuple."""
+    ``prio_by_road``: (K, 3), each copy's b_prio of MAIN, MERGE and OUT. One compiled call for every copy
+    of a step: a rollout records them all at each step."""
     out = np.zeros((len(copies), STATE_SLOTS, STATE_FEATURES), dtype=np.float32)
     _critic_states_kernel(
         snap.road,
