@@ -156,6 +156,11 @@ def interrupt_when(
     return str(stderr)
 
 
+def evaluate_args(out: Path, net: Path, *extra: str) -> list[str]:
+    """``idas-sumo evaluate`` of IDM on ``net`` into ``out``, no progress bar, then ``extra``."""
+    return ["evaluate", "--baseline", "idm", "--net", str(net), "--out", str(out), "--no-progress", *extra]
+
+
 def main_in_process(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
     """``idas_sumo.cli.main`` in this process: (exit code, stdout, stderr)."""
     from idas_sumo.cli import main

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import interrupt_when, run_cli
+from conftest import evaluate_args, interrupt_when, run_cli
 
 from idas_sumo.cli import build_parser, main
 from idas_sumo.cli.evaluate import MISSING
@@ -37,10 +37,6 @@ def assert_one_line(stderr: str, *needles: str) -> str:
     for needle in needles:
         assert needle in line, f"{needle!r} not in {line!r}"
     return line
-
-
-def evaluate_args(out: Path, net: Path, *extra: str) -> list[str]:
-    return ["evaluate", "--baseline", "idm", "--net", str(net), "--out", str(out), "--no-progress", *extra]
 
 
 # --- methods ----------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import evaluate_args
 
 from idas_sumo.cli import main
 from idas_sumo.evaluation.metrics import (
@@ -566,12 +567,11 @@ def test_others_policy_replaces_the_others_file_in_process_and_in_workers(
     F, so that a replay loads the very weights the others ran."""
     import json
 
-    common = ["evaluate", "--net", str(net_path), "--baseline", "idm", "--scenarios", "3", "--no-progress"]
     by_name, by_file = tmp_path / "by_name", tmp_path / "by_file"
-    assert main([*common, "--out", str(by_name), "--others", "idas_v"]) == 0
+    assert main(evaluate_args(by_name, net_path, "--scenarios", "3", "--others", "idas_v")) == 0
     idas_v = shipped("policies/idas_v.pt")
     others_policy = ["--others", "idas", "--others-policy", str(idas_v), "--workers", "2"]
-    assert main([*common, "--out", str(by_file), *others_policy]) == 0
+    assert main(evaluate_args(by_file, net_path, "--scenarios", "3", *others_policy)) == 0
     for name in CSV_NAMES:
         a, b = pd.read_csv(by_name / name), pd.read_csv(by_file / name)
         pd.testing.assert_frame_equal(a, b)
@@ -583,17 +583,8 @@ def test_others_policy_replaces_the_others_file_in_process_and_in_workers(
 def test_others_policy_for_rule_based_others_is_refused(
     tmp_path: Path, net_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    args = [
-        "evaluate",
-        "--net",
-        str(net_path),
-        "--baseline",
-        "idm",
-        "--out",
-        str(tmp_path / "out"),
-        "--no-progress",
-    ]
-    assert main([*args, "--others", "idm", "--others-policy", str(shipped("policies/idas.pt"))]) == 2
+    args = evaluate_args(tmp_path / "out", net_path, "--others", "idm")
+    assert main([*args, "--others-policy", str(shipped("policies/idas.pt"))]) == 2
     err = capsys.readouterr().err
     assert "--others-policy" in err and "idm" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
