@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from idas_sumo.agents import networks
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_onehot
 from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
 from idas_sumo.agents.networks import (
@@ -22,6 +23,7 @@ from idas_sumo.agents.networks import (
     ObsWindows,
     ValueCritic,
 )
+from idas_sumo.agents.run_blocks import BlockedConvLayer
 from idas_sumo.agents.run_conv import PIECES_PER_ROW_GUESS, RunPieces
 from idas_sumo.env.actions import HARD_BRAKE, N_ACTIONS, RELEASE_BRAKE
 from idas_sumo.env.layout import GRID_CELLS, N_SCALARS, OBS_DIM
@@ -94,15 +96,18 @@ def test_encoder_sees_each_lane_and_the_scalars() -> None:
 
 
 def _assert_matches_conv2d(enc: GridEncoder, obs: torch.Tensor) -> None:
-    """``enc``'s fast path gives the plain conv2d path's outputs and parameter gradients on ``obs``."""
-    fast, ref = enc(obs), enc.reference_forward(obs)
-    # Float32 sums of ~1500 terms in another order: equal to a few ulps of the output's scale.
-    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6 * float(ref.detach().abs().max()))
+    """``enc``'s fast paths (acting's, and the learner's over the reached blocks) give the plain conv2d path's
+    outputs and parameter gradients on ``obs``."""
+    ref = enc.reference_forward(obs)
     weights = torch.randn_like(ref)
-    grads = [torch.autograd.grad((out * weights).sum(), list(enc.parameters())) for out in (fast, ref)]
-    for name_param, g_fast, g_ref in zip(enc.named_parameters(), *grads, strict=True):
-        scale = float(g_ref.abs().max())
-        torch.testing.assert_close(g_fast, g_ref, rtol=1e-5, atol=1e-6 * scale, msg=name_param[0])
+    ref_grads = torch.autograd.grad((ref * weights).sum(), list(enc.parameters()))
+    for fast in (enc(obs), enc(ObsWindows(obs, blocks=True))):
+        # Float32 sums of ~1500 terms in another order: equal to a few ulps of the output's scale.
+        torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6 * float(ref.detach().abs().max()))
+        grads = torch.autograd.grad((fast * weights).sum(), list(enc.parameters()))
+        for name_param, g_fast, g_ref in zip(enc.named_parameters(), grads, ref_grads, strict=True):
+            scale = float(g_ref.abs().max())
+            torch.testing.assert_close(g_fast, g_ref, rtol=1e-5, atol=1e-6 * scale, msg=name_param[0])
 
 
 def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
@@ -121,6 +126,9 @@ def test_fast_encoder_matches_conv2d_forward_and_gradients() -> None:
     torch.testing.assert_close(enc(edge), enc.reference_forward(edge), rtol=1e-5, atol=1e-5)
     assert not torch.allclose(enc(edge), enc(torch.zeros(1, OBS_DIM)))
     assert enc(torch.zeros(0, OBS_DIM)).shape == (0, enc(edge).shape[1])  # no agents acting this step
+    by_blocks = enc(ObsWindows(edge, blocks=True))  # the edge cell is in the last, partial block
+    torch.testing.assert_close(by_blocks, enc.reference_forward(edge), rtol=1e-5, atol=1e-5)
+    assert enc(ObsWindows(torch.zeros(0, OBS_DIM), blocks=True)).shape == (0, by_blocks.shape[1])
 
 
 def test_fast_encoder_on_mostly_empty_road_matches_conv2d_gradients() -> None:
@@ -202,6 +210,32 @@ def test_conv_of_one_run_is_its_overlap_with_each_window(
         want = torch.full((2, 2), max(1.5 + summed, 0.0))
         torch.testing.assert_close(conv[0, :, :, cell], want, rtol=0, atol=1e-5, msg=f"cell {cell}")
     torch.testing.assert_close(enc(obs), enc.reference_forward(obs), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(("bias", "total", "passing"), [(1.5, 2886.0, 371), (-1.0, 504.0, 36)])
+def test_blocked_conv_layer_sums_relu_conv_times_the_weight_by_hand(
+    bias: float, total: float, passing: int
+) -> None:
+    """Hand-worked, through the learner's path (``BlockedConvLayer``): with a kernel of ones and every weight 1,
+    the layer's output is the sum of ReLU(conv) over the 4 · 371 conv outputs, and its gradient by each of the 4
+    conv biases is the number of outputs whose ReLU passes. A car of 11 cells of 0.5 at cells 100..110: the
+    window from p reads 1..10 of its cells for p = 71..80, all 11 for p = 81..100, 10..1 for p = 101..110.
+    Bias 1.5: every output passes, 4 · (371 · 1.5 + 0.5 · 11 · 30) = 2886. Bias -1: only windows reading 3 or
+    more cells pass (p = 73..108, 36 of them), 4 · (2 · Σ_{n=3..10} (0.5 n - 1) + 20 · 4.5) = 4 · 126 = 504."""
+    enc = _ones_kernel_encoder(bias)
+    obs = torch.zeros(1, OBS_DIM)
+    obs[0, N_SCALARS + 100 : N_SCALARS + 111] = 0.5
+    runs = ObsWindows(obs, blocks=True).chunks[0]
+    operands = enc._operands()
+    weight = torch.ones_like(operands.joint_conv_weight[:, :1]).requires_grad_()
+    conv_bias = operands.bias.detach().clone().requires_grad_()
+    out = BlockedConvLayer.apply(
+        operands.run_table.detach(), conv_bias, weight, runs.pieces, 1, networks._GEOMETRY
+    )
+    torch.testing.assert_close(out, torch.tensor([[total]]), rtol=1e-6, atol=1e-4)
+    grad_bias, grad_weight = torch.autograd.grad(out.sum(), (conv_bias, weight))
+    torch.testing.assert_close(grad_bias, torch.full((4,), float(passing)))
+    assert float(grad_weight.sum()) == pytest.approx(total)  # d out / d w_k is ReLU(conv)_k
 
 
 def test_conv_of_touching_runs_and_both_lanes_adds_up() -> None:

@@ -703,7 +703,7 @@ class Learner:
         ∇J1): the TD error, or GAE over it."""
         cfg = self.config
         reward, done = b.reward.float(), b.done.float()
-        obs = ObsWindows(b.obs)
+        obs = ObsWindows(b.obs, blocks=True)
         values = self.value(obs)
         next_index = None if b.next_row is None else self._next_index(b)
         with torch.no_grad():

@@ -19,6 +19,7 @@ from torch.distributions import Categorical
 
 from idas_sumo.agents.coma import coma_advantage
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
+from idas_sumo.agents.run_blocks import BlockedConvLayer, ConvGeometry
 from idas_sumo.agents.run_conv import RunConv, RunPieces, actor_logits
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import GRID_CELLS, N_CHANNELS, N_LANES, N_SCALARS, OBS_DIM
@@ -81,6 +82,7 @@ RUN_PIECE = 16
 _REACH = RUN_PIECE + KERNEL_CELLS - 1  # output cells one piece reaches: 45
 _ROWS_IN = N_LANES * N_CHANNELS  # (lane, channel) rows, in the observation's own order
 _ROWS_OUT = CONV_FILTERS * CONV_OUT_LANES  # (filter, output row)
+_GEOMETRY = ConvGeometry(cells=CONV_OUT_CELLS, outs=_ROWS_OUT, reach=_REACH, lead=KERNEL_CELLS - 1)
 
 
 def _box_taps() -> torch.Tensor:
@@ -166,13 +168,17 @@ class ObsWindows:
 
     The learner runs the actor, V and (with one-step targets) V̂ on the same rows; finding the runs depends on
     the observations only, so the networks compute what they would from ``obs``, bit for bit. Batches above
-    ``ENCODER_CHUNK_ROWS`` are cut in chunks of that many rows.
+    ``ENCODER_CHUNK_ROWS`` are cut in chunks of that many rows. ``blocks``: the encoders compute the conv and
+    the first joint layer over only the blocks of cells the cars reach (agents/run_blocks.py), which pays on
+    a learner's batch of thousands of rows; acting's few dozen rows a call take the other path (the same
+    function, floats differing in the last bits).
     """
 
-    def __init__(self, obs: torch.Tensor) -> None:
+    def __init__(self, obs: torch.Tensor, blocks: bool = False) -> None:
         if obs.ndim != 2 or obs.shape[-1] != OBS_DIM:
             raise ValueError(f"observation must have {OBS_DIM} features, got {tuple(obs.shape)}")
         self.obs = obs
+        self.blocks = blocks
         parts = (obs,) if obs.shape[0] <= ENCODER_CHUNK_ROWS else obs.split(ENCODER_CHUNK_ROWS)
         self.chunks = tuple(_RunChunk.of(part) for part in parts)
 
@@ -210,10 +216,11 @@ class GridEncoder(nn.Module):
         learner's networks share them)."""
         runs = obs if isinstance(obs, ObsWindows) else ObsWindows(obs)
         operands = self._operands()
+        layer = self._joint_input_layer_by_blocks if runs.blocks else self._joint_input_layer
         if len(runs.chunks) == 1:
-            first = self._joint_input_layer(runs.chunks[0], operands)
+            first = layer(runs.chunks[0], operands)
         else:
-            first = torch.cat([self._joint_input_layer(chunk, operands) for chunk in runs.chunks])
+            first = torch.cat([layer(chunk, operands) for chunk in runs.chunks])
         return self.joint[1:](first)
 
     def reference_forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -264,6 +271,22 @@ class GridEncoder(nn.Module):
         w_scalars = first.weight[:, :SCALAR_HIDDEN]
         out = torch.addmm(first.bias, self.scalars(runs.obs[:, :N_SCALARS]), w_scalars.t())
         return out.addmm_(self._conv(runs, operands), operands.joint_conv_weight)
+
+    def _joint_input_layer_by_blocks(self, runs: _RunChunk, operands: _ConvOperands) -> torch.Tensor:
+        """``_joint_input_layer`` with the conv and its columns over only the reached blocks of cells."""
+        first = self.joint[0]
+        assert isinstance(first, nn.Linear)
+        w_scalars = first.weight[:, :SCALAR_HIDDEN]
+        out = torch.addmm(first.bias, self.scalars(runs.obs[:, :N_SCALARS]), w_scalars.t())
+        conv: torch.Tensor = BlockedConvLayer.apply(
+            operands.run_table,
+            operands.bias,
+            operands.joint_conv_weight,
+            runs.pieces,
+            runs.obs.shape[0],
+            _GEOMETRY,
+        )
+        return out + conv
 
 
 # Ours: the initial policy's prior over actions. With uniform logits a fresh policy hard-brakes on one
