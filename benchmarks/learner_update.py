@@ -8,8 +8,9 @@ of ``--repeats`` after a warm-up:
 
 * *plain*: the encoder as written in the paper's terms (``GridEncoder.reference_forward``: conv2d, flatten,
   cat, Linear) and V(o') by its own forward pass on ``next_obs`` (``next_row`` left out);
-* *fast*: what training runs (``GridEncoder.forward``: the conv from the grids' runs, agents/run_conv.py; V(o')
-  read from the next row's V(o)).
+* *fast*: what training runs (``GridEncoder.forward`` on the learner's ``ObsWindows``: the conv from the grids'
+  runs and the first joint layer over the blocks of cells the cars reach, agents/run_conv.py and
+  agents/run_blocks.py; V(o') read from the next row's V(o)).
 """
 
 from __future__ import annotations
