@@ -264,20 +264,19 @@ class GridEncoder(nn.Module):
         )
         return conv.reshape(b, CONV_FEATURES)
 
-    def _joint_input_layer(self, runs: _RunChunk, operands: _ConvOperands) -> torch.Tensor:
-        """The first joint layer on cat(scalar features, conv features), without building the cat."""
+    def _scalar_part(self, runs: _RunChunk) -> torch.Tensor:
+        """The first joint layer's bias plus its product with the scalar features (its conv part comes next)."""
         first = self.joint[0]
         assert isinstance(first, nn.Linear)
         w_scalars = first.weight[:, :SCALAR_HIDDEN]
-        out = torch.addmm(first.bias, self.scalars(runs.obs[:, :N_SCALARS]), w_scalars.t())
-        return out.addmm_(self._conv(runs, operands), operands.joint_conv_weight)
+        return torch.addmm(first.bias, self.scalars(runs.obs[:, :N_SCALARS]), w_scalars.t())
+
+    def _joint_input_layer(self, runs: _RunChunk, operands: _ConvOperands) -> torch.Tensor:
+        """The first joint layer on cat(scalar features, conv features), without building the cat."""
+        return self._scalar_part(runs).addmm_(self._conv(runs, operands), operands.joint_conv_weight)
 
     def _joint_input_layer_by_blocks(self, runs: _RunChunk, operands: _ConvOperands) -> torch.Tensor:
         """``_joint_input_layer`` with the conv and its columns over only the reached blocks of cells."""
-        first = self.joint[0]
-        assert isinstance(first, nn.Linear)
-        w_scalars = first.weight[:, :SCALAR_HIDDEN]
-        out = torch.addmm(first.bias, self.scalars(runs.obs[:, :N_SCALARS]), w_scalars.t())
         conv: torch.Tensor = BlockedConvLayer.apply(
             operands.run_table,
             operands.bias,
@@ -286,7 +285,7 @@ class GridEncoder(nn.Module):
             runs.obs.shape[0],
             _GEOMETRY,
         )
-        return out + conv
+        return self._scalar_part(runs) + conv
 
 
 # Ours: the initial policy's prior over actions. With uniform logits a fresh policy hard-brakes on one
