@@ -25,6 +25,9 @@ from idas_sumo.env.jit import kernel
 
 __all__ = ["BLOCK_CELLS", "BlockedConvLayer", "ConvGeometry"]
 
+Pieces = tuple[npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64]]
+"""``RunPieces``' arrays as the kernels take them: table row, value, batch row, first cell."""
+
 BLOCK_CELLS = 16
 """Output cells per block (16 cells · 4 outputs = 64 columns a product). Measured on a rollout-like batch of
 2,048 rows, the three products took 4.5 ms with blocks of 16 cells against 6.3 ms with 32 and 18 ms dense."""
@@ -85,9 +88,7 @@ def _reached_pairs(
 def _forward_blocks(
     table: npt.NDArray[np.float32],
     bias: npt.NDArray[np.float32],
-    pieces: tuple[
-        npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64]
-    ],
+    pieces: Pieces,
     at: npt.NDArray[np.int64],
     cells: int,
     lead: int,
@@ -132,9 +133,7 @@ def _backward_blocks(
     grad: npt.NDArray[np.float32],
     out: npt.NDArray[np.float32],
     table_rows: int,
-    pieces: tuple[
-        npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.int64], npt.NDArray[np.int64]
-    ],
+    pieces: Pieces,
     at: npt.NDArray[np.int64],
     cells: int,
     reach: int,

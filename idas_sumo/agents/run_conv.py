@@ -96,6 +96,15 @@ def _runs(
     return table_row[:j], value[:j], grid_row[:j], start[:j], True
 
 
+def _piece_span(first: int, outs: int, reach: int, cells: int) -> tuple[int, int]:
+    """The columns [lo, hi) of a piece's table row that land inside its grid row, the piece's first output cell
+    being ``first`` (negative: before the row starts)."""
+    return max(0, -first) * outs, min(reach, cells - first) * outs
+
+
+_piece_span_kernel = kernel(_piece_span)
+
+
 def _add_piece(
     summed: npt.NDArray[np.float32],
     table_row: npt.NDArray[np.float32],
@@ -105,9 +114,9 @@ def _add_piece(
     reach: int,
     cells: int,
 ) -> None:
-    """Add ``v`` times a piece's table row into a grid row's sums at output cell ``first`` (clipped to the
-    row). Over slices: written with the offsets inside the index, numba's loop did not vectorise (8x slower)."""
-    lo, hi = max(0, -first) * outs, min(reach, cells - first) * outs
+    """Add ``v`` times a piece's table row into a grid row's sums at output cell ``first``. Over slices: written
+    with the offsets inside the index, numba's loop did not vectorise (8x slower)."""
+    lo, hi = _piece_span_kernel(first, outs, reach, cells)
     dst, src = summed[first * outs + lo : first * outs + hi], table_row[lo:hi]
     for k in range(hi - lo):
         dst[k] += v * src[k]
@@ -124,7 +133,7 @@ def _add_piece_grad(
 ) -> None:
     """``_add_piece``'s gradient: ``v`` times the row's live gradient where the piece reaches, into its table
     row's gradient."""
-    lo, hi = max(0, -first) * outs, min(reach, cells - first) * outs
+    lo, hi = _piece_span_kernel(first, outs, reach, cells)
     dst, src = grad_row[lo:hi], live[first * outs + lo : first * outs + hi]
     for k in range(hi - lo):
         dst[k] += v * src[k]
