@@ -14,6 +14,7 @@ from idas_sumo.agents import networks
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM, others_actions_onehot
 from idas_sumo.agents.learner import Batch, Learner, LearnerConfig
 from idas_sumo.agents.networks import (
+    BLOCKS_CHUNK_ROWS,
     CENTRAL_INPUT_DIM,
     ENCODER_CHUNK_ROWS,
     STATE_DIM,
@@ -163,6 +164,25 @@ def test_encoder_in_row_slices_matches_conv2d_and_each_slice_alone() -> None:
     slices = torch.cat([enc(part) for part in obs.split(ENCODER_CHUNK_ROWS)])
     torch.testing.assert_close(whole, slices, rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(whole[-3:], enc(obs[-3:]), rtol=1e-6, atol=1e-6)
+    _assert_matches_conv2d(enc, obs)
+
+
+def test_blocks_path_in_row_slices_matches_conv2d() -> None:
+    """The learner's blocks path cuts a batch longer than BLOCKS_CHUNK_ROWS too: two chunks, conv2d's outputs and
+    gradients, and each row what it gives in a slice of its own (to float rounding)."""
+    torch.manual_seed(4)
+    enc = GridEncoder()
+    rows = BLOCKS_CHUNK_ROWS + 5
+    obs = torch.zeros(rows, OBS_DIM)
+    obs[:, :N_SCALARS] = torch.randn(rows, N_SCALARS)
+    cells = torch.randint(0, 4 * GRID_CELLS - 11, (rows,))
+    for offset in range(11):
+        obs[torch.arange(rows), N_SCALARS + cells + offset] = 0.7
+    windows = ObsWindows(obs, blocks=True)
+    assert [len(c.obs) for c in windows.chunks] == [BLOCKS_CHUNK_ROWS, 5]
+    torch.testing.assert_close(
+        enc(windows)[-5:], enc(ObsWindows(obs[-5:], blocks=True)), rtol=1e-6, atol=1e-6
+    )
     _assert_matches_conv2d(enc, obs)
 
 
