@@ -239,20 +239,21 @@ def _dense(
 _dense_kernel = kernel(_dense)
 
 
-def _add_conv_row(
+def _conv_row_terms(
     grids: npt.NDArray[np.float32],
     grid_bits: npt.NDArray[np.uint32],
     table: npt.NDArray[np.float32],
     bias: npt.NDArray[np.float32],
-    joint_conv: npt.NDArray[np.float32],
     shape: tuple[int, int, int],
     conv: npt.NDArray[np.float32],
     reached: npt.NDArray[np.bool_],
-    h: npt.NDArray[np.float32],
-) -> None:
-    """Add to ``h`` one row's Σ over conv outputs k of (ReLU(conv)_k - ReLU(bias)) · joint_conv[k], from the
-    runs of its ``grids`` (rows_in · cells_in cells; ``grid_bits``: the same as uint32). ``conv`` and ``reached``:
-    zeroed scratch, left zeroed."""
+    terms: tuple[npt.NDArray[np.int32], npt.NDArray[np.int32], npt.NDArray[np.float32]],
+    row: int,
+    count: int,
+) -> int:
+    """Append to ``terms`` (conv output, batch row, factor) one row's non-zero (ReLU(conv)_k - ReLU(bias)), conv
+    output k ascending, from the runs of its ``grids`` (rows_in · cells_in cells; ``grid_bits``: the same as
+    uint32); returns the new count. ``conv`` and ``reached``: zeroed scratch, left zeroed."""
     rows_in, cells_in, piece = shape[0], shape[1], shape[2]
     lead = table.shape[1] // bias.shape[0] - piece
     outs = bias.shape[0]
@@ -273,6 +274,7 @@ def _add_conv_row(
                     conv, table[(min(piece, e - start) - 1) * rows_in + i], v, first, outs, reach, cells_out
                 )
             c = _next_nonzero_kernel(grid_bits, base + e, base + cells_in) - base
+    output, batch_row, factor = terms
     for p in range(cells_out):
         if not reached[p]:
             continue
@@ -282,12 +284,44 @@ def _add_conv_row(
             d = max(conv[k] + bias[o], zero) - max(bias[o], zero)
             conv[k] = zero
             if d != zero:
-                w_row = joint_conv[k]
-                for j in range(h.shape[0]):
-                    h[j] += d * w_row[j]
+                output[count], batch_row[count], factor[count] = k, row, d
+                count += 1
+    return count
 
 
-_add_conv_row_kernel = kernel(_add_conv_row)
+_conv_row_terms_kernel = kernel(_conv_row_terms)
+
+
+def _add_terms(
+    terms: tuple[npt.NDArray[np.int32], npt.NDArray[np.int32], npt.NDArray[np.float32]],
+    count: int,
+    joint_conv: npt.NDArray[np.float32],
+    h: npt.NDArray[np.float32],
+) -> None:
+    """h[row] += factor · joint_conv[k] for every term, conv output by conv output: each weight row is read once
+    for all the rows that reach it (it stays in the L1 cache), and each row still gets its terms in ascending k,
+    as one row at a time would add them (the same floats)."""
+    output, batch_row, factor = terms
+    starts = np.zeros(joint_conv.shape[0] + 1, dtype=np.int64)
+    for t in range(count):
+        starts[output[t] + 1] += 1
+    for k in range(joint_conv.shape[0]):
+        starts[k + 1] += starts[k]
+    order = np.empty(count, dtype=np.int64)
+    at = starts[:-1].copy()
+    for t in range(count):  # a stable counting sort by conv output
+        order[at[output[t]]] = t
+        at[output[t]] += 1
+    for k in range(joint_conv.shape[0]):
+        w_row = joint_conv[k]
+        for s in range(starts[k], starts[k + 1]):
+            t = order[s]
+            h_row, d = h[batch_row[t]], factor[t]
+            for j in range(h_row.shape[0]):
+                h_row[j] += d * w_row[j]
+
+
+_add_terms_kernel = kernel(_add_terms)
 
 
 def _actor_logits(
@@ -301,42 +335,54 @@ def _actor_logits(
     joint_biases: tuple[npt.NDArray[np.float32], ...],
     shape: tuple[int, int, int],
 ) -> npt.NDArray[np.float32]:
-    """The actor's logits (B, actions) for inference, one row at a time (so a row's logits do not depend on
-    the others): the scalar MLP, the conv from the grids' runs fused with the first joint layer, the later
-    joint layers and the head. ``*_weights``: each layer's weight transposed (in, out); ReLU after every
+    """The actor's logits (B, actions) for inference, each row's arithmetic its own (so a row's logits do not
+    depend on the others): the scalar MLP, the conv from the grids' runs fused with the first joint layer, the
+    later joint layers and the head. ``*_weights``: each layer's weight transposed (in, out); ReLU after every
     layer but the head. ``conv_operands``: the run table, the conv bias and the first joint layer's conv
     columns ((cell, filter·row), hidden).
 
     A conv output that no run reaches is ReLU(bias) exactly, so its share of the first joint layer is one
     constant for every row, folded into ``joint_base`` with that layer's bias; a row adds only the difference
     at the cells its runs reach (a car reaches ~40 of 371) instead of the product over all 1,484 conv outputs.
+    Those additions run over all rows at once, conv output by conv output (``_add_terms``).
     ``shape``: (grid rows, cells per grid row, run piece); the scalars come first in a row."""
     table, bias, joint_conv = conv_operands
     n_scalars = scalar_weights[0].shape[0]
-    logits = np.empty((obs.shape[0], joint_biases[-1].shape[0]), dtype=np.float32)
+    rows = obs.shape[0]
+    logits = np.empty((rows, joint_biases[-1].shape[0]), dtype=np.float32)
     conv = np.zeros(joint_conv.shape[0], dtype=np.float32)
     reached = np.zeros(joint_conv.shape[0] // bias.shape[0], dtype=np.bool_)
     bits = obs.view(np.uint32)
-    # Two buffers the layers write in turn (each reads the other), and the first joint layer's own.
+    # Two buffers the layers write in turn (each reads the other), and the first joint layer's rows.
     width = joint_base.shape[0]
     for w in scalar_weights + joint_weights:
         width = max(width, w.shape[1])
     ping, pong = np.empty(width, dtype=np.float32), np.empty(width, dtype=np.float32)
-    h = np.empty(joint_base.shape[0], dtype=np.float32)
-    for b in range(obs.shape[0]):
+    h = np.empty((rows, joint_base.shape[0]), dtype=np.float32)
+    capacity = rows * joint_conv.shape[0]
+    terms = (
+        np.empty(capacity, dtype=np.int32),
+        np.empty(capacity, dtype=np.int32),
+        np.empty(capacity, dtype=np.float32),
+    )
+    count = 0
+    for b in range(rows):
         x, n = obs[b, :n_scalars], n_scalars
         for layer in range(len(scalar_weights)):
             y = ping if layer % 2 == 0 else pong
             m = scalar_weights[layer].shape[1]
             _dense_kernel(x[:n], scalar_weights[layer], scalar_biases[layer], True, y[:m])
             x, n = y, m
-        _dense_kernel(x[:n], joint_scalars, joint_base, False, h)
-        _add_conv_row_kernel(
-            obs[b, n_scalars:], bits[b, n_scalars:], table, bias, joint_conv, shape, conv, reached, h
+        _dense_kernel(x[:n], joint_scalars, joint_base, False, h[b])
+        count = _conv_row_terms_kernel(
+            obs[b, n_scalars:], bits[b, n_scalars:], table, bias, shape, conv, reached, terms, b, count
         )
-        for j in range(h.shape[0]):
-            h[j] = max(h[j], np.float32(0.0))
-        x, n = h, h.shape[0]
+    _add_terms_kernel(terms, count, joint_conv, h)
+    for b in range(rows):
+        h_row = h[b]
+        for j in range(h_row.shape[0]):
+            h_row[j] = max(h_row[j], np.float32(0.0))
+        x, n = h_row, h_row.shape[0]
         for layer in range(len(joint_weights)):
             y = ping if layer % 2 == 0 else pong
             m = joint_weights[layer].shape[1]
