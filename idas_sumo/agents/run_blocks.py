@@ -48,6 +48,7 @@ class ConvGeometry:
 
     @property
     def blocks(self) -> int:
+        """Blocks of ``BLOCK_CELLS`` output cells a row is cut into (the last one partial)."""
         return -(-self.cells // BLOCK_CELLS)
 
 
@@ -96,7 +97,7 @@ def _forward_blocks(
     out: npt.NDArray[np.float32],
 ) -> None:
     """ReLU(bias + Σ pieces) of every reached pair into its row of ``out`` (pairs, BLOCK_CELLS · outs; columns
-    past the last cell zero). Row by row: a row's pieces summed into a buffer, then its reached blocks copied
+    past the last cell zero in the last block's pairs, which start at ``offsets_last``). Row by row: a row's pieces summed into a buffer, then its reached blocks copied
     out with the bias and the ReLU (and the buffer zeroed there)."""
     table_row, value, grid_row, start = pieces
     outs = bias.shape[0]
