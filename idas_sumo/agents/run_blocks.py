@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from idas_sumo.agents.run_conv import RunPieces, add_piece, add_piece_grad
+from idas_sumo.agents.run_conv import RunPieces, add_piece, add_piece_grad, piece_span
 from idas_sumo.env.jit import kernel
 
 __all__ = ["BLOCK_CELLS", "BlockedConvLayer", "ConvGeometry"]
@@ -65,9 +65,9 @@ def _reached_pairs(
     blocks = -(-cells // BLOCK_CELLS)
     at = np.full((rows, blocks), -1, dtype=np.int64)
     for p in range(grid_row.shape[0]):
-        lo = max(0, start[p] - lead)
-        hi = min(cells, start[p] - lead + reach)
-        for j in range(lo // BLOCK_CELLS, (hi - 1) // BLOCK_CELLS + 1):
+        first = start[p] - lead
+        lo, hi = piece_span(first, 1, reach, cells)
+        for j in range((first + lo) // BLOCK_CELLS, (first + hi - 1) // BLOCK_CELLS + 1):
             at[grid_row[p], j] = 0
     offsets = np.zeros(blocks + 1, dtype=np.int64)
     for j in range(blocks):

@@ -20,7 +20,7 @@ import torch
 
 from idas_sumo.env.jit import kernel
 
-__all__ = ["RunConv", "RunPieces", "actor_logits", "add_piece", "add_piece_grad"]
+__all__ = ["RunConv", "RunPieces", "actor_logits", "add_piece", "add_piece_grad", "piece_span"]
 
 PIECES_PER_ROW_GUESS = 16
 """Room for this many pieces per observation on ``RunPieces.of``'s first scan (real ones hold about 5.5)."""
@@ -98,11 +98,11 @@ def _runs(
 
 def _piece_span(first: int, outs: int, reach: int, cells: int) -> tuple[int, int]:
     """The columns [lo, hi) of a piece's table row that land inside its grid row, the piece's first output cell
-    being ``first`` (negative: before the row starts)."""
+    being ``first`` (negative: before the row starts); with ``outs`` 1, its output cells there, from ``first``."""
     return max(0, -first) * outs, min(reach, cells - first) * outs
 
 
-_piece_span_kernel = kernel(_piece_span)
+piece_span = kernel(_piece_span)
 
 
 def _add_piece(
@@ -116,7 +116,7 @@ def _add_piece(
 ) -> None:
     """Add ``v`` times a piece's table row into a grid row's sums at output cell ``first``. Over slices: written
     with the offsets inside the index, numba's loop did not vectorise (8x slower)."""
-    lo, hi = _piece_span_kernel(first, outs, reach, cells)
+    lo, hi = piece_span(first, outs, reach, cells)
     dst, src = summed[first * outs + lo : first * outs + hi], table_row[lo:hi]
     for k in range(hi - lo):
         dst[k] += v * src[k]
@@ -133,7 +133,7 @@ def _add_piece_grad(
 ) -> None:
     """``_add_piece``'s gradient: ``v`` times the row's live gradient where the piece reaches, into its table
     row's gradient."""
-    lo, hi = _piece_span_kernel(first, outs, reach, cells)
+    lo, hi = piece_span(first, outs, reach, cells)
     dst, src = grad_row[lo:hi], live[first * outs + lo : first * outs + hi]
     for k in range(hi - lo):
         dst[k] += v * src[k]
@@ -268,7 +268,8 @@ def _conv_row_terms(
             e = _run_end_kernel(grids, base, c, cells_in)
             for start in range(c, e, piece):
                 first = start - lead
-                for t in range(max(0, -first), min(reach, cells_out - first)):
+                lo, hi = piece_span(first, 1, reach, cells_out)
+                for t in range(lo, hi):
                     reached[first + t] = True
                 add_piece(
                     conv, table[(min(piece, e - start) - 1) * rows_in + i], v, first, outs, reach, cells_out
