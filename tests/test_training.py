@@ -403,6 +403,36 @@ def test_interrupt_then_resume_continues_exactly(
 
 
 @pytest.mark.sumo
+def test_a_stop_that_comes_out_as_a_kernels_error_still_saves_the_completed_rounds(
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C while a compiled kernel returns: numba reports a SystemError with the KeyboardInterrupt as its
+    context. That is a stop too: the checkpoint holds the completed round (it was left at the starting one)."""
+    from idas_sumo.training.loop import run_training
+
+    real_update = Learner.apply_gradients
+    calls = {"n": 0}
+
+    def update_then_stop_inside_a_kernel(self: Learner, parts: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt:
+                raise SystemError("CPUDispatcher(...) returned a result with an exception set") from None
+        return real_update(self, parts)
+
+    monkeypatch.setattr(Learner, "apply_gradients", update_then_stop_inside_a_kernel)
+    run = tmp_path / "run"
+    with pytest.raises(SystemError) as raised:
+        run_training(
+            net_path, tiny_config(stage="robot", robot_episodes=3, checkpoint_every=100), run, progress=False
+        )
+    assert isinstance(raised.value.__context__, KeyboardInterrupt)
+    assert load_checkpoint(run / "checkpoint.pt").episode == 1
+
+
+@pytest.mark.sumo
 def test_ctrl_c_during_a_validation_then_resume_continues_exactly(
     net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -676,7 +676,7 @@ def _train_stage(
     bar: Progress,
 ) -> None:
     """Rounds until the stage's budget is spent, their rows written. Ctrl-C saves a checkpoint of the
-    completed rounds, then re-raises KeyboardInterrupt."""
+    completed rounds, then re-raises the stop (a KeyboardInterrupt, or an error raised from one)."""
     stage_bar = _StageBar(bar, plan, state.episode)
     fresh = state.global_episode == 0 and not run.latest.exists()
     try:
@@ -690,7 +690,11 @@ def _train_stage(
         while state.episode < plan.episodes:
             stops.check()
             _round(run, plan, learner, state, workers, metrics, validation, stage_bar)
-    except KeyboardInterrupt:
+    except BaseException as err:
+        # A stop that arrives while a compiled kernel returns comes out as that call's SystemError, the
+        # stop as its context: a stop all the same (``stops.behind``), so the completed rounds are saved.
+        if stops.behind(err) is None:
+            raise
         if not (fresh and state.global_episode == 0):
             save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
             log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
