@@ -340,6 +340,24 @@ def test_rollouts_on_the_engine_match_the_single_episode_path(net_path: Path) ->
     assert any("finished" in s["end_reasons"].values() for s in stats)
 
 
+def test_an_episodes_bank_takes_its_rows_of_each_step_then_the_bootstrap_rows() -> None:
+    """``rollout._bank``: the observations of an episode's rows of the step log (two runs in step 0, one each
+    in steps 1 and 2), then its bootstrap rows; an episode without rows has an empty bank."""
+    from idas_sumo.agents.rollout import _bank
+    from idas_sumo.env.layout import OBS_DIM
+
+    steps = [np.full((n, OBS_DIM), float(s), dtype=np.float32) for s, n in enumerate((3, 4, 2))]
+    for s, obs in enumerate(steps):
+        obs[:, 0] = 10 * s + np.arange(len(obs))  # step s, row i: 10 s + i
+    starts = np.array([0, 3, 7, 9])
+    rows, step = np.array([0, 2, 3, 4, 7, 8]), np.array([0, 0, 1, 1, 2, 2])
+    bank = _bank(steps, starts, step, rows, [np.full((1, OBS_DIM), -1.0, dtype=np.float32)])
+    assert bank[:, 0].tolist() == [0, 2, 10, 11, 20, 21, -1]
+    assert bank[:, 1].tolist() == [0, 0, 1, 1, 2, 2, -1]
+    empty = np.zeros(0, dtype=np.int64)
+    assert _bank(steps, starts, empty, empty, []).shape == (0, OBS_DIM)
+
+
 def test_copies_side_by_side_see_what_each_copy_alone_sees() -> None:
     """Per-copy neighbourhoods (copies sorted, as the batch backend gives them) change no observation,
     leader or other-road leader: each copy's rows equal those of that copy simulated alone."""

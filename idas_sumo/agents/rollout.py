@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -171,68 +171,47 @@ def batch_from_episodes(episodes: list[EpisodeData], central: bool = True) -> Ba
 # -- on the episode engine: K episodes side by side, one forward per step -----------------------------
 
 
-class _EpisodeRecorder:
-    """One episode's agent-steps, filled from the engine's hooks a step (all its agents) at a time and
-    assembled into an ``EpisodeData`` at the end."""
+class _StepLog:
+    """Every step's rows of a wave of episodes, as the step's own arrays: one append per column a step
+    (the rows of all copies at once). An episode's rows are cut out of them when its wave is over."""
+
+    COLUMNS = ("job", "step", "obs", "mask", "slot", "action", "reward", "parts", "others", "state", "joint")
 
     def __init__(self) -> None:
-        self.obs_rows: list[npt.NDArray[np.float32]] = []
+        self.columns: dict[str, list[npt.NDArray[Any]]] = {name: [] for name in self.COLUMNS}
         self.ids: list[str] = []
-        self.masks: list[npt.NDArray[np.int8]] = []
-        self.actions: list[npt.NDArray[np.int64]] = []
-        self.rewards: list[npt.NDArray[np.float64]] = []
-        self.parts: list[npt.NDArray[np.float64]] = []
         self.reasons: list[str] = []
-        self.states: list[npt.NDArray[np.float32]] = []
-        self.others: list[npt.NDArray[np.float32]] = []
-        self.slots: list[npt.NDArray[np.int64]] = []
-        self.joints: list[float] = []
-        self.agents_per_step: list[int] = []
-        self.collisions = 0
-        self.state: npt.NDArray[np.float32] | None = None
+        self.collisions: list[list[int]] = []
+        """Per step, each copy's collision pairs."""
+        self.rows = 0
 
-    def step(
-        self,
-        ids: list[str],
-        obs: npt.NDArray[np.float32],
-        mask: npt.NDArray[np.int8],
-        agent_slots: npt.NDArray[np.int64],
-        applied: npt.NDArray[np.int64],
-        rewards: npt.NDArray[np.float64],
-        parts: npt.NDArray[np.float64],
-        reasons: list[str],
-        joint: float,
-        collisions: int,
-        others: npt.NDArray[np.float32],
-    ) -> None:
-        """One step's rows of the episode (views of the step's arrays; ``others``: each row's
-        ``_others_actions``)."""
-        assert self.state is not None, "the state is taken before the step"
-        self.others.append(others)
-        self.obs_rows.append(obs)
-        self.ids.extend(ids)
-        self.masks.append(mask)
-        self.actions.append(np.asarray(applied, dtype=np.int64))
-        self.rewards.append(np.asarray(rewards, dtype=np.float64))
-        self.parts.append(np.asarray(parts, dtype=np.float64))
-        self.reasons.extend(reasons)
-        self.states.append(self.state)
-        self.slots.append(np.asarray(agent_slots, dtype=np.int64))
-        self.joints.append(joint)
-        self.agents_per_step.append(len(ids))
-        self.collisions += collisions
+    def add(self, **columns: npt.NDArray[Any]) -> None:
+        for name, array in columns.items():
+            self.columns[name].append(array)
+        self.rows += len(columns["job"])
 
-    def finish(self, engine: MergeEngine, k: int, outcome: EpisodeOutcome) -> EpisodeData:
-        rows = _AgentRows.of(self.ids, self.reasons, DONE_REASONS)
-        bank = list(self.obs_rows)
-        # Agents still pending were cut off (timeout): their final observation bootstraps V.
-        cut = [(a, r) for a, r in rows.pending.items() if engine.row(k, a) is not None]
-        next_obs_index = np.full(len(self.ids), -1, dtype=np.int64)
-        if cut:
-            bank.append(engine.observe_agents(k, [a for a, _ in cut]))
-            next_obs_index[[r for _, r in cut]] = len(self.ids) + np.arange(len(cut))
-        timed_out = bool(any(r == "timeout" for r in rows.end_reasons.values()) or cut)
-        return _episode_data(self, rows, bank, next_obs_index, engine.time_s, timed_out, outcome)
+    def rows_of(self, job: int) -> npt.NDArray[np.int64]:
+        """The log's rows of ``job``, in step order (agents in each step's order)."""
+        if not self.rows:
+            return np.zeros(0, dtype=np.int64)
+        return np.flatnonzero(np.concatenate(self.columns["job"]) == job)
+
+
+@dataclass(frozen=True)
+class _Ending:
+    """What an episode's end leaves that its rows do not say: read from the engine when it ends."""
+
+    rows: npt.NDArray[np.int64]
+    """Its rows of the step log."""
+    links: _AgentRows
+    cut_rows: list[int]
+    """The last rows of the agents cut off by the timeout (pending, and still on the road)."""
+    bootstrap: list[npt.NDArray[np.float32]]
+    """Their last observations (none, or one array of them, in ``cut_rows``' order)."""
+    time_s: float
+    timed_out: bool
+    outcome: EpisodeOutcome
+    slot: int
 
 
 def _others_actions(
@@ -293,53 +272,47 @@ def _sequential_sum(values: npt.NDArray[np.float64]) -> float:
 
 
 def _episode_data(
-    rec: _EpisodeRecorder,
-    rows: _AgentRows,
-    bank: list[npt.NDArray[np.float32]],
-    next_obs_index: npt.NDArray[np.int64],
-    time_s: float,
-    timed_out: bool,
-    outcome: EpisodeOutcome,
+    log: dict[str, npt.NDArray[Any]],
+    bank: npt.NDArray[np.float32],
+    collisions: npt.NDArray[np.int64],
+    end: _Ending,
 ) -> EpisodeData:
-    """The recorder's steps as one ``EpisodeData``: every row's columns, each linked to its agent's next row."""
-    n = len(rec.ids)
-    per_step = np.asarray(rec.agents_per_step, dtype=np.int64)
-    nxt = rows.next_row
+    """The episode's rows of the wave's concatenated step log (``log``, but the observations: ``bank``, its
+    rows' and then the bootstrap ones; ``collisions``: steps × copies) as one ``EpisodeData``: every row's
+    columns, each linked to its agent's next row."""
+    rows, links = end.rows, end.links
+    n = len(rows)
+    steps, per_step = np.unique(log["step"][rows], return_counts=True)  # (the steps it had rows in)
+    nxt = links.next_row
     has_next = nxt >= 0
     obs_idx = np.arange(n, dtype=np.int64)  # every row's observation is its own row of the bank
-    next_obs_idx = next_obs_index.copy()
+    next_obs_idx = np.full(n, -1, dtype=np.int64)
+    next_obs_idx[end.cut_rows] = n + np.arange(len(end.cut_rows))
     next_obs_idx[has_next] = obs_idx[nxt[has_next]]
-    state_arr = (
-        np.repeat(np.asarray(rec.states, dtype=np.float32), per_step, axis=0)
-        if n
-        else np.zeros((0, STATE_DIM), np.float32)
-    )
-    others_arr = np.concatenate(rec.others) if n else np.zeros((0, OTHERS_ACTIONS_DIM), np.float32)
-    slot_arr = np.concatenate(rec.slots) if n else np.zeros(0, np.int64)
-    action_arr = np.concatenate(rec.actions) if n else np.zeros(0, np.int64)
-    reward_arr = np.concatenate(rec.rewards) if n else np.zeros(0, np.float64)
+    state_arr, others_arr = log["state"][rows], log["others"][rows]
+    slot_arr, action_arr, reward_arr = log["slot"][rows], log["action"][rows], log["reward"][rows]
     return EpisodeData(
-        obs_bank=np.concatenate(bank).astype(np.float32, copy=False)
-        if bank
-        else np.zeros((0, OBS_DIM), np.float32),
+        obs_bank=bank,
         obs_index=obs_idx,
         next_obs_index=next_obs_idx,
-        mask=(np.concatenate(rec.masks) if n else np.zeros((0, N_ACTIONS))).astype(np.int8, copy=False),
+        mask=log["mask"][rows],
         action=action_arr,
         reward=reward_arr.astype(np.float32),
-        done=rows.done,
+        done=links.done,
         state=state_arr,
         others_actions=others_arr,
         slot=slot_arr,
-        joint_reward=np.repeat(np.asarray(rec.joints, dtype=np.float32), per_step),
+        joint_reward=log["joint"][rows],
         next_state=_of_next_row(state_arr, nxt),
         next_others_actions=_of_next_row(others_arr, nxt),
         next_slot=_of_next_row(slot_arr, nxt),
         next_action=_of_next_row(action_arr, nxt),
         next_valid=has_next.astype(np.float32),
         next_row=nxt,
-        stats=_episode_stats(rec, rows, reward_arr, time_s, timed_out, outcome),
-        team_next_row=_first_row_of_next_step(per_step),
+        stats=_episode_stats(
+            links, per_step, log["parts"][rows], reward_arr, int(collisions[steps, end.slot].sum()), end
+        ),
+        team_next_row=_first_row_of_next_step(per_step.astype(np.int64)),
     )
 
 
@@ -364,21 +337,18 @@ def _of_next_row(column: npt.NDArray[_Column], next_row: npt.NDArray[np.int64]) 
 
 
 def _episode_stats(
-    rec: _EpisodeRecorder,
-    rows: _AgentRows,
+    links: _AgentRows,
+    per_step: npt.NDArray[np.int64],
+    parts_arr: npt.NDArray[np.float64],
     reward_arr: npt.NDArray[np.float64],
-    time_s: float,
-    timed_out: bool,
-    outcome: EpisodeOutcome,
+    collisions: int,
+    end: _Ending,
 ) -> EpisodeStats:
     """What the episode amounted to: its counts, returns and summed reward parts."""
-    n = len(rec.ids)
-    per_step = np.asarray(rec.agents_per_step, dtype=np.int64)
-    parts_arr = np.concatenate(rec.parts) if n else np.zeros((0, len(REWARD_PART_NAMES)), np.float64)
     # Each agent's return summed over its rows in step order (bincount adds them one after another).
-    agent_returns = np.bincount(rows.agent_of_row, weights=reward_arr, minlength=len(rows.first_seen))
+    agent_returns = np.bincount(links.agent_of_row, weights=reward_arr, minlength=len(links.first_seen))
     column = REWARD_PART_NAMES.index
-    first_of_step = np.cumsum(per_step)[per_step > 0] - per_step[per_step > 0]  # flow: once per step
+    first_of_step = np.cumsum(per_step) - per_step  # flow: once per step
     reward_parts = {
         "finish": _sequential_sum(parts_arr[:, column("finish")]),
         "collide": _sequential_sum(parts_arr[:, column("collide")]),
@@ -386,18 +356,18 @@ def _episode_stats(
         "flow": _sequential_sum(parts_arr[first_of_step, column("flow")]),
     }
     return EpisodeStats(
-        agents=len(rows.first_seen),
-        steps=len(rec.agents_per_step),
-        agent_steps=n,
-        sim_time_s=float(time_s),
+        agents=len(links.first_seen),
+        steps=len(per_step),
+        agent_steps=len(reward_arr),
+        sim_time_s=float(end.time_s),
         return_mean=float(np.mean(agent_returns.tolist())) if len(agent_returns) else 0.0,
         reward_parts={name: reward_parts[name] for name in REWARD_PART_NAMES},
-        collisions=rec.collisions,
-        timed_out=timed_out,
+        collisions=collisions,
+        timed_out=end.timed_out,
         # The one definition (env/engine.py): no collision and every controlled car finished.
-        success=outcome.success,
-        perfect=outcome.perfect,
-        end_reasons=rows.end_reasons,
+        success=end.outcome.success,
+        perfect=end.outcome.perfect,
+        end_reasons=links.end_reasons,
     )
 
 
@@ -464,20 +434,34 @@ class _LearningPolicy:
 
 
 class _Collector:
-    """The engine observer of a rollout: one ``_EpisodeRecorder`` per job."""
+    """The engine observer of a rollout: every step's rows into one ``_StepLog``; when a wave's episodes are
+    all over, each one's rows become its ``EpisodeData``."""
 
     def __init__(self, n_jobs: int) -> None:
-        self.recorders = [_EpisodeRecorder() for _ in range(n_jobs)]
-        self.episodes: dict[int, EpisodeData] = {}
+        self.log = _StepLog()
+        self.endings: dict[int, _Ending] = {}
+        """Episodes over whose ``EpisodeData`` is not built yet."""
+        self.wave: frozenset[int] = frozenset()
+        """The jobs of the wave the log holds."""
+        self._episodes: dict[int, EpisodeData] = {}
         self.agent_slots = np.zeros(0, dtype=np.int64)
         """The last decided batch's agents' state slots (``MergeEngine.state_slots``)."""
+        self.row_states = np.zeros((0, STATE_DIM), dtype=np.float32)
+        """Its agents' copies' states before the step."""
+
+    @property
+    def episodes(self) -> dict[int, EpisodeData]:
+        """The episodes over, by job."""
+        if self.endings:
+            self._build()
+        return self._episodes
 
     def decided(
         self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: npt.NDArray[np.int64]
     ) -> None:
-        copies = np.unique(batch.copy)
-        for k, state in zip(copies.tolist(), engine.states(copies), strict=True):
-            self.recorders[jobs[k]].state = state
+        if len(batch):
+            copies, inverse = np.unique(batch.copy, return_inverse=True)
+            self.row_states = engine.states(copies)[inverse]
         self.agent_slots = engine.state_slots(batch.egos)  # read before the step replaces the snapshot
 
     def stepped(
@@ -488,52 +472,95 @@ class _Collector:
         actions: npt.NDArray[np.int64],
         result: StepResult,
     ) -> None:
+        self.wave = frozenset(jobs)
         if not len(batch):
             return
-        copy = batch.copy
-        agent_slots = self.agent_slots
-        others = _others_actions(copy, agent_slots, result.applied)
-        # Each copy's rows as one slice of the step's arrays (the batch lists its agents copy by copy; else
-        # sorted so, stably): views, where a row index per copy copied every column.
-        in_order = bool(np.all(copy[1:] >= copy[:-1]))
-        order = None if in_order else np.argsort(copy, kind="stable")
-
-        def rows(a: npt.NDArray[_Column]) -> npt.NDArray[_Column]:
-            return a if order is None else a[order]
-
-        ids = batch.ids if order is None else [batch.ids[r] for r in order.tolist()]
-        reasons = result.end_reason if order is None else [result.end_reason[r] for r in order.tolist()]
-        columns = (
-            rows(batch.obs),
-            rows(batch.masks),
-            rows(agent_slots),
-            rows(np.asarray(result.applied, dtype=np.int64)),
-            rows(np.asarray(result.rewards, dtype=np.float64)),
-            rows(np.asarray(result.reward_parts, dtype=np.float64)),
-            rows(others),
+        log = self.log
+        assert batch.job is not None, "the episode loop names each agent's job"
+        log.ids.extend(batch.ids)
+        log.reasons.extend(result.end_reason)
+        log.collisions.append([len(pairs) for pairs in result.collisions])
+        applied = np.asarray(result.applied, dtype=np.int64)
+        log.add(
+            job=batch.job,
+            step=np.full(len(batch), len(log.collisions) - 1, dtype=np.int64),
+            obs=batch.obs,
+            mask=batch.masks,
+            slot=self.agent_slots,
+            action=applied,
+            reward=np.asarray(result.rewards, dtype=np.float64),
+            parts=np.asarray(result.reward_parts, dtype=np.float64),
+            others=_others_actions(batch.copy, self.agent_slots, applied),
+            state=self.row_states,
+            joint=np.asarray(result.joint_reward, dtype=np.float32)[batch.copy],
         )
-        sorted_copy = rows(copy)
-        present, first = np.unique(sorted_copy, return_index=True)
-        ends = [*first[1:].tolist(), len(sorted_copy)]
-        for k, lo, hi in zip(present.tolist(), first.tolist(), ends, strict=True):
-            obs, mask, agent_slot, applied, reward, parts, other = (c[lo:hi] for c in columns)
-            self.recorders[jobs[k]].step(
-                list(ids[lo:hi]),
-                obs,
-                mask,
-                agent_slot,
-                applied,
-                reward,
-                parts,
-                list(reasons[lo:hi]),
-                float(result.joint_reward[k]),
-                len(result.collisions[k]),
-                other,
-            )
 
     def ended(self, engine: MergeEngine, slot: int, job: int, outcome: EpisodeOutcome) -> None:
-        self.episodes[job] = self.recorders[job].finish(engine, slot, outcome)
-        self.recorders[job] = _EpisodeRecorder()  # free its lists
+        rows = self.log.rows_of(job)
+        ids, reasons = [self.log.ids[r] for r in rows.tolist()], [self.log.reasons[r] for r in rows.tolist()]
+        links = _AgentRows.of(ids, reasons, DONE_REASONS)
+        # Agents still pending were cut off (timeout): their final observation bootstraps V.
+        cut = [(a, r) for a, r in links.pending.items() if engine.row(slot, a) is not None]
+        bootstrap = [engine.observe_agents(slot, [a for a, _ in cut])] if cut else []
+        timed_out = bool(any(r == "timeout" for r in links.end_reasons.values()) or cut)
+        end = _Ending(rows, links, [r for _, r in cut], bootstrap, engine.time_s, timed_out, outcome, slot)
+        self.endings[job] = end
+        if self.wave <= set(self.endings) | set(
+            self._episodes
+        ):  # the wave is over: its episodes, its log freed
+            self._build()
+
+    def _build(self) -> None:
+        log, self.log = self.log, _StepLog()
+        # Every column in one array, but the observations (the bulk): each episode's are copied once, into its bank.
+        columns = {
+            name: np.concatenate(parts) for name, parts in log.columns.items() if parts and name != "obs"
+        }
+        if not columns:  # no agent acted in the wave
+            columns = _empty_columns()
+        steps_obs = log.columns["obs"]
+        starts = np.cumsum([0, *map(len, steps_obs)])
+        collisions = np.array(log.collisions, dtype=np.int64).reshape(len(log.collisions), -1)
+        for job, end in self.endings.items():
+            bank = _bank(steps_obs, starts, columns["step"][end.rows], end.rows, end.bootstrap)
+            self._episodes[job] = _episode_data(columns, bank, collisions, end)
+        self.endings = {}
+
+
+def _bank(
+    steps_obs: list[npt.NDArray[np.float32]],
+    starts: npt.NDArray[np.int64],
+    step: npt.NDArray[np.int64],
+    rows: npt.NDArray[np.int64],
+    bootstrap: list[npt.NDArray[np.float32]],
+) -> npt.NDArray[np.float32]:
+    """The observations of the log's ``rows`` (``step``: each one's step, whose rows are ``starts[s]`` on), then
+    ``bootstrap``'s, in one new array: a run of consecutive rows of one step copied at a time."""
+    n = len(rows)
+    bank = np.empty((n + sum(map(len, bootstrap)), OBS_DIM), dtype=np.float32)
+    firsts = [0, *(np.flatnonzero((np.diff(step) != 0) | (np.diff(rows) != 1)) + 1).tolist()]
+    for lo, hi in zip(firsts, [*firsts[1:], n], strict=True) if n else ():
+        s = int(step[lo])
+        at = int(rows[lo]) - int(starts[s])
+        bank[lo:hi] = steps_obs[s][at : at + hi - lo]
+    if bootstrap:
+        bank[n:] = np.concatenate(bootstrap)
+    return bank
+
+
+def _empty_columns() -> dict[str, npt.NDArray[Any]]:
+    return {
+        "job": np.zeros(0, np.int64),
+        "step": np.zeros(0, np.int64),
+        "mask": np.zeros((0, N_ACTIONS), np.int8),
+        "slot": np.zeros(0, np.int64),
+        "action": np.zeros(0, np.int64),
+        "reward": np.zeros(0, np.float64),
+        "parts": np.zeros((0, len(REWARD_PART_NAMES)), np.float64),
+        "others": np.zeros((0, OTHERS_ACTIONS_DIM), np.float32),
+        "state": np.zeros((0, STATE_DIM), np.float32),
+        "joint": np.zeros(0, np.float32),
+    }
 
 
 def collect_episodes(
