@@ -117,7 +117,7 @@ def run_method(
             )
             for t in tasks
         ]
-        collector = _Collector(len(tasks))
+        collector = _Collector()
         policy = method.policy(tasks)
         results = [r for _, r in run_jobs(engine, jobs, {method.label: policy}, policy, observer=collector)]
     finally:

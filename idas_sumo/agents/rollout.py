@@ -182,7 +182,7 @@ class _StepLog:
         self.ids: list[str] = []
         self.reasons: list[str] = []
         self.collisions: list[list[int]] = []
-        """Per step, each copy's collision pairs."""
+        """Per step, how many collision pairs each copy had."""
         self.rows = 0
 
     def add(self, **columns: npt.NDArray[Any]) -> None:
@@ -437,7 +437,7 @@ class _Collector:
     """The engine observer of a rollout: every step's rows into one ``_StepLog``; when a wave's episodes are
     all over, each one's rows become its ``EpisodeData``."""
 
-    def __init__(self, n_jobs: int) -> None:
+    def __init__(self) -> None:
         self.log = _StepLog()
         self.endings: dict[int, _Ending] = {}
         """Episodes over whose ``EpisodeData`` is not built yet."""
@@ -579,6 +579,6 @@ def collect_episodes(
 def record_episodes(engine: MergeEngine, policy: Policy, scenarios: Sequence[Scenario]) -> list[EpisodeData]:
     """Every scenario run to its end with every learning agent on ``policy`` (a learned actor, or a
     rule-based teacher for imitation), recorded as agent-steps; in scenario order."""
-    collector = _Collector(len(scenarios))
+    collector = _Collector()
     run_episodes(engine, scenarios, lambda job, agent: 0, [policy], collector)
     return [collector.episodes[j] for j in range(len(scenarios))]
