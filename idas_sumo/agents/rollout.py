@@ -175,24 +175,20 @@ class _StepLog:
     """Every step's rows of a wave of episodes, as the step's own arrays: one append per column a step
     (the rows of all copies at once). An episode's rows are cut out of them when its wave is over."""
 
-    COLUMNS = ("job", "step", "obs", "mask", "slot", "action", "reward", "parts", "others", "state", "joint")
-
     def __init__(self) -> None:
-        self.columns: dict[str, list[npt.NDArray[Any]]] = {name: [] for name in self.COLUMNS}
+        self.columns: dict[str, list[npt.NDArray[Any]]] = {name: [] for name in ("obs", *_empty_columns())}
         self.ids: list[str] = []
         self.reasons: list[str] = []
         self.collisions: list[list[int]] = []
         """Per step, how many collision pairs each copy had."""
-        self.rows = 0
 
     def add(self, **columns: npt.NDArray[Any]) -> None:
         for name, array in columns.items():
             self.columns[name].append(array)
-        self.rows += len(columns["job"])
 
     def rows_of(self, job: int) -> npt.NDArray[np.int64]:
         """The log's rows of ``job``, in step order (agents in each step's order)."""
-        if not self.rows:
+        if not self.columns["job"]:
             return np.zeros(0, dtype=np.int64)
         return np.flatnonzero(np.concatenate(self.columns["job"]) == job)
 
@@ -273,16 +269,17 @@ def _sequential_sum(values: npt.NDArray[np.float64]) -> float:
 
 def _episode_data(
     log: dict[str, npt.NDArray[Any]],
+    step: npt.NDArray[np.int64],
     bank: npt.NDArray[np.float32],
     collisions: npt.NDArray[np.int64],
     end: _Ending,
 ) -> EpisodeData:
     """The episode's rows of the wave's concatenated step log (``log``, but the observations: ``bank``, its
-    rows' and then the bootstrap ones; ``collisions``: steps × copies) as one ``EpisodeData``: every row's
-    columns, each linked to its agent's next row."""
+    rows' and then the bootstrap ones; ``step``: each row's step; ``collisions``: steps × copies) as one
+    ``EpisodeData``: every row's columns, each linked to its agent's next row."""
     rows, links = end.rows, end.links
     n = len(rows)
-    steps, per_step = np.unique(log["step"][rows], return_counts=True)  # (the steps it had rows in)
+    steps, per_step = np.unique(step, return_counts=True)  # (the steps it had rows in)
     nxt = links.next_row
     has_next = nxt >= 0
     obs_idx = np.arange(n, dtype=np.int64)  # every row's observation is its own row of the bank
@@ -505,9 +502,8 @@ class _Collector:
         timed_out = bool(any(r == "timeout" for r in links.end_reasons.values()) or cut)
         end = _Ending(rows, links, [r for _, r in cut], bootstrap, engine.time_s, timed_out, outcome, slot)
         self.endings[job] = end
-        if self.wave <= set(self.endings) | set(
-            self._episodes
-        ):  # the wave is over: its episodes, its log freed
+        over = set(self.endings) | set(self._episodes)
+        if self.wave <= over:  # the wave is over: its episodes now, and its log freed
             self._build()
 
     def _build(self) -> None:
@@ -522,8 +518,9 @@ class _Collector:
         starts = np.cumsum([0, *map(len, steps_obs)])
         collisions = np.array(log.collisions, dtype=np.int64).reshape(len(log.collisions), -1)
         for job, end in self.endings.items():
-            bank = _bank(steps_obs, starts, columns["step"][end.rows], end.rows, end.bootstrap)
-            self._episodes[job] = _episode_data(columns, bank, collisions, end)
+            step = columns["step"][end.rows]
+            bank = _bank(steps_obs, starts, step, end.rows, end.bootstrap)
+            self._episodes[job] = _episode_data(columns, step, bank, collisions, end)
         self.endings = {}
 
 
