@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import itertools
 
 import numpy as np
 import pytest
@@ -426,32 +425,23 @@ def test_act_deterministic_is_masked_argmax() -> None:
     assert actions.tolist() == [6, 5]
 
 
-@pytest.mark.parametrize("tiled", [True, False])
-def test_act_grouped_draws_what_multinomial_draws_per_group(tiled: bool) -> None:
-    """``act_grouped`` samples each episode's rows as ``torch.multinomial(probs[rows], 1, generator=g)``
-    would, and leaves every generator in the state multinomial leaves it in (the rollouts' reproducibility
-    rests on both): groups tiling the rows in order (a rollout's) and groups in any order."""
+def test_act_draws_what_multinomial_draws() -> None:
+    """``act`` samples as ``torch.multinomial(probs, 1, generator=g)`` would, and leaves the generator in the
+    state multinomial leaves it in (evaluation's and the envs' sampled policies rest on both)."""
     learner = Learner(LearnerConfig(), seed=3)
     rng = np.random.default_rng(5)
     n = 41
     obs = rng.random((n, OBS_DIM), dtype=np.float32)
     mask = (rng.random((n, N_ACTIONS)) < 0.5).astype(np.int8)
     mask[:, HARD_BRAKE] = 1
-    bounds = [0, 3, 4, 20, n]
-    groups_rows = [np.arange(a, b) for a, b in itertools.pairwise(bounds)]
-    if not tiled:
-        perm = rng.permutation(n)
-        groups_rows = [np.sort(perm[a:b]) for a, b in itertools.pairwise(bounds)][::-1]
-    seeds = [11, 12, 13, 14]
-    mine = [torch.Generator().manual_seed(s) for s in seeds]
-    actions = learner.act_grouped(obs, mask, list(zip(groups_rows, mine, strict=True)))
+    mine = torch.Generator().manual_seed(11)
+    actions = learner.act(obs, mask, mine)
     with torch.no_grad():
         probs = learner.actor.distribution(torch.from_numpy(obs), torch.from_numpy(mask).bool()).probs
-    for rows, seed, generator in zip(groups_rows, seeds, mine, strict=True):
-        reference = torch.Generator().manual_seed(seed)
-        expected = torch.multinomial(probs[torch.from_numpy(rows)], 1, generator=reference).squeeze(1)
-        assert actions[rows].tolist() == expected.tolist()
-        assert torch.equal(generator.get_state(), reference.get_state())
+    reference = torch.Generator().manual_seed(11)
+    expected = torch.multinomial(probs, 1, generator=reference).squeeze(1)
+    assert actions.tolist() == expected.tolist()
+    assert torch.equal(mine.get_state(), reference.get_state())
 
 
 def test_act_rejects_rows_without_allowed_actions() -> None:

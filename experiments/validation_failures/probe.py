@@ -83,7 +83,7 @@ class Method:
     def policy(self, tasks: Sequence[RolloutTask]) -> Policy:
         if self.path is None:
             return RuleBasedPolicy(self.rule)
-        # Validation's own policy: greedy act_grouped (the compiled forward), one generator per episode.
+        # Validation's own policy: greedy on the compiled forward (Learner.rollout_logits), one stream per episode.
         return _LearningPolicy(load_actor(self.path), tasks)
 
 

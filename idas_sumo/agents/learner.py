@@ -27,7 +27,7 @@ from torch.distributions import kl_divergence
 from idas_sumo.agents.coma import ALPHA, combined_policy_loss
 from idas_sumo.agents.critic_input import STATE_LAYOUT_ID
 from idas_sumo.agents.critics import DEFAULT_CENTRAL_CRITIC, build_central_critic, check_central_critic
-from idas_sumo.agents.networks import MASKED_LOGIT, Actor, ObsWindows, ValueCritic
+from idas_sumo.agents.networks import Actor, ObsWindows, ValueCritic
 from idas_sumo.agents.returns import GAMMA, gae_advantages, lambda_targets, td_advantages, td_targets
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.layout import OBS_DIM, OBS_LAYOUT_ID
@@ -376,30 +376,12 @@ def _cut_off_obs(b: Batch, cut_off: torch.Tensor) -> torch.Tensor:
     return b.bootstrap_obs
 
 
-def _sample_grouped(
-    probs: torch.Tensor, groups: Sequence[tuple[npt.NDArray[np.int64], torch.Generator]]
-) -> torch.Tensor:
-    """One draw per row of ``probs``, each group's rows with its own generator: exactly
-    ``torch.multinomial(probs[rows], 1, generator=g)`` per group, draws and generator states alike.
-
-    For one sample torch's CPU multinomial is argmax(p / q) with q ~ Exp(1) drawn into a tensor of
-    ``probs[rows]``'s shape (the Gumbel-max trick; ``test_agents_networks.py`` checks the equality). Drawing
-    each group's q and dividing and taking the argmax once for all rows does the same arithmetic with a
-    tenth of the small tensor operations, which cost more than the arithmetic at rollout batch sizes. A
-    masked action (probability exactly 0) gives 0 / q = 0 and an allowed one a positive ratio, so it never
-    comes out.
-    """
-    order = np.concatenate([np.asarray(rows, dtype=np.int64) for rows, _ in groups])
-    drawn = torch.empty(len(order), probs.shape[1])
-    at = 0
-    for rows, g in groups:  # each group's draws into its own rows of one tensor (a contiguous block each)
-        drawn[at : at + len(rows)].exponential_(1, generator=g)
-        at += len(rows)
-    if np.array_equal(order, np.arange(probs.shape[0])):  # the groups tile the rows in order
-        q = drawn
-    else:
-        q = torch.ones_like(probs)
-        q[torch.from_numpy(order)] = drawn
+def _sample(probs: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """One draw per row of ``probs``: exactly ``torch.multinomial(probs, 1, generator=generator)``, draws and
+    generator state alike (for one sample torch's CPU multinomial is argmax(p / q) with q ~ Exp(1) drawn into a
+    tensor of ``probs``' shape: the Gumbel-max trick; ``test_agents_networks.py`` checks the equality). A masked
+    action (probability exactly 0) gives 0 / q = 0 and an allowed one a positive ratio, so it never comes out."""
+    q = torch.empty_like(probs).exponential_(1, generator=generator)
     return (probs / q).argmax(dim=1)
 
 
@@ -555,48 +537,36 @@ class Learner:
     ) -> npt.NDArray[np.int64]:
         """Actions (B,) for B agents; never a masked one. ``generator`` must be a CPU generator. The actor runs
         as torch's modules (what evaluation, co-simulation and the envs' ``others`` call: their outputs stay
-        the same bit for bit)."""
-        return self.act_grouped(
-            obs, mask, [(np.arange(obs.shape[0]), generator)], deterministic, compiled=False
-        )
-
-    def act_grouped(
-        self,
-        obs: npt.NDArray[np.float32],
-        mask: npt.NDArray[np.int8],
-        groups: Sequence[tuple[npt.NDArray[np.int64], torch.Generator]],
-        deterministic: bool = False,
-        compiled: bool = True,
-    ) -> npt.NDArray[np.int64]:
-        """``act`` for agents of several episodes in one forward pass; each episode's rows (``groups``:
-        rows, that episode's CPU generator) sample with their own generator, as they would alone.
-
-        ``compiled`` (training's rollouts): on the CPU the actor's logits come from ``Actor.inference_logits``
-        (compiled loops, several times faster on a rollout step's rows; the same function to float rounding,
-        so a near-tie between two actions may go the other way than through torch's modules)."""
+        the same bit for bit). A training rollout draws instead from ``rollout_logits`` with each episode's
+        own stream (agents/sampling.py)."""
         if obs.ndim != 2 or obs.shape[1] != OBS_DIM or mask.shape != (obs.shape[0], N_ACTIONS):
             raise ValueError(
                 f"expected obs (B, {OBS_DIM}) and mask (B, {N_ACTIONS}), got {obs.shape} and {mask.shape}"
             )
-        # The masks in numpy: a rollout step's few dozen rows cost torch's fixed cost per op more than the work.
         allowed = np.asarray(mask) != 0
         if not allowed.any(axis=1).all():
             raise ValueError("every agent needs at least one allowed action (hard brake is never masked)")
         with torch.inference_mode():
-            if compiled and self.device.type == "cpu":
-                raw = self.actor.inference_logits(obs)
-                raw[~allowed] = MASKED_LOGIT  # what masked_fill writes: the float32 nearest MASKED_LOGIT
-                logits = torch.from_numpy(raw)
-            else:
-                obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
-                logits = self.actor.masked_logits(obs_t, torch.from_numpy(allowed).to(self.device)).cpu()
+            obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
+            logits = self.actor.masked_logits(obs_t, torch.from_numpy(allowed).to(self.device)).cpu()
             if deterministic:
                 actions = logits.argmax(dim=1)
             else:
-                actions = _sample_grouped(torch.softmax(logits, dim=1), groups)
+                actions = _sample(torch.softmax(logits, dim=1), generator)
         out: npt.NDArray[np.int64] = actions.numpy().astype(np.int64)
         assert bool(allowed[np.arange(len(out)), out].all()), "sampled a masked action"
         return out
+
+    def rollout_logits(self, obs: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """The actor's unmasked logits (B, N_ACTIONS) for a rollout step's rows: on the CPU as compiled loops
+        (``Actor.inference_logits``: several times faster on a step's few dozen rows, the same function to float
+        rounding, so a near-tie between two actions may go the other way than through torch's modules)."""
+        if self.device.type == "cpu":
+            return self.actor.inference_logits(obs)
+        with torch.inference_mode():
+            obs_t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(self.device)
+            logits: npt.NDArray[np.float32] = self.actor(obs_t).cpu().numpy()
+        return logits
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One gradient step on V, (Q), and the actor from B agent-steps; returns scalar metrics.

@@ -1,7 +1,7 @@
 """Episodes on the episode engine (env/engine.py), recorded as agent-steps ready for ``Learner.update``.
 
 Every step all active learning agents of every episode the engine runs side by side are observed
-together, one forward picks their actions (each episode sampling with its own generator), the
+together, one forward picks their actions (each episode drawing from its own stream, agents/sampling.py), the
 simulation steps, and each agent-step becomes one row of the learner's ``Batch``.
 The rows of an agent are linked to its next step (``next_state``, ``next_action``, ...) so the
 centralised critic can bootstrap SARSA-style; an agent that finishes or collides gets ``done`` = 1,
@@ -23,6 +23,7 @@ import torch
 
 from idas_sumo.agents.critic_input import OTHERS_ACTIONS_DIM
 from idas_sumo.agents.learner import Batch
+from idas_sumo.agents.sampling import ActionStreams
 from idas_sumo.env.actions import N_ACTIONS
 from idas_sumo.env.engine import AgentBatch, EpisodeOutcome, MergeEngine, Policy, StepResult
 from idas_sumo.env.episodes import run_episodes
@@ -368,16 +369,10 @@ def _episode_stats(
     )
 
 
-class GroupedActor(Protocol):
-    """``Learner.act_grouped``: one forward for agents of several episodes, each with its generator."""
+class RolloutActor(Protocol):
+    """What a rollout's learning agents act on (``Learner.rollout_logits``): the actor's unmasked logits."""
 
-    def act_grouped(
-        self,
-        obs: npt.NDArray[np.float32],
-        mask: npt.NDArray[np.int8],
-        groups: Sequence[tuple[npt.NDArray[np.int64], torch.Generator]],
-        deterministic: bool = False,
-    ) -> npt.NDArray[np.int64]: ...
+    def rollout_logits(self, obs: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]: ...
 
 
 @dataclass(frozen=True)
@@ -393,41 +388,20 @@ class RolloutTask:
 
 
 class _LearningPolicy:
-    """Every learning agent of every copy in one forward; each episode samples with its own generator."""
+    """Every learning agent of every copy in one forward; each episode draws from its own stream."""
 
-    def __init__(self, actor: GroupedActor, tasks: Sequence[RolloutTask]) -> None:
+    def __init__(self, actor: RolloutActor, tasks: Sequence[RolloutTask]) -> None:
         self.actor = actor
         self.tasks = tasks
-        self.generators = [torch.Generator().manual_seed(t.action_seed) for t in tasks]
-        self.greedy = np.array([t.deterministic for t in tasks], dtype=np.bool_)
+        self.streams = ActionStreams([t.action_seed for t in tasks], [t.deterministic for t in tasks])
 
     def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         assert batch.job is not None, "the episode loop names each agent's job"
-        jobs = batch.job[rows]
-        out = np.zeros(len(rows), dtype=np.int64)
-        # Greedy and sampling episodes may share a step: one forward per kind.
-        greedy = self.greedy[jobs]
-        for det in (False, True):
-            part = np.flatnonzero(greedy == det)
-            if not len(part):
-                continue
-            # Each job's rows (ascending) with its generator, jobs in ascending order.
-            part_jobs = jobs[part]
-            order = np.argsort(part_jobs, kind="stable")
-            sorted_jobs = part_jobs[order]
-            first = np.flatnonzero(np.diff(sorted_jobs, prepend=-1))  # where each job's rows begin
-            ends = [*first[1:].tolist(), len(order)]
-            groups = [
-                (order[lo:hi], self.generators[j])
-                for j, lo, hi in zip(sorted_jobs[first].tolist(), first.tolist(), ends, strict=True)
-            ]
-            sel = rows[part]
-            if len(sel) == len(batch) and np.array_equal(sel, np.arange(len(batch))):
-                obs, masks = batch.obs, batch.masks  # every row in order: no copy
-            else:
-                obs, masks = batch.obs[sel], batch.masks[sel]
-            out[part] = self.actor.act_grouped(obs, masks, groups, deterministic=det)
-        return out
+        if len(rows) == len(batch) and np.array_equal(rows, np.arange(len(batch))):
+            obs, masks = batch.obs, batch.masks  # every row in order: no copy
+        else:
+            obs, masks = batch.obs[rows], batch.masks[rows]
+        return self.streams.draw(self.actor.rollout_logits(obs), masks, batch.job[rows])
 
 
 class _Collector:
@@ -561,10 +535,10 @@ def _empty_columns() -> dict[str, npt.NDArray[Any]]:
 
 
 def collect_episodes(
-    engine: MergeEngine, actor: GroupedActor, tasks: Sequence[RolloutTask]
+    engine: MergeEngine, actor: RolloutActor, tasks: Sequence[RolloutTask]
 ) -> list[EpisodeData]:
     """Run every task's scenario to its end on ``engine`` (``engine.copies`` side by side), every learning
-    agent on ``actor``; the recorded episodes in task order. Each episode samples with its own generator
+    agent on ``actor``; the recorded episodes in task order. Each episode draws from its own stream
     (``action_seed``), so its draws do not depend on which episodes ran beside it."""
     limits = {t.max_episode_s for t in tasks}
     if len(limits) > 1:
