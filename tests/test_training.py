@@ -274,6 +274,35 @@ def test_evaluation_reads_only_the_policy_part(tmp_path: Path) -> None:
 
 # --- rollouts and the loop (SUMO) ----------------------------------------------------------------
 @pytest.mark.sumo
+def test_a_wave_in_which_no_agent_acts_gives_episodes_without_rows(net_path: Path) -> None:
+    """Both episodes' learning car enters after the timeout: the wave logs no step, and each episode comes back
+    with no rows and nothing in its bank (it crashed on the empty collision log); and such an episode beside one
+    whose car acts (it crashed linking its rows' steps)."""
+    from idas_sumo.agents.rollout import RolloutTask, collect_episodes
+    from idas_sumo.env.engine import MergeEngine
+    from idas_sumo.env.scenario import Scenario, VehicleSpec
+
+    engine = MergeEngine(net_path, copies=2, config=EnvConfig(max_episode_s=2.0))
+    learner = Learner(LearnerConfig(), seed=0)
+    scenario = Scenario(
+        "late",
+        (
+            VehicleSpec("robot", "main", 30.0, 10.0, controlled=False),
+            VehicleSpec("late", "merge", 10.0, 10.0, depart_s=5.0),
+        ),
+    )
+    on_time = Scenario("on time", (VehicleSpec("now", "merge", 10.0, 10.0),))
+    try:
+        episodes = collect_episodes(engine, learner, [RolloutTask(scenario, i) for i in range(2)])
+        mixed = collect_episodes(engine, learner, [RolloutTask(scenario, 0), RolloutTask(on_time, 1)])
+    finally:
+        engine.close()
+    assert [len(e) for e in episodes] == [0, 0]
+    assert all(e.obs_bank.shape == (0, e.obs_bank.shape[1]) and e.stats.collisions == 0 for e in episodes)
+    assert len(mixed[0]) == 0 and len(mixed[1]) == mixed[1].stats.agent_steps > 0  # beside a wave with steps
+
+
+@pytest.mark.sumo
 def test_collected_batch_is_consistent_and_never_masked(net_path: Path) -> None:
     from idas_sumo.agents.rollout import RolloutTask, batch_from_episodes, collect_episodes
     from idas_sumo.env.engine import EnvConfig, MergeEngine

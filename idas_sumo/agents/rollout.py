@@ -319,7 +319,7 @@ def _first_row_of_next_step(per_step: npt.NDArray[np.int64]) -> npt.NDArray[np.i
     agent of the episode acted is not recorded: across such a gap the link skips the idle steps, whose joint
     reward is 0 (nobody acts, nobody brakes: ``scoring.py``)."""
     first = np.cumsum(per_step) - per_step
-    following = np.append(first[1:], -1).astype(np.int64)
+    following = np.append(first[1:], -1 if len(per_step) else []).astype(np.int64)  # (none without a step)
     return np.repeat(following, per_step)
 
 
@@ -490,7 +490,10 @@ class _Collector:
             columns = _empty_columns()
         steps_obs = log.columns["obs"]
         starts = np.cumsum([0, *map(len, steps_obs)])
-        collisions = np.array(log.collisions, dtype=np.int64).reshape(len(log.collisions), -1)
+        slots = max(e.slot for e in self.endings.values()) + 1  # (a wave without a logged step has no width)
+        collisions = np.array(log.collisions, dtype=np.int64).reshape(
+            len(log.collisions), -1 if log.collisions else slots
+        )
         for job, end in self.endings.items():
             step = columns["step"][end.rows]
             bank = _bank(steps_obs, starts, step, end.rows, end.bootstrap)
