@@ -75,6 +75,14 @@ def popen_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen
     )
 
 
+def descendants_of(pid: int) -> list[int]:
+    """The pids of ``pid``'s children, their children, and so on (Linux /proc)."""
+    found = children_of(pid)
+    for child in list(found):
+        found += descendants_of(child)
+    return found
+
+
 def children_of(pid: int) -> list[int]:
     """The pids of ``pid``'s child processes (Linux /proc)."""
     found = []
@@ -461,15 +469,35 @@ def test_ctrl_c_while_two_workers_start_is_one_line(tmp_path: Path, command: str
         args = eval_args(tmp_path / "out", "--scenarios", "4", "--workers", "2", "--copies", "1")
     proc = popen_cli(*args)
     workers: list[int] = []
+    # train's two workers are forks of its fork server, a third process (sim/rpc.py: ForkServer)
+    expected = 3 if command == "train" else 2
 
     def workers_started() -> bool:
-        workers[:] = children_of(proc.pid)
-        return len(workers) >= 2
+        workers[:] = descendants_of(proc.pid)
+        return len(workers) >= expected
 
     stderr = interrupt_when(proc, workers_started, settle_s=0.3)
     assert proc.returncode == 130, stderr
     assert stderr.splitlines() == ["idas-sumo: interrupted; completed outputs were kept"], stderr
-    assert workers and all(not Path(f"/proc/{pid}").exists() or _is_zombie(pid) for pid in workers)
+    assert len(workers) >= expected
+    assert all(not Path(f"/proc/{pid}").exists() or _is_zombie(pid) for pid in workers)
+
+
+@pytest.mark.sumo
+def test_ctrl_c_while_the_fork_server_imports_leaves_no_process(tmp_path: Path) -> None:
+    """Ctrl-C while train's fork server still imports (before any worker): one line, exit 130, nothing left."""
+    args = train_args(tmp_path / "run", "--config", str(tiny_config(tmp_path)), "--workers", "2")
+    proc = popen_cli(*args)
+    started: list[int] = []
+
+    def fork_server_started() -> bool:
+        started[:] = descendants_of(proc.pid)
+        return len(started) >= 1
+
+    stderr = interrupt_when(proc, fork_server_started, settle_s=0.2)
+    assert proc.returncode == 130, stderr
+    assert stderr.splitlines() == ["idas-sumo: interrupted; completed outputs were kept"], stderr
+    assert started and all(not Path(f"/proc/{pid}").exists() or _is_zombie(pid) for pid in started)
 
 
 def _is_zombie(pid: int) -> bool:
@@ -819,6 +847,108 @@ def test_a_silent_or_unknown_caller_does_not_stop_the_workers_starting(
                 pass
         stranger.close()
     assert not opened.exists()
+
+
+BUSY_SERVER = """\
+import time
+
+
+class Busy:
+    def __init__(self, init):
+        self.init = init
+
+    def handle(self, request, shared):
+        end = time.process_time() + request
+        while time.process_time() < end:
+            pass
+        return self.init
+
+    def close(self):
+        pass
+"""
+
+
+def _server_module(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str, source: str) -> None:
+    (tmp_path / f"{name}.py").write_text(source)
+    paths = [str(tmp_path), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(paths))
+
+
+def test_pool_workers_are_forked_from_the_fork_server_and_their_cpu_time_is_counted(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Within ``worker_fork_server``, a pool's workers are forks of its one child (none of them this process's
+    own), answer as workers do, are gone after the pool closes, and their CPU time reaches this process's
+    children's once the fork server has exited (what the benchmarks count)."""
+    import resource
+
+    from idas_sumo.sim.processes import ProcessPool, worker_fork_server
+    from idas_sumo.sim.rpc import ForkedChild
+
+    _server_module(tmp_path, monkeypatch, "busy_server", BUSY_SERVER)
+
+    def children_cpu_s() -> float:
+        usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return usage.ru_utime + usage.ru_stime
+
+    before = children_cpu_s()
+    with worker_fork_server("busy_server"), ProcessPool("busy_server:Busy", [10, 20], "test worker") as pool:
+        procs = list(pool._procs.procs)
+        assert all(isinstance(p, ForkedChild) for p in procs)
+        assert not {p.pid for p in procs} & set(children_of(os.getpid()))
+        pool.submit({0: 0.4, 1: 0.4})  # CPU seconds each
+        assert sorted(pool.result(i) for i in range(2)) == [10, 20]
+    assert all(p.poll() is not None and not Path(f"/proc/{p.pid}").exists() for p in procs)
+    assert children_cpu_s() - before >= 0.8
+
+
+def test_a_fork_server_that_fails_to_start_leaves_the_workers_starting_on_their_own(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    from idas_sumo.sim.processes import ProcessPool, worker_fork_server
+    from idas_sumo.sim.rpc import ForkedChild
+
+    _server_module(tmp_path, monkeypatch, "echo_server", ECHO_SERVER)
+    with (
+        worker_fork_server("no_such_module_here"),
+        ProcessPool("echo_server:Echo", [10, 20], "test worker") as pool,
+    ):
+        assert not any(isinstance(p, ForkedChild) for p in pool._procs.procs)
+        pool.submit({0: "a", 1: "b"}, shared="s")
+        assert [pool.result(i) for i in range(2)] == [(10, "a", "s"), (20, "b", "s")]
+    assert "fork server did not start" in caplog.text
+
+
+def test_train_starts_a_fork_server_for_the_workers_it_expects() -> None:
+    """``idas-sumo train`` guesses its rollout workers from the flags and the config file, read as TOML (the
+    config's own rule), before anything heavy is imported: a fork server only for two or more."""
+    import argparse
+
+    from idas_sumo.cli.train import _expected_workers
+    from idas_sumo.sim.processes import max_workers
+
+    def guess(**flags: Any) -> int:
+        base = {"config": None, "workers": None, "episodes": None, "gui": False, "ray_address": None}
+        return _expected_workers(argparse.Namespace(**(base | flags)))
+
+    default = max(1, min(max_workers(), 16 // 8))  # the shipped config: 16 episodes a round
+    assert guess() == (default if default > 1 else 0)
+    assert guess(workers=1) == 0 and guess(gui=True) == 0 and guess(ray_address="auto") == 0
+    if max_workers() >= 2:
+        assert guess(workers=2) == 2
+        assert guess(episodes=8) == 0  # a round of 8 episodes earns one worker
+
+
+def test_train_guesses_no_workers_from_a_config_it_cannot_read(tmp_path: Path) -> None:
+    import argparse
+
+    from idas_sumo.cli.train import _expected_workers
+
+    for content in (b"\xff\xfe not utf-8", b"workers = [", b'workers = "two"'):
+        bad = tmp_path / "bad.toml"
+        bad.write_bytes(content)
+        args = argparse.Namespace(config=bad, workers=None, episodes=None, gui=False, ray_address=None)
+        assert _expected_workers(args) == 0
 
 
 def test_workers_start_run_their_entry_and_stop() -> None:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import tomllib
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from idas_sumo.cli.common import (
@@ -18,6 +21,8 @@ from idas_sumo.cli.common import (
 )
 from idas_sumo.env.actions import SAFETY_MASKS
 from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG_NAME
+from idas_sumo.sim.processes import worker_fork_server
+from idas_sumo.training.worker_count import ROLLOUT_SERVER_MODULE, rollout_workers
 
 if TYPE_CHECKING:
     from idas_sumo.cli.common import Subparsers
@@ -95,7 +100,39 @@ def _add_config_flags(train: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from idas_sumo.training.cli import train_from_args
-
     check_backend(args)
-    return train_from_args(args)
+    # The rollout workers' fork server imports torch and the trainer now, beside this process's own imports.
+    starts = (
+        contextlib.nullcontext() if _expected_workers(args) < 2 else worker_fork_server(ROLLOUT_SERVER_MODULE)
+    )
+    with starts:
+        from idas_sumo.training.cli import train_from_args
+
+        return train_from_args(args)
+
+
+def _expected_workers(args: argparse.Namespace) -> int:
+    """The rollout processes the run will most likely start (0 if it collects in this process, or on Ray): the
+    config's rule on the flags and the config file, read as TOML so that nothing heavy is imported yet. A wrong
+    guess costs a fork server started for nothing, or workers that import on their own; never a result."""
+    if getattr(args, "ray_address", None) is not None or getattr(args, "gui", False):
+        return 0
+    values = train_defaults()
+    path = getattr(args, "config", None)
+    if path is not None:
+        try:
+            with Path(path).open("rb") as f:
+                values = {**values, **tomllib.load(f)}
+        except (OSError, ValueError):  # (not TOML, not UTF-8: the run itself says what is wrong with it)
+            return 0
+    stages = ("robot_episodes", "intelligent_episodes", "direct_episodes")
+    try:
+        budget = args.episodes if getattr(args, "episodes", None) else max(int(values[k]) for k in stages)
+        count = rollout_workers(
+            int(getattr(args, "workers", None) or values["workers"]),
+            int(values["episodes_per_update"]),
+            budget,
+        )
+    except (KeyError, TypeError, ValueError):
+        return 0
+    return count if count > 1 else 0

@@ -16,18 +16,21 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import logging
 import os
 import subprocess
 import tempfile
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import IO, Any, Protocol
 
 from idas_sumo.errors import InputError, SimulationError
-from idas_sumo.sim.rpc import CallBackServer, NoCallBack
+from idas_sumo.sim.rpc import CallBackServer, Child, ForkServer, NoCallBack
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "SEED_LIMIT",
@@ -37,8 +40,10 @@ __all__ = [
     "WorkerProcesses",
     "derived_seed",
     "max_workers",
+    "release_fork_server",
     "serve",
     "wait_any",
+    "worker_fork_server",
 ]
 
 SEED_LIMIT = 2**31
@@ -51,6 +56,8 @@ CLOSE_TIMEOUT_S = 10.0
 KILL_GRACE_S = 3.0
 """How long a worker told to stop at once (SIGTERM) may take to clean up before it is killed."""
 _POLL_S = 0.2
+POOL_ENTRY = "idas_sumo.sim.processes:serve"
+"""What a ``ProcessPool`` worker runs."""
 
 
 def max_workers() -> int:
@@ -82,18 +89,20 @@ class WorkerProcesses:
             raise InputError(f"workers: {count} is not in [1, {limit}] (this machine's CPUs)")
         self.what = what
         self.conns: list[Connection] = []
-        self.procs: list[subprocess.Popen[bytes]] = []
+        self.procs: list[Child] = []
         self._stderr: list[IO[bytes]] = []
         try:
             with CallBackServer() as server:
-                for _ in range(count):
+                deadline = time.monotonic() + CONNECT_TIMEOUT_S
+                if not capture_stderr:  # (a fork writes to the fork server's stderr: the parent's)
+                    self.procs = _forked(server, entry, count, deadline)
+                for _ in range(count - len(self.procs)):
                     # Anonymous (no name to leak), closed in kill() with its worker.
                     err: IO[bytes] | None = tempfile.TemporaryFile() if capture_stderr else None  # noqa: SIM115
                     if err is not None:
                         self._stderr.append(err)
                     # stdout goes nowhere: libsumo prints there.
                     self.procs.append(server.launch(entry, stdout=subprocess.DEVNULL, stderr=err))
-                deadline = time.monotonic() + CONNECT_TIMEOUT_S
                 while len(self.conns) < count:
                     self.conns.append(self._accept(server, deadline))
         except BaseException:
@@ -166,6 +175,52 @@ class WorkerProcesses:
         for f in self._stderr:
             f.close()
         self.conns, self.procs, self._stderr = [], [], []
+
+
+_fork_servers: list[ForkServer] = []
+"""The fork server of ``worker_fork_server``'s block, while it runs."""
+
+
+@contextlib.contextmanager
+def worker_fork_server(preload: str) -> Iterator[None]:
+    """Within the block, ``ProcessPool`` workers (those sharing the parent's stderr) are forked from one child
+    started now that imports ``preload`` (the module of the servers they will run) beside this process's own
+    imports: each worker starts with it imported, instead of importing it again. Nothing where ``os.fork`` is
+    not (``ForkServer.available``)."""
+    if not ForkServer.available:
+        yield
+        return
+    server = ForkServer(preload)
+    _fork_servers.append(server)
+    try:
+        yield
+    finally:
+        release_fork_server()
+
+
+def release_fork_server() -> None:
+    """Stop the fork server now (a run that turned out to need no worker processes): it holds its imports'
+    memory."""
+    while _fork_servers:
+        _fork_servers.pop().close(CLOSE_TIMEOUT_S)
+
+
+def _forked(server: CallBackServer, entry: str, count: int, deadline: float) -> list[Child]:
+    """``count`` children forked from the fork server to call back on ``server``, or none if there is none or it
+    failed (the caller starts its own children then)."""
+    if not _fork_servers:
+        return []
+    forked: list[Child] = []
+    try:
+        for _ in range(count):
+            forked.append(_fork_servers[-1].fork(server, entry, deadline))
+    except (NoCallBack, EOFError, OSError):
+        log.warning("the workers' fork server did not start; starting each worker on its own")
+        release_fork_server()
+        for child in forked:
+            child.kill()
+        return []
+    return forked
 
 
 def wait_any(conns: Sequence[Connection], timeout_s: float = _POLL_S) -> list[Connection]:
@@ -259,7 +314,7 @@ class ProcessPool(WorkerPool):
 
     def __init__(self, factory: str, inits: Sequence[Any], what: str, capture_stderr: bool = False) -> None:
         self.what = what
-        self._procs = WorkerProcesses("idas_sumo.sim.processes:serve", len(inits), what, capture_stderr)
+        self._procs = WorkerProcesses(POOL_ENTRY, len(inits), what, capture_stderr)
         try:
             for conn, init in zip(self._procs.conns, inits, strict=True):
                 conn.send((factory, init))

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import os
 import secrets
 import signal
 import socket
@@ -33,13 +34,16 @@ from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any
+from typing import IO, Any, NoReturn, Protocol
 
 __all__ = [
     "ACCEPT_SLICE_S",
     "CHILD_HANDSHAKE_TIMEOUT_S",
     "HANDSHAKE_TIMEOUT_S",
     "CallBackServer",
+    "Child",
+    "ForkServer",
+    "ForkedChild",
     "NoCallBack",
     "child_main",
     "connect",
@@ -92,9 +96,17 @@ class CallBackServer:
     def close(self) -> None:
         self._server.close()
 
-    def launch(self, entry: str, stdout: _Stream = None, stderr: _Stream = None) -> subprocess.Popen[bytes]:
+    def ticket(self) -> tuple[int, str]:
+        """The port and the key (hex) a child needs to call back: what a ``ForkServer`` hands its forks."""
+        return self.port, self._key.hex()
+
+    def launch(
+        self, entry: str, stdout: _Stream = None, stderr: _Stream = None, preload: str = ""
+    ) -> subprocess.Popen[bytes]:
         """Start a child that calls back and runs ``entry(conn)`` (``"package.module:function"``);
-        ``stdout``/``stderr`` as ``subprocess.Popen`` takes them (None: the parent's)."""
+        ``stdout``/``stderr`` as ``subprocess.Popen`` takes them (None: the parent's). ``preload``: a module
+        the child imports before it calls back (what its entry will need), so that it imports while the
+        parent is still busy."""
         group: dict[str, Any] = {"start_new_session": True}
         if sys.platform == "win32":
             group = {"creationflags": subprocess.CREATE_NEW_PROCESS_GROUP}
@@ -109,7 +121,7 @@ class CallBackServer:
         try:
             assert proc.stdin is not None
             with contextlib.suppress(OSError):  # a child that died at once is seen to exit in accept()
-                proc.stdin.write(f"{self.port} {self._key.hex()}\n".encode())
+                proc.stdin.write(f"{self.port} {self._key.hex()} {preload}\n".encode())
                 proc.stdin.close()
         except BaseException:
             proc.kill()
@@ -117,7 +129,7 @@ class CallBackServer:
             raise
         return proc
 
-    def accept(self, procs: Sequence[subprocess.Popen[bytes]], deadline: float) -> Connection:
+    def accept(self, procs: Sequence[Child], deadline: float) -> Connection:
         """The next child's authenticated connection, waited for in short slices. A caller that fails
         the handshake or does not finish it in ``HANDSHAKE_TIMEOUT_S`` (another local program) is
         dropped and the wait goes on. ``NoCallBack`` once every one of ``procs`` has exited, or at
@@ -195,6 +207,156 @@ class _Frames:
         return left
 
 
+class Child(Protocol):
+    """What a parent needs of a child it started: a ``subprocess.Popen``, or a ``ForkedChild``."""
+
+    pid: int
+    returncode: int | None
+
+    def poll(self) -> int | None: ...
+
+    def wait(self, timeout: float | None = None) -> int: ...
+
+    def terminate(self) -> None: ...
+
+    def kill(self) -> None: ...
+
+
+class ForkedChild:
+    """A child forked by a ``ForkServer``: the fork server's child, not ours, so its exit status is the fork
+    server's to collect (at once); ``returncode`` is that of a signal we sent it, or 1 once it is gone otherwise."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+        self._signal = 0
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                os.kill(self.pid, 0)  # (the fork server collects its forks at once: a gone one is no zombie)
+            except ProcessLookupError:
+                self.returncode = -self._signal if self._signal else 1
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while (code := self.poll()) is None:
+            if deadline is not None and time.monotonic() > deadline:
+                raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout or 0.0)
+            time.sleep(0.02)
+        return code
+
+    def _send(self, signum: int) -> None:
+        if self.poll() is None:
+            self._signal = signum
+            os.kill(self.pid, signum)
+
+    def terminate(self) -> None:
+        self._send(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self._send(signal.SIGKILL)
+
+
+FORK_SERVER_ENTRY = "idas_sumo.sim.rpc:serve_forks"
+
+
+class ForkServer:
+    """A child that imports ``preload`` once and then forks children that call back, each of which starts with
+    those modules imported instead of importing them again (Linux only: ``available``). It calls back on its own
+    server once its imports are done; ``fork`` waits for that."""
+
+    available = sys.platform.startswith("linux")
+
+    def __init__(self, preload: str) -> None:
+        self._server = CallBackServer()
+        self._conn: Connection | None = None
+        try:
+            # stdout goes nowhere (libsumo prints there); stderr is the parent's, and so its forks'.
+            self._proc = self._server.launch(FORK_SERVER_ENTRY, stdout=subprocess.DEVNULL, preload=preload)
+        except BaseException:
+            self._server.close()
+            raise
+
+    def fork(self, server: CallBackServer, entry: str, deadline: float) -> ForkedChild:
+        """A forked child that calls back on ``server`` and runs ``entry(conn)``; ``NoCallBack`` if the fork
+        server did not start (its imports failed) by ``deadline``, ``EOFError`` or ``OSError`` if it is gone."""
+        if self._conn is None:
+            self._conn = self._server.accept([self._proc], deadline)
+            self._server.close()
+        self._conn.send((*server.ticket(), entry))
+        return ForkedChild(int(self._conn.recv()))
+
+    def close(self, timeout_s: float) -> None:
+        """Stop the fork server once its forks have exited (their parent stops them), at most ``timeout_s`` later:
+        it collects their exit, so their CPU time counts among this process's children's."""
+        self._server.close()
+        if self._conn is None:  # never called back: it has no forks
+            self._proc.kill()
+        else:
+            self._conn.close()
+        try:
+            self._proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+
+
+def serve_forks(conn: Connection) -> None:
+    """A ``ForkServer`` (its child's entry): fork a child for every (port, key, entry) asked, answer its pid; when
+    the parent hangs up, wait for the forks to exit, then exit."""
+    signal.signal(signal.SIGCHLD, _reap_forks)  # (a fork that exits is no zombie: its parent sees it gone)
+    try:
+        while True:
+            try:
+                port, key, entry = conn.recv()
+            except (EOFError, OSError):
+                break
+            pid = os.fork()
+            if pid == 0:
+                signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+                conn.close()
+                _forked_child(int(port), bytes.fromhex(key), entry)
+            conn.send(pid)
+    finally:
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        with contextlib.suppress(ChildProcessError):
+            while True:  # each exit collected: the forks' CPU time adds to this process's children's
+                os.wait()
+
+
+def _reap_forks(signum: int, frame: object) -> None:
+    """SIGCHLD in the fork server: collect every fork that has exited."""
+    with contextlib.suppress(ChildProcessError):
+        while os.waitpid(-1, os.WNOHANG)[0]:
+            pass
+
+
+def _forked_child(port: int, key: bytes, entry: str) -> NoReturn:
+    """A fork of the fork server: its own session (Ctrl-C in the terminal is the parent's), call back, run
+    ``entry(conn)``, exit (never back into the fork server's loop)."""
+    code = 1
+    try:
+        os.setsid()
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        module, _, function = entry.partition(":")
+        conn = connect(port, key)
+        getattr(importlib.import_module(module), function)(conn)
+        code = 0
+    except SystemExit as stop:  # SIGTERM from the parent (``_exit_on_sigterm``), after the finally blocks
+        code = stop.code if isinstance(stop.code, int) else 1
+    except (EOFError, BrokenPipeError, ConnectionResetError, OSError, AuthenticationError):
+        code = 1  # the parent went away
+    except BaseException:
+        traceback.print_exc()
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
+
+
 def _exit_on_sigterm(signum: int, frame: object) -> None:
     """SIGTERM from the parent: exit through the finally blocks, so SUMO is closed and its temporary
     folder removed, quietly (SystemExit prints no traceback)."""
@@ -208,13 +370,18 @@ def child_main(entry: str) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns Ctrl-C and stops us
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
-        port, key = sys.stdin.readline().split()
+        port, key, *preload = sys.stdin.readline().split()
         sys.stdin.close()
-        conn = connect(int(port), bytes.fromhex(key))
-    except (ValueError, OSError, EOFError, AuthenticationError):
+    except (ValueError, OSError):
         sys.exit(1)
     module, _, function = entry.partition(":")
     try:
+        for name in preload:
+            importlib.import_module(name)
+        try:
+            conn = connect(int(port), bytes.fromhex(key))
+        except (ValueError, OSError, EOFError, AuthenticationError):
+            sys.exit(1)
         getattr(importlib.import_module(module), function)(conn)
     except (EOFError, BrokenPipeError, ConnectionResetError):
         sys.exit(1)  # the parent went away mid-task

@@ -18,14 +18,8 @@ from idas_sumo.env.scenario import TrafficConfig
 from idas_sumo.env.state_layout import STATE_SLOTS
 from idas_sumo.errors import InputError
 from idas_sumo.sim.multinet import MAX_COPIES
-from idas_sumo.sim.processes import max_workers
 from idas_sumo.training.geometry import GeometryConfig
-
-EPISODES_PER_WORKER = 8
-"""With ``workers = 0``, a round's episodes per rollout process at least: a step's fixed costs (the engine's
-Python, SUMO's step, the actor's call) are shared by the episodes a process runs side by side, so a process
-with fewer would not earn its start (8 episodes of a stage-2 round took 0.6 of the CPU time of 16 in one
-process, docs/performance.md)."""
+from idas_sumo.training.worker_count import rollout_workers
 
 __all__ = [
     "RESUME_FIELDS",
@@ -205,15 +199,10 @@ class TrainConfig:
                 )
 
     def rollout_workers(self, gui: bool = False) -> int:
-        """The rollout processes a run starts: ``workers``, or for 0 one per CPU this process may use
-        (``sim.processes.max_workers``) and per ``EPISODES_PER_WORKER`` episodes of a round (the stages'
-        budgets may be shorter than ``episodes_per_update``), at least one; 1 with ``gui`` (the rollouts show
-        in one window)."""
-        if self.workers:
-            return self.workers
+        """The rollout processes a run starts (``worker_count.rollout_workers``: ``workers``, or for 0 one per
+        CPU and per ``EPISODES_PER_WORKER`` episodes of a round, whose size the stages' budgets may cut)."""
         budget = max(self.robot_episodes, self.intelligent_episodes, self.direct_episodes)
-        round_size = min(self.episodes_per_update, budget)
-        return 1 if gui else max(1, min(max_workers(), round_size // EPISODES_PER_WORKER))
+        return rollout_workers(self.workers, self.episodes_per_update, budget, gui)
 
     def with_overrides(
         self,

@@ -682,14 +682,19 @@ def _train_stage(
     try:
         if fresh:
             # A fresh run's starting point is a checkpoint too: a kill (even SIGKILL) before the first
-            # periodic one then resumes from here to the weights of an uninterrupted run.
-            save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
+            # periodic one then resumes from here to the weights of an uninterrupted run. Written during the
+            # first round (nothing it holds changes before the round ends): the optimisers it builds import
+            # torch._dynamo (about 2 CPU s), which should not hold up the first episodes.
+            workers.meanwhile(
+                lambda: save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
+            )
         if validation is not None and validation.owed:
             validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
             stage_bar.validated(validation.best_return)
         while state.episode < plan.episodes:
             stops.check()
             _round(run, plan, learner, state, workers, metrics, validation, stage_bar)
+        workers.meanwhile(None)  # (none left for the next stage's first round)
     except BaseException as err:
         # A stop that arrives while a compiled kernel returns comes out as that call's SystemError, the
         # stop as its context: a stop all the same (``stops.behind``), so the completed rounds are saved.
@@ -698,7 +703,9 @@ def _train_stage(
         if not (fresh and state.global_episode == 0):
             save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
             log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
-        # else: a fresh run stopped before its first round; its starting checkpoint says all there is.
+        elif not run.latest.exists():  # stopped in its first round before the starting checkpoint was written
+            save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
+        # (a fresh run stopped in its first round: its starting checkpoint says all there is)
         raise
 
 

@@ -28,7 +28,7 @@ import dataclasses
 import logging
 import traceback
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
@@ -56,9 +56,9 @@ from idas_sumo.agents.rollout import (
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.sim.merge_detect import MergeSite
-from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed
-from idas_sumo.training.config import EPISODES_PER_WORKER
+from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed, release_fork_server
 from idas_sumo.training.heap import keep_freed_blocks
+from idas_sumo.training.worker_count import EPISODES_PER_WORKER, ROLLOUT_SERVER_MODULE
 
 __all__ = [
     "EpisodeTask",
@@ -208,6 +208,18 @@ def _round_scale(groups: list[_Advantages]) -> AdvantageScale:
 class RolloutWorkers(ABC):
     """Collects episodes with given actor weights; results come back in task order."""
 
+    _meanwhile: Callable[[], None] | None = None
+
+    def meanwhile(self, task: Callable[[], None] | None) -> None:
+        """Run ``task`` once during the next round: while its workers collect, or before this process collects
+        (nothing it reads may change before the round ends); None: nothing."""
+        self._meanwhile = task
+
+    def _run_meanwhile(self) -> None:
+        task, self._meanwhile = self._meanwhile, None
+        if task is not None:
+            task()
+
     @abstractmethod
     def run(
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
@@ -287,6 +299,7 @@ class InProcessWorkers(RolloutWorkers):
     def run(
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None = None
     ) -> list[EpisodeData]:
+        self._run_meanwhile()
         with _one_thread():
             return _run_tasks(self.engines.on(net), learner, tasks)
 
@@ -480,6 +493,7 @@ class PoolWorkers(RolloutWorkers):
         shares = [list(s) for s in np.array_split(np.arange(len(tasks)), self._pool.size)]
         requests = {w: (net, [tasks[i] for i in idx]) for w, idx in enumerate(shares) if idx}
         self._pool.submit(requests, shared=actor_weights(learner))
+        self._run_meanwhile()
         return [_unpack(p) for reply in self._replies(requests) for p in reply[1]]
 
     def _collect_gradients(
@@ -515,6 +529,7 @@ class PoolWorkers(RolloutWorkers):
         self._pool.submit(requests, shared=learner_weights(learner))
         self._holding = list(requests)
         learner.build_optimisers()  # while the workers collect (only the first round's build costs anything)
+        self._run_meanwhile()
         return self._replies(requests)
 
     def _replies(self, requests: dict[int, Any]) -> list[tuple[Any, ...]]:
@@ -556,9 +571,11 @@ def make_workers(
 ) -> RolloutWorkers:
     """``workers`` processes (1: this one), each running ``copies`` episodes side by side; with
     ``ray_address`` (distributed/ray_pool.py), ``workers`` Ray actors instead, even for 1."""
+    if workers <= 1 or ray_address is not None:
+        release_fork_server()  # the run needs no worker processes of its own
     if workers <= 1 and ray_address is None:
         return InProcessWorkers(site, env_config, seed, copies, gui=gui)
-    factory = "idas_sumo.training.workers:RolloutServer"
+    factory = f"{ROLLOUT_SERVER_MODULE}:RolloutServer"
     inits = [(site, env_config, derived_seed(seed, 1 + w), copies) for w in range(workers)]
     pool: WorkerPool
     if ray_address is not None:
