@@ -14,8 +14,9 @@ random weights, each worker count, old code (the checkout, run with ``PYTHONPATH
 interpreter and packages) and this code, interleaved (old, new, new, old, ...) so both see the shared
 machine's load alike. Both read the same config file and start from the same ``idas.pt``: the older checkout's
 shipped one, which both codes read (a policy shipped later may carry config keys the older code refuses). Each cell prints the
-episodes/s of every repeat and the CPU seconds per episode (the train process and its workers), the ratio is
-new over old of the medians.
+episodes/s of every repeat (by the run's own clock, which starts after the command's imports) and the CPU
+seconds per episode (the train process and its workers), the ratio is new over old of the medians; the last
+column is the whole command's wall time (interpreter start and imports included).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,6 +52,8 @@ class Pace:
     episodes_per_s: float
     agent_steps_per_s: float
     cpu_s_per_episode: float
+    command_s: float = 0.0
+    """The whole command, interpreter start and imports included (the run's own clock starts after them)."""
 
 
 def _config_text(init_from: str) -> str:
@@ -89,6 +93,7 @@ def run_train(
         toml.write_text(text, encoding="utf-8")
         run = Path(tmp) / "run"
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        started = time.perf_counter()
         subprocess.run(
             [
                 *(sys.executable, "-m", "idas_sumo.cli", "train", "--net", str(net), "--config", str(toml)),
@@ -100,13 +105,14 @@ def run_train(
             env=env,
             cwd=tmp,
         )
+        command_s = time.perf_counter() - started
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         with (run / "metrics.csv").open(newline="") as f:
             rows = list(csv.DictReader(f))
     wall = float(rows[-1]["wall_time_s"])
     steps = sum(int(r["agent_steps"]) for r in rows)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return Pace(len(rows) / wall, steps / wall, cpu / len(rows))
+    return Pace(len(rows) / wall, steps / wall, cpu / len(rows), command_s)
 
 
 def measure(net: Path, stage: str, workers: int, episodes: int, init_from: str = "") -> tuple[float, float]:
@@ -162,7 +168,7 @@ def _against(args: argparse.Namespace) -> None:
                     paces.setdefault((label, w, who), []).append(pace)
                     print(
                         f"{label}, {w} worker(s), {who}: {pace.episodes_per_s:.2f} episodes/s, "
-                        f"{pace.cpu_s_per_episode:.3f} CPU s/episode",
+                        f"{pace.cpu_s_per_episode:.3f} CPU s/episode, the command {pace.command_s:.1f} s",
                         flush=True,
                     )
     table = Table(title=f"idas-sumo train, intelligent world: {args.against} (old) against this code (new)")
@@ -174,6 +180,7 @@ def _against(args: argparse.Namespace) -> None:
         "new episodes/s",
         "ratio",
         "CPU s/ep old | new",
+        "command s old | new",
     ):
         table.add_column(col, justify="right")
     for label, _, episodes in starts:
@@ -187,7 +194,8 @@ def _against(args: argparse.Namespace) -> None:
                 p.episodes_per_s for p in old
             )
             cpu = " | ".join(f"{statistics.median(p.cpu_s_per_episode for p in ps):.3f}" for ps in (old, new))
-            table.add_row(label, str(episodes), str(w), eps(old), eps(new), f"{ratio:.2f}x", cpu)
+            command = " | ".join(f"{statistics.median(p.command_s for p in ps):.1f}" for ps in (old, new))
+            table.add_row(label, str(episodes), str(w), eps(old), eps(new), f"{ratio:.2f}x", cpu, command)
     print_table(table)
 
 
