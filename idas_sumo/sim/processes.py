@@ -5,7 +5,9 @@ in its own session that calls back on an authenticated loopback socket and then 
 named by the parent with the connection. Start-up stays interruptible: the parent waits for call-backs
 in short slices, so Ctrl-C or SIGTERM is seen within a fraction of a second; on any failure or
 interruption every started worker is killed at once (not waited for), and a worker whose parent is gone
-before it connected exits without a traceback.
+before it connected exits without a traceback. Within ``worker_fork_server`` (``idas-sumo train`` with two
+or more workers), a pool's workers are forks of one such child that imported their module once
+(``rpc.ForkServer``), instead of fresh interpreters that each import it again.
 
 What the workers do is a ``Server`` (built from a start-up value, then asked requests); ``WorkerPool``
 is what training and evaluation see of them, implemented here by ``ProcessPool`` (these processes)

@@ -4,7 +4,11 @@ child (sim/backend.py) and the worker pools (sim/processes.py) share.
 A child is a fresh interpreter started with subprocess, not multiprocessing's spawn: spawn re-imports
 the user's ``__main__``, so a script without an ``if __name__ == "__main__":`` guard would run itself
 again there. It runs in its own session (process group on Windows), so a Ctrl-C in the terminal
-reaches only the parent, which owns its children and stops them.
+reaches only the parent, which owns its children and stops them. A ``ForkServer`` is such a child
+that imports the modules its forks need once, beside the parent's own imports, and then forks a child
+for each one asked (Linux): the fork takes its own session and calls back as a launched child does.
+It forks from a process that has imported but computed nothing (no torch or OpenMP thread pool
+started), not from the parent, and never imports the parent's ``__main__``.
 
 The parent listens on a loopback port and hands each child the port and a fresh random key on its
 stdin (not its command line, where other users could read it). The child connects, and each side
