@@ -239,7 +239,7 @@ class ForkedChild:
         if self.returncode is None:
             try:
                 os.kill(self.pid, 0)  # (the fork server collects its forks at once: a gone one is no zombie)
-            except ProcessLookupError:
+            except (ProcessLookupError, PermissionError):  # (gone; its pid another user's since)
                 self.returncode = -self._signal if self._signal else 1
         return self.returncode
 
@@ -254,7 +254,8 @@ class ForkedChild:
     def _send(self, signum: int) -> None:
         if self.poll() is None:
             self._signal = signum
-            os.kill(self.pid, signum)
+            with contextlib.suppress(ProcessLookupError):  # (it exited just now)
+                os.kill(self.pid, signum)
 
     def terminate(self) -> None:
         self._send(signal.SIGTERM)
