@@ -319,7 +319,7 @@ def _first_row_of_next_step(per_step: npt.NDArray[np.int64]) -> npt.NDArray[np.i
     agent of the episode acted is not recorded: across such a gap the link skips the idle steps, whose joint
     reward is 0 (nobody acts, nobody brakes: ``scoring.py``)."""
     first = np.cumsum(per_step) - per_step
-    following = np.append(first[1:], -1 if len(per_step) else []).astype(np.int64)  # (none without a step)
+    following = np.append(first[1:], -1)[: len(per_step)].astype(np.int64)
     return np.repeat(following, per_step)
 
 
@@ -392,7 +392,6 @@ class _LearningPolicy:
 
     def __init__(self, actor: RolloutActor, tasks: Sequence[RolloutTask]) -> None:
         self.actor = actor
-        self.tasks = tasks
         self.streams = ActionStreams([t.action_seed for t in tasks], [t.deterministic for t in tasks])
 
     def act(self, batch: AgentBatch, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:

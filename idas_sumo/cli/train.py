@@ -115,7 +115,7 @@ def _expected_workers(args: argparse.Namespace) -> int:
     """The rollout processes the run will most likely start (0 if it collects in this process, or on Ray): the
     config's rule on the flags and the config file, read as TOML so that nothing heavy is imported yet. A wrong
     guess costs a fork server started for nothing, or workers that import on their own; never a result."""
-    if getattr(args, "ray_address", None) is not None or getattr(args, "gui", False):
+    if getattr(args, "ray_address", None) is not None:
         return 0
     values = train_defaults()
     path = getattr(args, "config", None)
@@ -132,6 +132,7 @@ def _expected_workers(args: argparse.Namespace) -> int:
             int(getattr(args, "workers", None) or values["workers"]),
             int(values["episodes_per_update"]),
             budget,
+            gui=bool(getattr(args, "gui", False)),
         )
     except (KeyError, TypeError, ValueError):
         return 0

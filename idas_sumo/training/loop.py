@@ -679,15 +679,17 @@ def _train_stage(
     completed rounds, then re-raises the stop (a KeyboardInterrupt, or an error raised from one)."""
     stage_bar = _StageBar(bar, plan, state.episode)
     fresh = state.global_episode == 0 and not run.latest.exists()
+
+    def save() -> None:
+        save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
+
     try:
         if fresh:
             # A fresh run's starting point is a checkpoint too: a kill (even SIGKILL) before the first
             # periodic one then resumes from here to the weights of an uninterrupted run. Written during the
             # first round (nothing it holds changes before the round ends): the optimisers it builds import
             # torch._dynamo (about 2 CPU s), which should not hold up the first episodes.
-            workers.meanwhile(
-                lambda: save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
-            )
+            workers.meanwhile(save)
         if validation is not None and validation.owed:
             validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
             stage_bar.validated(validation.best_return)
@@ -701,10 +703,10 @@ def _train_stage(
         if stops.behind(err) is None:
             raise
         if not (fresh and state.global_episode == 0):
-            save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
+            save()
             log.warning("interrupted: saved %s at episode %d of %s", run.latest, state.episode, plan.name)
         elif not run.latest.exists():  # stopped in its first round before the starting checkpoint was written
-            save_checkpoint(run.latest, state.checkpoint(learner, run.config, plan))
+            save()
         # (a fresh run stopped in its first round: its starting checkpoint says all there is)
         raise
 
