@@ -7,6 +7,7 @@ and compare with the local workers: the same episodes in the same order, so the 
 from __future__ import annotations
 
 import csv
+import functools
 import math
 import subprocess
 import sys
@@ -329,7 +330,11 @@ def test_workers_are_bounded_by_this_machine_unless_they_run_on_a_cluster(
             code, _, err = main_in_process(capsys, *base, *local)
             assert code == 2, err
             one_error_line(err, "--workers", many, "CPUs")
-        # On a cluster the cluster's CPUs count: here the refusal is that there is none to connect to.
+        # On a cluster the cluster's CPUs count: here the refusal is that there is none to connect to ("auto"
+        # finds any Ray instance running on this machine, such as another test's beside this one: none here).
+        none_running: Any = functools.lru_cache(list)  # (ray clears its cache)
+        monkeypatch.setattr("ray._private.services.find_gcs_addresses", none_running)
+        monkeypatch.setattr("ray._private.services.find_bootstrap_address", lambda temp_dir: None)
         code, _, err = main_in_process(capsys, *base, "--ray-address", "auto")
         assert code == 2, err
         one_error_line(err, "cannot connect to a Ray cluster")
