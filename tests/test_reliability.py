@@ -902,6 +902,76 @@ def test_pool_workers_are_forked_from_the_fork_server_and_their_cpu_time_is_coun
     assert children_cpu_s() - before >= 0.8
 
 
+PREPARED_SERVER = """\
+import os
+
+PREPARED_IN = 0
+
+
+def prepare():
+    global PREPARED_IN
+    PREPARED_IN = os.getpid()
+
+
+class Prepared:
+    def __init__(self, init):
+        pass
+
+    def handle(self, request, shared):
+        return PREPARED_IN, os.getppid(), os.getpid()
+
+    def close(self):
+        pass
+"""
+
+
+def test_a_fork_server_runs_its_preloads_function_once_before_it_forks(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``"module:function"`` as the preload: the fork server calls it once, and its forks start with what it did."""
+    from idas_sumo.sim.processes import ProcessPool, worker_fork_server
+
+    _server_module(tmp_path, monkeypatch, "prepared_server", PREPARED_SERVER)
+    with (
+        worker_fork_server("prepared_server:prepare"),
+        ProcessPool("prepared_server:Prepared", [0, 0], "test worker") as pool,
+    ):
+        pool.submit({0: None, 1: None})
+        (prepared_0, parent_0, pid_0), (prepared_1, parent_1, pid_1) = (pool.result(i) for i in range(2))
+    assert prepared_0 == prepared_1 == parent_0 == parent_1 != 0  # prepared in the fork server, not per fork
+    assert pid_0 != pid_1
+
+
+def test_a_pools_meanwhile_runs_beside_its_workers_start_and_its_error_comes_out(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``ProcessPool(meanwhile=...)``: the caller's own work runs on another thread while the workers start, and is
+    done when the pool is; if it fails, the pool's start fails with its error and no worker is left."""
+    import threading
+
+    from idas_sumo.sim.processes import ProcessPool
+
+    _server_module(tmp_path, monkeypatch, "echo_server", ECHO_SERVER)
+    ran: list[str] = []
+
+    def note() -> None:
+        time.sleep(0.2)
+        ran.append(threading.current_thread().name)
+
+    with ProcessPool("echo_server:Echo", [1], "test worker", meanwhile=note) as pool:
+        assert ran and ran[0] != threading.current_thread().name
+        pool.submit({0: "a"})
+        assert pool.result(0) == (1, "a", None)
+
+    def fail() -> None:
+        raise ValueError("the caller's own work failed")
+
+    before = set(children_of(os.getpid()))
+    with pytest.raises(ValueError, match="own work failed"):
+        ProcessPool("echo_server:Echo", [1], "test worker", meanwhile=fail)
+    assert not set(children_of(os.getpid())) - before
+
+
 def test_a_fork_server_that_fails_to_start_leaves_the_workers_starting_on_their_own(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

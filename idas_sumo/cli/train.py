@@ -22,7 +22,7 @@ from idas_sumo.cli.common import (
 from idas_sumo.env.actions import SAFETY_MASKS
 from idas_sumo.resources import DEFAULT_NET_NAME, DEFAULT_TRAIN_CONFIG_NAME
 from idas_sumo.sim.processes import worker_fork_server
-from idas_sumo.training.worker_count import ROLLOUT_SERVER_MODULE, rollout_workers
+from idas_sumo.training.worker_count import ROLLOUT_PRELOAD, rollout_workers
 
 if TYPE_CHECKING:
     from idas_sumo.cli.common import Subparsers
@@ -101,10 +101,9 @@ def _add_config_flags(train: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     check_backend(args)
-    # The rollout workers' fork server imports torch and the trainer now, beside this process's own imports.
-    starts = (
-        contextlib.nullcontext() if _expected_workers(args) < 2 else worker_fork_server(ROLLOUT_SERVER_MODULE)
-    )
+    # The rollout workers' fork server imports torch and the trainer now, beside this process's own imports, and
+    # loads what each worker's first round would (``workers.warm_up``).
+    starts = contextlib.nullcontext() if _expected_workers(args) < 2 else worker_fork_server(ROLLOUT_PRELOAD)
     with starts:
         from idas_sumo.training.cli import train_from_args
 

@@ -24,6 +24,9 @@ import numpy.typing as npt
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+_KERNELS: list[Any] = []
+"""Every kernel made by ``kernel`` (numba dispatchers), for ``load_cached_kernels``."""
+
 
 def kernel(func: F) -> F:
     """``func`` compiled by numba (nopython, releasing the GIL), cached on disk where possible."""
@@ -31,7 +34,27 @@ def kernel(func: F) -> F:
         compiled = numba.njit(cache=True, nogil=True)(func)
     except RuntimeError:  # numba: "cannot cache function ...: no locator available"
         compiled = numba.njit(nogil=True)(func)
+    _KERNELS.append(compiled)
     return cast(F, compiled)
+
+
+def load_cached_kernels() -> int:
+    """Load now the machine code numba cached for every kernel imported so far (each signature it holds for
+    this machine and this source), as each kernel's first call would: a process that forks workers calls
+    this once, so that none of them loads the same code again. Returns how many were loaded; a kernel whose
+    cache cannot be read (none yet, stale, another numba) is left to compile or load on its first call."""
+    loaded = 0
+    for dispatcher in _KERNELS:
+        cache = dispatcher._cache  # (numba's own cache of the kernel: its index lists the cached signatures)
+        try:
+            codegen = dispatcher.targetctx.codegen()
+            for sig, machine, source in cache._cache_file._load_index():
+                if (sig, machine, source) == cache._index_key(sig, codegen):
+                    dispatcher.compile(sig)
+                    loaded += 1
+        except Exception:  # (a speed-up only: the kernel's first call does it otherwise)
+            continue
+    return loaded
 
 
 def per_row(values: npt.ArrayLike | None, n: int, dtype: type = np.float64) -> npt.NDArray[Any]:

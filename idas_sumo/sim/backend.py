@@ -69,6 +69,13 @@ def _swig() -> Any:
     return libsumo._libsumo
 
 
+def load_libsumo() -> None:
+    """Load libsumo's library now, if it is installed, starting no simulation: what a process that forks the
+    workers running SUMO does once for them all (a fork of a process running a SUMO would not be safe)."""
+    with contextlib.suppress(ImportError):
+        _swig()
+
+
 class RouteVehicle(Protocol):
     """What the route file needs of one vehicle (``env.scenario.VehicleSpec`` has it)."""
 

@@ -22,6 +22,7 @@ import logging
 import os
 import subprocess
 import tempfile
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
@@ -186,8 +187,9 @@ _fork_servers: list[ForkServer] = []
 @contextlib.contextmanager
 def worker_fork_server(preload: str) -> Iterator[None]:
     """Within the block, ``ProcessPool`` workers (those sharing the parent's stderr) are forked from one child
-    started now that imports ``preload`` (the module of the servers they will run) beside this process's own
-    imports: each worker starts with it imported, instead of importing it again. Nothing where ``os.fork`` is
+    started now that imports ``preload`` (the module of the servers they will run; ``"module:function"`` also
+    calls that function, e.g. to load what each worker would) beside this process's own imports: each worker
+    starts with it imported, instead of importing it again. Nothing where ``os.fork`` is
     not (``ForkServer.available``)."""
     if not ForkServer.available:
         yield
@@ -311,15 +313,49 @@ class WorkerPool(ABC):
             self.kill()
 
 
+class _Beside:
+    """``task`` on a thread of its own from now on, if any; ``join`` waits for it and raises its error."""
+
+    def __init__(self, task: Callable[[], None] | None) -> None:
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        if task is not None:
+            self._thread = threading.Thread(target=self._run, args=(task,), daemon=True)
+            self._thread.start()
+
+    def _run(self, task: Callable[[], None]) -> None:
+        try:
+            task()
+        except BaseException as err:  # (raised again in the caller's thread by ``join``)
+            self._error = err
+
+    def join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+
 class ProcessPool(WorkerPool):
     """One ``WorkerProcesses`` worker per start-up value, each running ``serve``."""
 
-    def __init__(self, factory: str, inits: Sequence[Any], what: str, capture_stderr: bool = False) -> None:
+    def __init__(
+        self,
+        factory: str,
+        inits: Sequence[Any],
+        what: str,
+        capture_stderr: bool = False,
+        meanwhile: Callable[[], None] | None = None,
+    ) -> None:
+        """``meanwhile``: work of the caller's own, run on a thread of its while the workers start (the caller
+        would wait for them), finished before this returns; its error is raised here."""
         self.what = what
+        beside = _Beside(meanwhile)
         self._procs = WorkerProcesses(POOL_ENTRY, len(inits), what, capture_stderr)
         try:
             for conn, init in zip(self._procs.conns, inits, strict=True):
                 conn.send((factory, init))
+            beside.join()
         except BaseException:
             self._procs.kill()
             raise

@@ -110,7 +110,7 @@ class CallBackServer:
         """Start a child that calls back and runs ``entry(conn)`` (``"package.module:function"``);
         ``stdout``/``stderr`` as ``subprocess.Popen`` takes them (None: the parent's). ``preload``: a module
         the child imports before it calls back (what its entry will need), so that it imports while the
-        parent is still busy."""
+        parent is still busy; ``"module:function"`` also calls that function of it then."""
         group: dict[str, Any] = {"start_new_session": True}
         if sys.platform == "win32":
             group = {"creationflags": subprocess.CREATE_NEW_PROCESS_GROUP}
@@ -381,8 +381,11 @@ def child_main(entry: str) -> None:
         sys.exit(1)
     module, _, function = entry.partition(":")
     try:
-        for name in preload:
-            importlib.import_module(name)
+        for name in preload:  # a module, or "module:function" to call once it is imported
+            preloaded, _, prepare = name.partition(":")
+            imported = importlib.import_module(preloaded)
+            if prepare:
+                getattr(imported, prepare)()
         try:
             conn = connect(int(port), bytes.fromhex(key))
         except (ValueError, OSError, EOFError, AuthenticationError):

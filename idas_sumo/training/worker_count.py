@@ -5,10 +5,12 @@ from __future__ import annotations
 
 from idas_sumo.sim.processes import max_workers
 
-__all__ = ["EPISODES_PER_WORKER", "ROLLOUT_SERVER_MODULE", "rollout_workers"]
+__all__ = ["EPISODES_PER_WORKER", "ROLLOUT_PRELOAD", "ROLLOUT_SERVER_MODULE", "rollout_workers"]
 
 ROLLOUT_SERVER_MODULE = "idas_sumo.training.workers"
 """Where a rollout worker's server lives (``RolloutServer``): what a worker started early imports first."""
+ROLLOUT_PRELOAD = f"{ROLLOUT_SERVER_MODULE}:warm_up"
+"""What the workers' fork server imports and runs before it forks them (``sim.processes.worker_fork_server``)."""
 
 EPISODES_PER_WORKER = 8
 """With ``workers = 0``, a round's episodes per rollout process at least: a step's fixed costs (the engine's

@@ -45,6 +45,7 @@ from idas_sumo.agents.learner import (
     Learner,
     LearnerConfig,
     PendingPart,
+    prepare_optimisers,
 )
 from idas_sumo.agents.rollout import (
     EpisodeData,
@@ -54,7 +55,9 @@ from idas_sumo.agents.rollout import (
     collect_episodes,
 )
 from idas_sumo.env.engine import EnvConfig, MergeEngine
+from idas_sumo.env.jit import load_cached_kernels
 from idas_sumo.errors import IdasError, SimulationError
+from idas_sumo.sim.backend import load_libsumo
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed, release_fork_server
 from idas_sumo.training.heap import keep_freed_blocks
@@ -67,6 +70,7 @@ __all__ = [
     "RolloutServer",
     "RolloutWorkers",
     "make_workers",
+    "warm_up",
 ]
 
 log = logging.getLogger(__name__)
@@ -583,5 +587,12 @@ def make_workers(
 
         pool = RayPool(factory, inits, "rollout worker", ray_address)
     else:
-        pool = ProcessPool(factory, inits, "rollout worker")
+        pool = ProcessPool(factory, inits, "rollout worker", meanwhile=prepare_optimisers)
     return PoolWorkers(pool)
+
+
+def warm_up() -> None:
+    """What every rollout worker's first round loads alike, loaded once in the process they are forked from
+    (``ROLLOUT_PRELOAD``): libsumo's library and numba's cached kernels."""
+    load_libsumo()
+    load_cached_kernels()
