@@ -1004,3 +1004,32 @@ def test_a_training_process_keeps_freed_blocks_on_glibc() -> None:
     )
     # Without it about 500 (numpy asks for huge pages): the freed block went back to the kernel.
     assert faults < 50, f"{faults} page faults: the freed 64 MB went back to the kernel"
+
+
+@pytest.mark.sumo
+def test_a_rounds_step_runs_on_one_torch_thread(
+    net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The training process applies a round's gradient parts on one torch thread (as the parts were computed),
+    whatever its own count, which it gets back afterwards: the step's norms then round alike on every machine."""
+    from idas_sumo.agents.learner import Learner
+    from idas_sumo.training.loop import run_training
+
+    threads: list[int] = []
+    apply = Learner.apply_gradients
+
+    def counted(self: Learner, parts: Any) -> dict[str, float]:
+        threads.append(torch.get_num_threads())
+        return apply(self, parts)
+
+    monkeypatch.setattr(Learner, "apply_gradients", counted)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        run_training(
+            net_path, tiny_config(stage="intelligent", intelligent_episodes=2), tmp_path / "r", progress=False
+        )
+        assert threads and set(threads) == {1}
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

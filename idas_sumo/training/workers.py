@@ -243,9 +243,13 @@ class RolloutWorkers(ABC):
         the groups' advantages, their actor gradients."""
         if not learner.config.normalize_advantages:
             stats, parts = self._collect_gradients(learner, tasks, net, central)
+        else:
+            stats, advantages = self._collect_advantages(learner, tasks, net, central)
+            parts = self._finish_gradients(learner, _round_scale(advantages))
+        with (
+            _one_thread()
+        ):  # (the step's norms then round alike on every machine, and sooner: see _one_thread)
             return stats, learner.apply_gradients(parts)
-        stats, advantages = self._collect_advantages(learner, tasks, net, central)
-        return stats, learner.apply_gradients(self._finish_gradients(learner, _round_scale(advantages)))
 
     def train_round_here(
         self, learner: Learner, tasks: list[EpisodeTask], net: MergeSite | None, central: bool
