@@ -1006,6 +1006,45 @@ def test_a_training_process_keeps_freed_blocks_on_glibc() -> None:
     assert faults < 50, f"{faults} page faults: the freed 64 MB went back to the kernel"
 
 
+def test_a_frozen_heap_keeps_the_objects_alive_at_its_start_out_of_the_collector() -> None:
+    """Within ``frozen_heap`` the objects alive at its start are frozen (a full collection does not walk them),
+    a cycle that was garbage already is collected first, not frozen, and at the end nothing is frozen."""
+    import gc
+    import weakref
+
+    from idas_sumo.training.heap import frozen_heap
+
+    class Node:
+        pass
+
+    held = [Node()]  # alive: frozen in the block
+    garbage = Node()
+    garbage.me = garbage  # type: ignore[attr-defined]  # a cycle nobody holds: collected, not frozen
+    gone = weakref.ref(garbage)
+    del garbage
+    assert gc.get_freeze_count() == 0
+    with frozen_heap():
+        assert gone() is None
+        assert gc.get_freeze_count() >= len(held)
+        assert not any(o is held for o in gc.get_objects())  # frozen objects are out of the generations
+    assert gc.get_freeze_count() == 0
+    assert any(o is held for o in gc.get_objects())
+
+
+def test_the_workers_fork_server_freezes_what_it_loaded() -> None:
+    """``warm_up`` (what the fork server runs before it forks) ends with its objects frozen."""
+    import subprocess
+    import sys
+
+    script = (
+        "import gc\nfrom idas_sumo.training.workers import warm_up\nwarm_up()\nprint(gc.get_freeze_count())\n"
+    )
+    frozen = int(
+        subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    )
+    assert frozen > 10_000  # torch, numba and their loaded kernels
+
+
 @pytest.mark.sumo
 def test_a_rounds_step_runs_on_one_torch_thread(
     net_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch

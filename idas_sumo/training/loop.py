@@ -43,7 +43,7 @@ from idas_sumo.training.checkpoint import TrainingCheckpoint, load_checkpoint, s
 from idas_sumo.training.config import RESUME_FIELDS, Stage, TrainConfig, ValidationCriterion
 from idas_sumo.training.curriculum import StagePlan, plan_stages
 from idas_sumo.training.geometry import GEOMETRY_COLUMNS, GeometryConfig, draw_geometry, geometry_corners
-from idas_sumo.training.heap import keep_freed_blocks
+from idas_sumo.training.heap import frozen_heap, keep_freed_blocks
 from idas_sumo.training.metrics import METRICS_NAME, TENSORBOARD_DIR, MetricsSink
 from idas_sumo.training.validation import (
     VALIDATION_COLUMNS,
@@ -205,7 +205,8 @@ def _train_stages(
             if validation_sink is None
             else _StageValidation.start(run, plan, workers, validation_sink, resumed_here)
         )
-        _train_stage(run, plan, learner, state, workers, metrics, validation, bar)
+        with frozen_heap():  # (the stage's learner, the workers, the imports: none of it is garbage)
+            _train_stage(run, plan, learner, state, workers, metrics, validation, bar)
         final = _finish_stage(run, plan, learner, state, validation)
     return final
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
 import logging
 import traceback
 from abc import ABC, abstractmethod
@@ -597,6 +598,9 @@ def make_workers(
 
 def warm_up() -> None:
     """What every rollout worker's first round loads alike, loaded once in the process they are forked from
-    (``ROLLOUT_PRELOAD``): libsumo's library and numba's cached kernels."""
+    (``ROLLOUT_PRELOAD``): libsumo's library and numba's cached kernels. Then its objects are frozen out of the
+    forks' garbage collections (Python's advice for a process that forks: ``gc.freeze`` before the forks)."""
     load_libsumo()
     load_cached_kernels()
+    gc.collect()
+    gc.freeze()
