@@ -689,7 +689,8 @@ def _train_stage(
             # A fresh run's starting point is a checkpoint too: a kill (even SIGKILL) before the first
             # periodic one then resumes from here to the weights of an uninterrupted run. Written during the
             # first round (nothing it holds changes before the round ends): the optimisers it builds import
-            # torch._dynamo (about 2 CPU s), which should not hold up the first episodes.
+            # torch._dynamo (about 1.3 CPU s, unless it was imported while the workers started), which should not
+            # hold up the first episodes.
             workers.meanwhile(save)
         if validation is not None and validation.owed:
             validation.run(learner, state.checkpoint(learner, run.config, plan), run.wall_s())
