@@ -52,13 +52,18 @@ def keep_freed_blocks() -> bool:
     return all(mallopt(param, value) == 1 for param, value in settings)
 
 
-@contextlib.contextmanager
-def frozen_heap() -> Iterator[None]:
-    """Within the block, the objects alive at its start are out of the cyclic garbage collector's reach
-    (``gc.freeze``, after a collection of what is garbage already); at its end they are back in it. Which
-    collections run never changes a value computed."""
+def freeze_alive() -> None:
+    """Put the objects alive now out of the cyclic garbage collector's reach (``gc.freeze``), after a collection of
+    what is garbage already (a frozen cycle would never be freed). Which collections run never changes a value."""
     gc.collect()
     gc.freeze()
+
+
+@contextlib.contextmanager
+def frozen_heap() -> Iterator[None]:
+    """Within the block, the objects alive at its start are frozen (``freeze_alive``); at its end they are back in
+    the collector's reach."""
+    freeze_alive()
     try:
         yield
     finally:

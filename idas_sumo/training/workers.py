@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import gc
 import logging
 import traceback
 from abc import ABC, abstractmethod
@@ -61,7 +60,7 @@ from idas_sumo.errors import IdasError, SimulationError
 from idas_sumo.sim.backend import load_libsumo
 from idas_sumo.sim.merge_detect import MergeSite
 from idas_sumo.sim.processes import ProcessPool, WorkerPool, derived_seed, release_fork_server
-from idas_sumo.training.heap import keep_freed_blocks
+from idas_sumo.training.heap import freeze_alive, keep_freed_blocks
 from idas_sumo.training.worker_count import EPISODES_PER_WORKER, ROLLOUT_SERVER_MODULE
 
 __all__ = [
@@ -247,9 +246,8 @@ class RolloutWorkers(ABC):
         else:
             stats, advantages = self._collect_advantages(learner, tasks, net, central)
             parts = self._finish_gradients(learner, _round_scale(advantages))
-        with (
-            _one_thread()
-        ):  # (the step's norms then round alike on every machine, and sooner: see _one_thread)
+        # On one thread, as the parts were computed: the step's norms then round alike on every machine, and sooner.
+        with _one_thread():
             return stats, learner.apply_gradients(parts)
 
     def train_round_here(
@@ -602,5 +600,4 @@ def warm_up() -> None:
     forks' garbage collections (Python's advice for a process that forks: ``gc.freeze`` before the forks)."""
     load_libsumo()
     load_cached_kernels()
-    gc.collect()
-    gc.freeze()
+    freeze_alive()
