@@ -1008,7 +1008,7 @@ def test_a_training_process_keeps_freed_blocks_on_glibc() -> None:
 
 def test_a_frozen_heap_keeps_the_objects_alive_at_its_start_out_of_the_collector() -> None:
     """Within ``frozen_heap`` the objects alive at its start are frozen (a full collection does not walk them),
-    a cycle that was garbage already is collected first, not frozen, and at the end nothing is frozen."""
+    a young cycle that was garbage already is collected first, not frozen, and at the end nothing is frozen."""
     import gc
     import weakref
 
