@@ -620,6 +620,24 @@ def test_a_q_of_another_critic_is_not_loaded(bias_only_critic: str) -> None:
     assert all(torch.equal(v, coma_again.central.state_dict()[k]) for k, v in q_before.items())
 
 
+def test_a_learner_saved_before_its_first_step_builds_no_optimiser_and_loads_fresh_ones() -> None:
+    """Saving must not build an optimiser (the first build imports ``torch._dynamo``: a stop during that import
+    left it broken, and the run's starting checkpoint was lost); a learner that loads the state gets fresh
+    optimisers, as an uninterrupted run would at its first step, whatever it held before."""
+    fresh = Learner(LearnerConfig(), seed=1)
+    state = fresh.state_dict()
+    assert [state[name] for name in ("opt_actor", "opt_value", "opt_central")] == [None, None, None]
+    assert not {"_opt_actor", "_opt_value", "_opt_central"} & fresh.__dict__.keys()
+    stepped = Learner(LearnerConfig(), seed=2)
+    for p in stepped.actor.parameters():
+        p.grad = torch.ones_like(p)
+    stepped.opt_actor.step()
+    assert stepped.opt_actor.state_dict()["state"]
+    stepped.load_state_dict(state)
+    assert stepped.opt_actor.state_dict()["state"] == {}
+    assert stepped.state_dict()["opt_actor"] == Learner(LearnerConfig(), seed=3).opt_actor.state_dict()
+
+
 def test_a_policy_trained_with_the_retired_state_value_head_still_acts() -> None:
     """idas_explored10_collide.pt's Q had the retired U(s) + D(s, a) head: ``load_actor`` loads its actor and V,
     and keeps this build's Q (not needed to act)."""

@@ -877,10 +877,14 @@ class Learner:
             "central": self.central.state_dict(),
             "value_target": self.value_target.state_dict(),
             "central_target": self.central_target.state_dict(),
-            "opt_actor": self.opt_actor.state_dict(),
-            "opt_value": self.opt_value.state_dict(),
-            "opt_central": self.opt_central.state_dict(),
+            **{name: self._optimiser_state(name) for name in _OPTIMISERS.values()},
         } | ({} if self.anchor is None else {"anchor": self.anchor.state_dict()})
+
+    def _optimiser_state(self, name: str) -> dict[str, Any] | None:
+        """Optimiser ``name``'s state; None while it is not built (``_LazyAdam``: a fresh Adam holds none). Building
+        it here would import ``torch._dynamo``, which a stop during a first round's import has left broken."""
+        built: torch.optim.Optimizer | None = self.__dict__.get(f"_{name}")
+        return None if built is None else built.state_dict()
 
     def load_state_dict(self, state: dict[str, Any], load_optimisers: bool = True) -> None:
         """Restore from ``state_dict()``. The config stays this learner's own (stage 2 may load stage 1).
@@ -910,7 +914,11 @@ class Learner:
             self.anchor = _frozen_copy(self.actor)
             self.anchor.load_state_dict(state["anchor"])
         if load_optimisers:
-            self.opt_actor.load_state_dict(state["opt_actor"])
-            self.opt_value.load_state_dict(state["opt_value"])
-            if same_central:
-                self.opt_central.load_state_dict(state["opt_central"])
+            for network, name in _OPTIMISERS.items():
+                if network == "central" and not same_central:
+                    continue
+                saved = state[name]
+                if saved is None:  # saved before it was built: a fresh one, built on first use
+                    self.__dict__.pop(f"_{name}", None)
+                else:
+                    getattr(self, name).load_state_dict(saved)
