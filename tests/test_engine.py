@@ -13,7 +13,7 @@ import hashlib
 import json
 import zlib
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
@@ -340,6 +340,44 @@ def test_rollouts_match_their_golden_file_with_one_copy_or_three(net_path: Path)
     stats = [g["stats"] for g in golden]
     assert any(s["timed_out"] for s in stats)
     assert any("finished" in s["end_reasons"].values() for s in stats)
+
+
+@pytest.mark.sumo
+def test_episodes_loaded_ahead_are_those_a_reset_starts(
+    net_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``preload_episodes`` (a rollout worker's next round, loaded while it waits) starts the first wave as
+    ``collect_episodes`` does, which then does not load it again; other tasks, or tasks read since, load anew."""
+    from idas_sumo.agents.learner import Learner, LearnerConfig
+    from idas_sumo.agents.rollout import collect_episodes, preload_episodes
+    from idas_sumo.sim.batch import BatchBackend
+
+    loads: list[int] = []
+    real_reset = BatchBackend.reset
+
+    def counted_reset(self: BatchBackend, scenarios: Any, *args: Any) -> None:
+        loads.append(len(scenarios))
+        real_reset(self, scenarios, *args)
+
+    monkeypatch.setattr(BatchBackend, "reset", counted_reset)
+    golden = json.loads(ROLLOUT_GOLDEN.read_text())
+    learner = Learner(LearnerConfig(), seed=3)
+    tasks = rollout_tasks(net_path)
+    engine = MergeEngine(net_path, copies=3, config=GOLDEN_ENV)
+    try:
+        preload_episodes(engine, tasks)
+        assert loads == [3]
+        assert [episode_digest(e) for e in collect_episodes(engine, learner, tasks)] == golden
+        assert loads == [3, 2]  # the second wave's only
+        preload_episodes(engine, tasks[1:])  # not the tasks collected next
+        assert [episode_digest(e) for e in collect_episodes(engine, learner, tasks)] == golden
+        assert loads == [3, 2, 3, 3, 2]
+        preload_episodes(engine, tasks)
+        engine.observe()  # read since it was loaded
+        assert [episode_digest(e) for e in collect_episodes(engine, learner, tasks)] == golden
+        assert loads == [3, 2, 3, 3, 2, 3, 3, 2]
+    finally:
+        engine.close()
 
 
 def test_an_episodes_bank_takes_its_rows_of_each_step_then_the_bootstrap_rows() -> None:

@@ -516,9 +516,10 @@ def test_two_workers_collect_the_same_episodes(
 ) -> None:
     from idas_sumo.training.loop import run_training
 
-    """A round of 16 episodes: each worker collects a group of 8 and computes its gradient part (with
-    ``normalize_advantages``, after the round's advantage scale from both groups came back); the metrics and
-    the weights are those of one worker, bit for bit. No round runs the whole update here."""
+    """Two rounds of 16 episodes: each worker collects a group of 8 and computes its gradient part (with
+    ``normalize_advantages``, after the round's advantage scale from both groups came back), the second round's
+    episodes loaded ahead into the workers' SUMO while they waited (``RolloutServer.work_ahead``); the metrics
+    and the weights are those of one worker, bit for bit. No round runs the whole update here."""
 
     def whole_batch_update(*args: Any) -> None:
         raise AssertionError("a training round ran Learner.update on the whole batch in the training process")
@@ -527,9 +528,10 @@ def test_two_workers_collect_the_same_episodes(
     config = tiny_config(
         stage="direct",
         episodes_per_update=16,
-        direct_episodes=16,
-        checkpoint_every=16,
+        direct_episodes=32,
+        checkpoint_every=32,
         learner=LearnerConfig(normalize_advantages=normalize),
+        workers=1,  # (the default, 0, is one per CPU: two workers on a 2-core machine)
     )
     run_training(net_path, config, tmp_path / "w1", progress=False)
     run_training(net_path, config.with_overrides(workers=2), tmp_path / "w2", progress=False)
@@ -537,7 +539,7 @@ def test_two_workers_collect_the_same_episodes(
         [{k: v for k, v in r.items() if k != "wall_time_s"} for r in read_metrics(tmp_path / w)]
         for w in ("w1", "w2")
     )
-    assert one == two and len(one) == 16
+    assert one == two and len(one) == 32
     a, b = (load_checkpoint(tmp_path / w / "direct.pt").learner for w in ("w1", "w2"))
     for net in ("actor", "value", "central"):
         assert all(torch.equal(v, b[net][k]) for k, v in a[net].items())

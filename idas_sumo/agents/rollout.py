@@ -38,6 +38,7 @@ __all__ = [
     "RolloutTask",
     "batch_from_episodes",
     "collect_episodes",
+    "preload_episodes",
     "record_episodes",
 ]
 
@@ -542,11 +543,23 @@ def collect_episodes(
     """Run every task's scenario to its end on ``engine`` (``engine.copies`` side by side), every learning
     agent on ``actor``; the recorded episodes in task order. Each episode draws from its own stream
     (``action_seed``), so its draws do not depend on which episodes ran beside it."""
+    with engine.episode_limit(_shared_limit(tasks)):
+        return record_episodes(engine, _LearningPolicy(actor, tasks), [t.scenario for t in tasks])
+
+
+def preload_episodes(engine: MergeEngine, tasks: Sequence[RolloutTask]) -> None:
+    """The first ``engine.copies`` of ``tasks`` started as ``collect_episodes`` starts them (``MergeEngine.preload``):
+    a ``collect_episodes`` of the same tasks then begins where this left them."""
+    with engine.episode_limit(_shared_limit(tasks)):
+        engine.preload([t.scenario for t in tasks[: engine.copies]])
+
+
+def _shared_limit(tasks: Sequence[RolloutTask]) -> float | None:
+    """The timeout the tasks share (None: the engine's own, or no tasks)."""
     limits = {t.max_episode_s for t in tasks}
     if len(limits) > 1:
         raise ValueError(f"the tasks of one call share their timeout, got {sorted(map(str, limits))}")
-    with engine.episode_limit(limits.pop() if limits else None):
-        return record_episodes(engine, _LearningPolicy(actor, tasks), [t.scenario for t in tasks])
+    return limits.pop() if limits else None
 
 
 def record_episodes(engine: MergeEngine, policy: Policy, scenarios: Sequence[Scenario]) -> list[EpisodeData]:

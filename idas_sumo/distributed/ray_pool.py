@@ -22,7 +22,7 @@ from typing import Any, TypeVar
 
 from idas_sumo.distributed import LOCAL, check_ray_address, require_ray
 from idas_sumo.errors import IdasError, InputError, SimulationError
-from idas_sumo.sim.processes import CLOSE_TIMEOUT_S, WorkerPool, load_factory
+from idas_sumo.sim.processes import CLOSE_TIMEOUT_S, WorkerPool, load_factory, run_ahead
 
 __all__ = ["RayPool", "map_tasks", "ray_session"]
 
@@ -131,6 +131,9 @@ class _ServerActor:
     def handle(self, request: Any, shared: Any) -> Any:
         return self._server.handle(request, shared)
 
+    def work_ahead(self) -> None:
+        run_ahead(self._server)
+
     def close(self) -> None:
         self._server.close()
 
@@ -166,6 +169,8 @@ class RayPool(WorkerPool):
         shared_ref = self._ray.put(shared)
         for i, request in requests.items():
             self._pending[i] = self._actors[i].handle.remote(request, shared_ref)
+            # An actor runs its calls in order: this one after the reply, before the next request.
+            self._actors[i].work_ahead.remote()
 
     def finished(self, pending: Collection[int], timeout_s: float = _POLL_S) -> list[int]:
         refs = {self._pending[i]: i for i in pending}

@@ -186,6 +186,8 @@ class MergeEngine:
         self._batch_agents: _Agents | None = None
         self._time_s = 0.0
         self._closed = False
+        self._loaded_ahead: tuple[object, ...] | None = None
+        """What ``preload`` started (scenarios, SUMO options, config) while no ``observe`` has read it since."""
 
     # -- episodes ------------------------------------------------------------------------------
     def _make_backend(self) -> BatchBackend | _SoloBackend:
@@ -199,6 +201,9 @@ class MergeEngine:
         """Start one episode per scenario (at most ``copies``), scenario k in slot k."""
         if self._closed:
             raise SimulationError("this engine is closed; create a new one")
+        ahead, self._loaded_ahead = self._loaded_ahead, None
+        if ahead is not None and ahead == (tuple(scenarios), tuple(sumo_args), self.config):
+            return  # ``preload`` started these episodes and nothing has read them since: as a reset leaves them
         if not 1 <= len(scenarios) <= self.copies:
             raise ValueError(f"{len(scenarios)} scenarios for {self.copies} slots")
         if self._backend is None:
@@ -223,6 +228,13 @@ class MergeEngine:
             ev = events.copies[k]
             slot.outcome.collisions += len(ev.collision_pairs)
             self._settle(k, self._admit(k, ev) > 0)
+
+    def preload(self, scenarios: Sequence[Scenario], sumo_args: Sequence[str] = ()) -> None:
+        """``reset`` ahead of its time (a rollout worker's next round, loaded while it waits for its weights):
+        the next ``reset`` with the same scenarios, options and config, with no ``observe`` or
+        ``release_slot`` before it, then costs nothing; any other reset starts over."""
+        self.reset(scenarios, sumo_args)
+        self._loaded_ahead = (tuple(scenarios), tuple(sumo_args), self.config)
 
     @property
     def backend(self) -> BatchBackend | _SoloBackend:
@@ -508,6 +520,7 @@ class MergeEngine:
     # -- observation ---------------------------------------------------------------------------
     def observe(self) -> AgentBatch:
         """Every active agent of every running slot, in slot then scenario order."""
+        self._loaded_ahead = None
         agents = self._agents
         if agents is None:
             agents = self._agents = self._gather_agents()
@@ -898,6 +911,7 @@ class MergeEngine:
 
     def release_slot(self, k: int) -> None:
         """Slot k's episode is over: its cars leave SUMO so that they cost nothing until the next reset."""
+        self._loaded_ahead = None
         self.backend.clear_copy(k)
 
     def close(self) -> None:

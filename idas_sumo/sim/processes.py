@@ -243,7 +243,8 @@ class Server(Protocol):
 
     ``handle`` returns its reply (errors included, as values: an exception raised here means the
     worker itself is broken). ``shared`` is the part of a request that every worker of a round gets
-    (the actor weights): a backend may send it once for all of them.
+    (the actor weights): a backend may send it once for all of them. A server may also have
+    ``work_ahead()``: called once each reply is on its way, before the next request is read (``run_ahead``).
     """
 
     def handle(self, request: Any, shared: Any) -> Any: ...
@@ -255,6 +256,13 @@ ServerFactory = Callable[[Any], Server]
 
 _CLOSE = ("close",)
 """A process worker's last message: close the server and exit."""
+
+
+def run_ahead(server: Server) -> None:
+    """The server's ``work_ahead``, if it has one (what its next request may use: it must not change a reply)."""
+    work_ahead = getattr(server, "work_ahead", None)
+    if work_ahead is not None:
+        work_ahead()
 
 
 def load_factory(factory: str) -> ServerFactory:
@@ -410,6 +418,7 @@ def serve(conn: Connection) -> None:
                 break
             request, shared = message
             conn.send(server.handle(request, shared))
+            run_ahead(server)
     except (EOFError, BrokenPipeError):
         pass  # the parent went away: nothing to answer
     finally:

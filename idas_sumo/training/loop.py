@@ -447,6 +447,8 @@ class _RunState:
     """Episodes completed in every stage of the run."""
     counted_rng: _RngStates = dataclasses.field(init=False)
     """The generators' states when the counts were last advanced (or set)."""
+    ahead: list[EpisodeTask] = dataclasses.field(default_factory=list)
+    """The next round's episodes, drawn during this round (the workers load them while they wait)."""
 
     def __post_init__(self) -> None:
         self.counted_rng = self.rng_states()
@@ -477,11 +479,12 @@ class _RunState:
         if stage_index != self.stage_index:
             self.stage_index, self.episode = stage_index, 0
 
-    def advance(self, episodes: int) -> None:
-        """Count ``episodes`` as done (their draws came before)."""
+    def advance(self, episodes: int, drawn: _RngStates) -> None:
+        """Count ``episodes`` as done; ``drawn``: the generators' states just after their draws (the next
+        round's may have come since)."""
         self.episode += episodes
         self.global_episode += episodes
-        self.counted_rng = self.rng_states()
+        self.counted_rng = drawn
 
     def rng_states(self) -> _RngStates:
         return self.np_rng.bit_generator.state, self.torch_rng.get_state()
@@ -733,9 +736,14 @@ def _round(
         # Drawn before the round's scenarios, from the same generator: a resumed run draws it again.
         drawn, site = run.geometry.draw(state.np_rng)
         net, speed_limits, room = site, _site_limits(site), start_room_m(site)
-    tasks = _episode_tasks(run, plan, state, speed_limits, room)
+    tasks = state.ahead or _episode_tasks(run, plan, state, state.episode, speed_limits, room)
+    counted = state.rng_states()
     if run.geometry is not None:
         run.geometry.prefetch(state.np_rng)
+        state.ahead = []
+    else:  # the next round's episodes (none at the stage's end), on the same net
+        state.ahead = _episode_tasks(run, plan, state, state.episode + len(tasks), speed_limits, room)
+        workers.load_ahead(state.ahead)
     stats, losses = workers.train_round(learner, tasks, net, central=plan.central)
     wall_s = run.wall_s()
     metrics.write(
@@ -753,7 +761,7 @@ def _round(
         row |= {"episodes": len(tasks), **dataclasses.asdict(drawn), "net": Path(net.path).name}
         run.geometry.sink.write([row])
     before = state.global_episode
-    state.advance(len(tasks))
+    state.advance(len(tasks), counted)
     stage_bar.episodes_done(state.episode, [s.success for s in stats])
 
     checkpoint_due = _passed_multiple(before, state.global_episode, config.checkpoint_every)
@@ -779,21 +787,22 @@ def _episode_tasks(
     run: _Run,
     plan: StagePlan,
     state: _RunState,
+    first: int,
     speed_limits: dict[Road, float],
     start_room: dict[Road, float] | None = None,
 ) -> list[EpisodeTask]:
-    """The round's episodes (``episodes_per_update``, fewer at the stage's end): each a scenario on
-    a net of ``speed_limits`` (the start speeds; the starts count from each road's start, so a
-    road's length does not enter), then an action seed, drawn in that order from the run's
-    generators."""
-    n = min(run.config.episodes_per_update, plan.episodes - state.episode)
+    """The round's episodes from the stage's episode ``first`` (``episodes_per_update``, fewer at the stage's
+    end, none after it): each a scenario on a net of ``speed_limits`` (the start speeds; the starts count from
+    each road's start, so a road's length does not enter), then an action seed, drawn in that order from the
+    run's generators."""
+    n = min(run.config.episodes_per_update, plan.episodes - first)
     return [
         EpisodeTask(
             scenario=generate_scenario(
                 state.np_rng,
                 plan.traffic,
                 speed_limits,
-                name=f"{plan.name}-{state.episode + i}",
+                name=f"{plan.name}-{first + i}",
                 start_room_m=start_room,
             ),
             action_seed=int(torch.randint(0, 2**62, (1,), generator=state.torch_rng).item()),

@@ -53,6 +53,7 @@ from idas_sumo.agents.rollout import (
     RolloutTask,
     batch_from_episodes,
     collect_episodes,
+    preload_episodes,
 )
 from idas_sumo.env.engine import EnvConfig, MergeEngine
 from idas_sumo.env.jit import load_cached_kernels
@@ -209,10 +210,22 @@ def _round_scale(groups: list[_Advantages]) -> AdvantageScale:
         return AdvantageScale.over(value, central or None)
 
 
+def _shares(tasks: list[EpisodeTask], workers: int) -> dict[int, list[EpisodeTask]]:
+    """A training round's tasks by worker: whole groups (``GROUP_EPISODES``), in task order, as even as they go."""
+    groups = -(-len(tasks) // GROUP_EPISODES)
+    shares = {}
+    for w, share in enumerate(np.array_split(np.arange(groups), workers)):
+        if len(share):
+            first, end = int(share[0]) * GROUP_EPISODES, (int(share[-1]) + 1) * GROUP_EPISODES
+            shares[w] = tasks[first:end]
+    return shares
+
+
 class RolloutWorkers(ABC):
     """Collects episodes with given actor weights; results come back in task order."""
 
     _meanwhile: Callable[[], None] | None = None
+    _ahead: list[EpisodeTask] = []  # (replaced, never changed in place)
 
     def meanwhile(self, task: Callable[[], None] | None) -> None:
         """Run ``task`` once during the next round: while its workers collect, or before this process collects
@@ -223,6 +236,12 @@ class RolloutWorkers(ABC):
         task, self._meanwhile = self._meanwhile, None
         if task is not None:
             task()
+
+    def load_ahead(self, tasks: list[EpisodeTask]) -> None:
+        """The tasks of the round after the next ``train_round``, on the same net: a worker process loads its
+        share into its SUMO once it has sent its part of the round, while it waits for the next weights
+        (``RolloutServer.work_ahead``). What the round then collects does not change; only when it starts."""
+        self._ahead = tasks
 
     @abstractmethod
     def run(
@@ -422,6 +441,8 @@ class _GradientRequest:
     config: LearnerConfig
     central: bool
     pending: bool = False
+    ahead: list[EpisodeTask] = dataclasses.field(default_factory=list)
+    """The worker's share of the next round (``RolloutWorkers.load_ahead``), on the same net."""
 
 
 @dataclass(frozen=True)
@@ -443,6 +464,8 @@ class RolloutServer:
         self.engines = _NetEngine(site, env_config, seed, copies)
         self.learner = Learner(LearnerConfig(), seed=0)
         self._pending: list[PendingPart] = []
+        self._ahead: tuple[MergeSite | None, list[EpisodeTask]] = (None, [])
+        """The next round's share and its net, for ``work_ahead``."""
 
     @property
     def engine(self) -> MergeEngine:
@@ -474,12 +497,22 @@ class RolloutServer:
         if self.learner.config != request.config:
             self.learner = Learner(request.config, seed=0)
         _load_learner_weights(self.learner, weights)
+        self._ahead = (request.net, request.ahead)
         episodes = _run_tasks(self.engines.on(request.net), self.learner, request.tasks)
         if request.pending:
             self._pending = _pending_parts(self.learner, episodes, request.central)
             return ("ok", [e.stats for e in episodes], [_advantages(p) for p in self._pending])
         parts = _gradient_parts(self.learner, episodes, request.central)
         return ("ok", [e.stats for e in episodes], [_pack_part(p) for p in parts])
+
+    def work_ahead(self) -> None:
+        """Once a round's reply is sent (``sim.processes.serve``): the next round's share loaded into SUMO
+        (``preload_episodes``), so that the next request starts collecting at once."""
+        (net, tasks), self._ahead = self._ahead, (None, [])
+        if tasks:
+            # (A failed load is left to the next request's own reset, which meets the error and answers with it.)
+            with contextlib.suppress(IdasError):
+                preload_episodes(self.engines.on(net), tasks)
 
     def close(self) -> None:
         self.engines.close()
@@ -527,12 +560,11 @@ class PoolWorkers(RolloutWorkers):
     ) -> list[tuple[Any, ...]]:
         """Each worker's ``request`` for its share of ``tasks`` (whole groups, in task order), with the
         learner's weights; the replies in worker order."""
-        groups = -(-len(tasks) // GROUP_EPISODES)
-        requests = {}
-        for w, share in enumerate(np.array_split(np.arange(groups), self._pool.size)):
-            if len(share):  # whole groups, in task order
-                first, end = int(share[0]) * GROUP_EPISODES, (int(share[-1]) + 1) * GROUP_EPISODES
-                requests[w] = dataclasses.replace(request, tasks=tasks[first:end])
+        ahead, self._ahead = _shares(self._ahead, self._pool.size), []
+        requests = {
+            w: dataclasses.replace(request, tasks=share, ahead=ahead.get(w, []))
+            for w, share in _shares(tasks, self._pool.size).items()
+        }
         self._pool.submit(requests, shared=learner_weights(learner))
         self._holding = list(requests)
         learner.build_optimisers()  # while the workers collect (only the first round's build costs anything)
