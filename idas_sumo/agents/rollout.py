@@ -212,6 +212,14 @@ class _Ending:
     slot: int
 
 
+def _runs_of(values: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """``np.unique(values, return_inverse=True)`` of sorted ``values`` (a batch's copies), without its sort."""
+    new = np.empty(len(values), dtype=np.bool_)
+    new[:1] = True
+    np.not_equal(values[1:], values[:-1], out=new[1:])
+    return values[new], np.cumsum(new) - 1
+
+
 def _others_actions(
     copy: npt.NDArray[np.int64], agent_slots: npt.NDArray[np.int64], applied: npt.NDArray[np.int64]
 ) -> npt.NDArray[np.float32]:
@@ -431,7 +439,7 @@ class _Collector:
         self, engine: MergeEngine, jobs: Sequence[int], batch: AgentBatch, actions: npt.NDArray[np.int64]
     ) -> None:
         if len(batch):
-            copies, inverse = np.unique(batch.copy, return_inverse=True)
+            copies, inverse = _runs_of(batch.copy)
             self.row_states = engine.states(copies)[inverse]
         self.agent_slots = engine.state_slots(batch.egos)  # read before the step replaces the snapshot
 
