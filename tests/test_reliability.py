@@ -945,8 +945,9 @@ def test_a_fork_server_runs_its_preloads_function_once_before_it_forks(
 def test_a_pools_meanwhile_runs_beside_its_workers_start_and_its_error_comes_out(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``ProcessPool(meanwhile=...)``: the caller's own work runs on another thread while the workers start, and is
-    done when the pool is; if it fails, the pool's start fails with its error and no worker is left."""
+    """``ProcessPool(meanwhile=...)``: the caller's own work runs on another thread while the workers start and the
+    first requests go out, and is done when the first ``submit`` returns; if it fails, that ``submit`` fails with
+    its error, and no worker is left once the pool's block is left."""
     import threading
 
     from idas_sumo.sim.processes import ProcessPool
@@ -959,16 +960,19 @@ def test_a_pools_meanwhile_runs_beside_its_workers_start_and_its_error_comes_out
         ran.append(threading.current_thread().name)
 
     with ProcessPool("echo_server:Echo", [1], "test worker", meanwhile=note) as pool:
-        assert ran and ran[0] != threading.current_thread().name
         pool.submit({0: "a"})
+        assert ran and ran[0] != threading.current_thread().name
         assert pool.result(0) == (1, "a", None)
 
     def fail() -> None:
         raise ValueError("the caller's own work failed")
 
     before = set(children_of(os.getpid()))
-    with pytest.raises(ValueError, match="own work failed"):
-        ProcessPool("echo_server:Echo", [1], "test worker", meanwhile=fail)
+    with (
+        pytest.raises(ValueError, match="own work failed"),
+        ProcessPool("echo_server:Echo", [1], "test worker", meanwhile=fail) as pool,
+    ):
+        pool.submit({0: "a"})
     assert not set(children_of(os.getpid())) - before
 
 

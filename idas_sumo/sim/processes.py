@@ -338,10 +338,13 @@ class _Beside:
             self._error = err
 
     def join(self) -> None:
+        """Wait for the task (at once after the first time), then raise its error (only the first time)."""
         if self._thread is not None:
             self._thread.join()
-        if self._error is not None:
-            raise self._error
+            self._thread = None
+        error, self._error = self._error, None
+        if error is not None:
+            raise error
 
 
 class ProcessPool(WorkerPool):
@@ -355,15 +358,15 @@ class ProcessPool(WorkerPool):
         capture_stderr: bool = False,
         meanwhile: Callable[[], None] | None = None,
     ) -> None:
-        """``meanwhile``: work of the caller's own, run on a thread of its while the workers start (the caller
-        would wait for them), finished before this returns; its error is raised here."""
+        """``meanwhile``: work of the caller's own, run on a thread of its while the workers start and their first
+        requests go out (the caller would wait for them), finished before the first ``submit`` (or ``close``)
+        returns; its error is raised there."""
         self.what = what
-        beside = _Beside(meanwhile)
+        self._beside = _Beside(meanwhile)
         self._procs = WorkerProcesses(POOL_ENTRY, len(inits), what, capture_stderr)
         try:
             for conn, init in zip(self._procs.conns, inits, strict=True):
                 conn.send((factory, init))
-            beside.join()
         except BaseException:
             self._procs.kill()
             raise
@@ -378,6 +381,7 @@ class ProcessPool(WorkerPool):
                 self._procs.conns[i].send((request, shared))
             except (BrokenPipeError, EOFError, OSError):
                 raise SimulationError(self._died(i)) from None
+        self._beside.join()
 
     def finished(self, pending: Collection[int], timeout_s: float = _POLL_S) -> list[int]:
         conns = self._procs.conns
@@ -400,6 +404,7 @@ class ProcessPool(WorkerPool):
 
     def close(self) -> None:
         self._procs.close(_CLOSE)
+        self._beside.join()
 
     def kill(self) -> None:
         self._procs.kill()
