@@ -483,7 +483,12 @@ class _LazyAdam:
         self.attr = ""
 
     def __set_name__(self, owner: type, name: str) -> None:
-        self.attr = f"_{name}"
+        self.attr = self.slot(name)
+
+    @staticmethod
+    def slot(name: str) -> str:
+        """Where a learner keeps its optimiser ``name`` once built (absent before)."""
+        return f"_{name}"
 
     def __get__(self, learner: Any, owner: type | None = None) -> torch.optim.Optimizer:
         optimiser: torch.optim.Optimizer | None = learner.__dict__.get(self.attr)
@@ -883,7 +888,7 @@ class Learner:
     def _optimiser_state(self, name: str) -> dict[str, Any] | None:
         """Optimiser ``name``'s state; None while it is not built (``_LazyAdam``: a fresh Adam holds none). Building
         it here would import ``torch._dynamo``, which a stop during a first round's import has left broken."""
-        built: torch.optim.Optimizer | None = self.__dict__.get(f"_{name}")
+        built: torch.optim.Optimizer | None = self.__dict__.get(_LazyAdam.slot(name))
         return None if built is None else built.state_dict()
 
     def load_state_dict(self, state: dict[str, Any], load_optimisers: bool = True) -> None:
@@ -919,6 +924,6 @@ class Learner:
                     continue
                 saved = state[name]
                 if saved is None:  # saved before it was built: a fresh one, built on first use
-                    self.__dict__.pop(f"_{name}", None)
+                    self.__dict__.pop(_LazyAdam.slot(name), None)
                 else:
                     getattr(self, name).load_state_dict(saved)
