@@ -478,7 +478,9 @@ def test_ctrl_c_while_two_workers_start_is_one_line(tmp_path: Path, command: str
 
     stderr = interrupt_when(proc, workers_started, settle_s=0.3)
     assert proc.returncode == 130, stderr
-    assert stderr.splitlines() == ["idas-sumo: interrupted; completed outputs were kept"], stderr
+    # (A tiny round may be over before the stop: train then says where it saved it, on a line before.)
+    lines = [line for line in stderr.splitlines() if not line.startswith("WARNING interrupted: saved ")]
+    assert lines == ["idas-sumo: interrupted; completed outputs were kept"], stderr
     assert len(workers) >= expected
     assert all(not Path(f"/proc/{pid}").exists() or _is_zombie(pid) for pid in workers)
 

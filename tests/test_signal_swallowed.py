@@ -54,7 +54,7 @@ INSIDE = {
 
 
 @pytest.mark.parametrize("where", sorted(INSIDE))
-@pytest.mark.parametrize("signum", [signal.SIGTERM])
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_a_stop_signal_whose_exception_is_swallowed_still_stops_the_run(where: str, signum: int) -> None:
     proc = subprocess.Popen(
         [sys.executable, "-c", SCRIPT.format(inside=INSIDE[where])],

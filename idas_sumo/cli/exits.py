@@ -45,9 +45,9 @@ def in_main_thread() -> bool:
 def sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM, and SIGHUP (the terminal closed) unless it is ignored (``nohup``), raise
     ``Terminated`` (a KeyboardInterrupt) while the command runs, so a stopped run cleans up as after
-    Ctrl-C; the previous handlers come back afterwards (main may run in a test). Both raise through
-    ``stops.raise_stop``, so a stop that Python swallows is raised again at the loops' next step (and its
-    "Exception ignored" report is not printed)."""
+    Ctrl-C; the previous handlers come back afterwards (main may run in a test). They and Ctrl-C raise
+    through ``stops.raise_stop``, so a stop that Python swallows is raised again at the loops' next step
+    (and its "Exception ignored" report is not printed)."""
     if not in_main_thread():
         yield  # signal handlers can only be set from the main thread
         return
@@ -55,9 +55,13 @@ def sigterm_as_interrupt() -> Iterator[None]:
     def terminate(signum: int, frame: object) -> None:
         stops.raise_stop(Terminated(signum))
 
+    def interrupt(signum: int, frame: object) -> None:
+        stops.raise_stop(KeyboardInterrupt())
+
     handlers: dict[int, Callable[[int, object], None]] = dict.fromkeys(STOP_SIGNALS, terminate)
-    # Ctrl-C keeps Python's own handler, so a Ctrl-C that Python swallows stays possible. (Its returncode
-    # -2 in CI, once blamed on recording it here, was CPython's mark: ``forget_caught_interrupt``.)
+    # Ctrl-C too, where it has Python's own handler: a Ctrl-C swallowed in C code left `evaluate` running.
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        handlers[signal.SIGINT] = interrupt
     previous = {
         signum: signal.signal(signum, handler)
         for signum, handler in handlers.items()
