@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from conftest import TINY_TRAIN_TOML, checkpoint_payload, interrupt_when, main_in_process, run_cli
 
+from idas_sumo.cli.exits import INTERRUPTED
 from idas_sumo.env.outcome import END_REASONS
 from idas_sumo.resources import DEFAULT_NET as NET
 
@@ -594,7 +595,7 @@ def test_ctrl_c_during_train_exits_130_with_a_loadable_checkpoint(tmp_path: Path
     stderr = interrupt_when(proc, two_episodes_done)
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr
-    assert stderr.splitlines()[-1].startswith("idas-sumo: interrupted"), stderr
+    assert stderr.splitlines()[-1:] == [INTERRUPTED], repr(stderr)
     data = load_checkpoint(run / "checkpoint.pt")
     assert data.episode >= 2
     rows = metrics.read_text().splitlines()

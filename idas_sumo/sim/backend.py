@@ -175,15 +175,17 @@ def _captured_stderr() -> Iterator[list[str]]:
     """Collect what libsumo prints on the C++ stderr (its only place for many error reasons)."""
     lines: list[str] = []
     saved = os.dup(2)
-    with tempfile.TemporaryFile(mode="w+b") as sink:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield lines
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
+    try:
+        with tempfile.TemporaryFile(mode="w+b") as sink:
+            try:  # (a stop raised as soon as fd 2 is the sink must still put it back)
+                os.dup2(sink.fileno(), 2)
+                yield lines
+            finally:
+                os.dup2(saved, 2)
             sink.seek(0)
             lines.extend(sink.read().decode(errors="replace").splitlines())
+    finally:
+        os.close(saved)
 
 
 def _sumo_message(err: BaseException, stderr_lines: Sequence[str]) -> str:
