@@ -45,9 +45,10 @@ def in_main_thread() -> bool:
 def sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM, and SIGHUP (the terminal closed) unless it is ignored (``nohup``), raise
     ``Terminated`` (a KeyboardInterrupt) while the command runs, so a stopped run cleans up as after
-    Ctrl-C; the previous handlers come back afterwards (main may run in a test). They and Ctrl-C raise
-    through ``stops.raise_stop``, so a stop that Python swallows is raised again at the loops' next step
-    (and its "Exception ignored" report is not printed)."""
+    Ctrl-C, which raises KeyboardInterrupt as Python's own handler does; the previous handlers come back
+    afterwards (main may run in a test). All of them raise through ``stops.raise_stop``, so a stop that
+    Python swallows is raised again at the loops' next step (and its "Exception ignored" report is not
+    printed)."""
     if not in_main_thread():
         yield  # signal handlers can only be set from the main thread
         return
