@@ -118,11 +118,10 @@ def _forward_blocks(
             pair = at[b, block]
             if pair < 0:
                 continue
-            base = block * span
-            row = out[pair]
-            for k in range(span):
-                row[k] = max(summed[base + k] + tiled[k], zero)
-                summed[base + k] = zero
+            row, sums = out[pair], summed[block * span : (block + 1) * span]
+            for k in range(span):  # (over slices: with the offset inside the index it did not vectorise)
+                row[k] = max(sums[k] + tiled[k], zero)
+                sums[k] = zero
     # Past the last cell (the last block's tail) the buffer stays zero: zero the outputs there.
     tail = width - (at.shape[1] - 1) * span
     for pair in range(offsets_last, out.shape[0]):
@@ -156,11 +155,10 @@ def _backward_blocks(
             pair = at[b, block]
             if pair < 0:
                 continue
-            base = block * span
-            grad_row, out_row = grad[pair], out[pair]
+            grad_row, out_row, row_live = grad[pair], out[pair], live[block * span : (block + 1) * span]
             for k in range(span):
                 g = grad_row[k] if out_row[k] > zero else zero
-                live[base + k] = g
+                row_live[k] = g
                 per_place[k] += g
         while j < table_row.shape[0] and grid_row[j] == b:
             add_piece_grad(grad_table[table_row[j]], live, value[j], start[j] - lead, outs, reach, cells)
@@ -178,22 +176,40 @@ def _sum_pairs(
     out: npt.NDArray[np.float32],
 ) -> None:
     """Each row of ``out``: the unreached share of every block (Σ ``per_block``), then for each reached block in
-    turn its pair's share less the unreached share it replaces. A row reads its own pairs (no scatter)."""
+    turn its pair's share less the unreached share it replaces. A row reads its own pairs (no scatter), four
+    blocks a pass over the row (in turn, so the same floats as one a pass)."""
     hidden = out.shape[1]
     idle = np.zeros(hidden, dtype=np.float32)
     for block in range(per_block.shape[0]):
         for k in range(hidden):
             idle[k] += per_block[block, k]
+    pairs, blocks = np.empty(at.shape[1], dtype=np.int64), np.empty(at.shape[1], dtype=np.int64)
     for b in range(at.shape[0]):
+        n = 0
+        for block in range(at.shape[1]):
+            if at[b, block] >= 0:
+                pairs[n], blocks[n] = at[b, block], block
+                n += 1
         row = out[b]
         for k in range(hidden):
             row[k] = idle[k]
-        for block in range(at.shape[1]):
-            pair = at[b, block]
-            if pair >= 0:
-                share, unreached = shares[pair], per_block[block]
-                for k in range(hidden):
-                    row[k] += share[k] - unreached[k]
+        i = 0
+        while i + 4 <= n:
+            s0, s1, s2, s3 = (
+                shares[pairs[i]],
+                shares[pairs[i + 1]],
+                shares[pairs[i + 2]],
+                shares[pairs[i + 3]],
+            )
+            u0, u1 = per_block[blocks[i]], per_block[blocks[i + 1]]
+            u2, u3 = per_block[blocks[i + 2]], per_block[blocks[i + 3]]
+            for k in range(hidden):
+                row[k] = (((row[k] + (s0[k] - u0[k])) + (s1[k] - u1[k])) + (s2[k] - u2[k])) + (s3[k] - u3[k])
+            i += 4
+        for rest in range(i, n):
+            share, unreached = shares[pairs[rest]], per_block[blocks[rest]]
+            for k in range(hidden):
+                row[k] += share[k] - unreached[k]
 
 
 def _gather_rows(
