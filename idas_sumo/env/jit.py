@@ -11,6 +11,11 @@ engine's own-lane masks, in ``front_cars.py``, call ``snapshot.py``'s leader wal
 kernel and ``observation.py``'s observation kernel; the engine's read, in ``routes.py``, calls ``snapshot.py``'s sort and ``collisions.py``'s overlap scan;
 ``kernels.py``'s ``_allowed_step`` calls ``actions.py``'s ``_candidate``; ``agents/run_blocks.py``'s kernels call ``agents/run_conv.py``'s ``add_piece``) keeps the old machine code when only that other module changes: after editing such a callee, delete the ``*.nbi`` and
 ``*.nbc`` files under ``idas_sumo/`` (a fresh checkout or install has none).
+
+Two habits keep a kernel's inner loop vectorised (numba gives LLVM no proof that two arrays do not overlap): loop
+over slices (``dst = out[a:b]; for k in range(b - a): dst[k] += ...``) rather than with an offset inside the
+index, and where a loop adds into an array once per term, add several terms a pass in their order
+(``out[j] = ((out[j] + t0[j]) + t1[j]) + ...``: the same floats, the array read and written a fraction as often).
 """
 
 from __future__ import annotations
