@@ -595,3 +595,76 @@ def test_normalised_advantages_change_the_step_but_not_the_direction_of_a_single
         standardised(adv), torch.tensor([-0.9258, -0.4629, 0.0, 1.3887]), atol=1e-4, rtol=0
     )
     torch.testing.assert_close(standardised(torch.tensor([5.0])), torch.tensor([0.0]))
+
+
+def _sequential(start: np.ndarray, factors: list[float], rows: list[np.ndarray]) -> np.ndarray:
+    """start + factor_0 · row_0 + factor_1 · row_1 + ..., one term at a time in float32 (a product, then a sum)."""
+    out = start.astype(np.float32).copy()
+    for f, r in zip(factors, rows, strict=True):
+        out = out + np.float32(f) * r
+    return out
+
+
+@pytest.mark.parametrize("n_out", [1, 7, 64])
+def test_compiled_dense_layer_sums_in_the_order_of_one_input_at_a_time(n_out: int) -> None:
+    """The actor's compiled dense layer adds several inputs a pass; its floats must stay those of one input at a
+    time (inputs of very different sizes, so another order would round differently)."""
+    from idas_sumo.agents.run_conv import _dense_kernel
+
+    rng = np.random.default_rng(0)
+    for n_in in [*range(1, 10), 32, 64]:
+        x = (rng.standard_normal(n_in) * 10.0 ** rng.integers(-4, 5, n_in)).astype(np.float32)
+        w_t = rng.standard_normal((n_in, n_out)).astype(np.float32)
+        b = rng.standard_normal(n_out).astype(np.float32)
+        out = np.empty(n_out, dtype=np.float32)
+        _dense_kernel(x, w_t, b, False, out)
+        want = _sequential(b, list(x), list(w_t))
+        np.testing.assert_array_equal(out.view(np.uint32), want.view(np.uint32), err_msg=f"{n_in} inputs")
+        _dense_kernel(x, w_t, b, True, out)
+        np.testing.assert_array_equal(out, np.maximum(want, np.float32(0.0)))
+
+
+def test_compiled_conv_terms_and_block_shares_add_in_the_order_of_one_at_a_time() -> None:
+    """``_add_terms`` (eight terms a pass) and ``_sum_pairs`` (four blocks a pass) give each row the floats of
+    adding its terms one at a time, in order, whatever their count (0, fewer than a pass, and remainders)."""
+    from idas_sumo.agents.run_blocks import _sum_pairs_kernel
+    from idas_sumo.agents.run_conv import _add_terms_kernel
+
+    rng = np.random.default_rng(1)
+    hidden, outputs = 64, 40
+    weights = (rng.standard_normal((outputs, hidden)) * 10.0 ** rng.integers(-3, 4, (outputs, 1))).astype(
+        np.float32
+    )
+    counts = [5, 0, 19, 8, 1]  # terms per row
+    rows = np.repeat(np.arange(len(counts)), counts).astype(np.int32)
+    k = np.concatenate([np.sort(rng.choice(outputs, c, replace=False)) for c in counts]).astype(np.int32)
+    factor = rng.standard_normal(len(k)).astype(np.float32)
+    h = rng.standard_normal((len(counts), hidden)).astype(np.float32)
+    got = h.copy()
+    _add_terms_kernel((k, rows, factor), len(k), weights, got)
+    for r in range(len(counts)):
+        mine = rows == r
+        want = _sequential(h[r], list(factor[mine]), [weights[i] for i in k[mine]])
+        np.testing.assert_array_equal(got[r].view(np.uint32), want.view(np.uint32), err_msg=f"row {r}")
+
+    blocks = 11
+    at = np.full((len(counts), blocks), -1, dtype=np.int64)
+    reached = [rng.choice(blocks, c % blocks, replace=False) for c in counts]
+    pair = 0
+    for r, picked in enumerate(reached):
+        for block in sorted(picked):
+            at[r, block] = pair
+            pair += 1
+    shares = rng.standard_normal((pair, hidden)).astype(np.float32)
+    per_block = rng.standard_normal((blocks, hidden)).astype(np.float32)
+    out = np.empty((len(counts), hidden), dtype=np.float32)
+    _sum_pairs_kernel(shares, per_block, at, out)
+    idle = np.zeros(hidden, dtype=np.float32)
+    for block in range(blocks):
+        idle = idle + per_block[block]
+    for r in range(len(counts)):
+        picked = [b for b in range(blocks) if at[r, b] >= 0]
+        want = idle.copy()
+        for b in picked:
+            want = want + (shares[at[r, b]] - per_block[b])
+        np.testing.assert_array_equal(out[r].view(np.uint32), want.view(np.uint32), err_msg=f"row {r}")
