@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from idas_sumo.agents.run_conv import RunPieces, add_piece, add_piece_grad, piece_span
+from idas_sumo.agents.run_conv import RunPieces, add_piece, add_piece_grad, four_rows, piece_span
 from idas_sumo.env.jit import kernel
 
 __all__ = ["BLOCK_CELLS", "BlockedConvLayer", "ConvGeometry"]
@@ -195,14 +195,8 @@ def _sum_pairs(
             row[k] = idle[k]
         i = 0
         while i + 4 <= n:
-            s0, s1, s2, s3 = (
-                shares[pairs[i]],
-                shares[pairs[i + 1]],
-                shares[pairs[i + 2]],
-                shares[pairs[i + 3]],
-            )
-            u0, u1 = per_block[blocks[i]], per_block[blocks[i + 1]]
-            u2, u3 = per_block[blocks[i + 2]], per_block[blocks[i + 3]]
+            s0, s1, s2, s3 = four_rows(shares, pairs, i)
+            u0, u1, u2, u3 = four_rows(per_block, blocks, i)
             for k in range(hidden):
                 row[k] = (((row[k] + (s0[k] - u0[k])) + (s1[k] - u1[k])) + (s2[k] - u2[k])) + (s3[k] - u3[k])
             i += 4

@@ -20,7 +20,7 @@ import torch
 
 from idas_sumo.env.jit import kernel
 
-__all__ = ["RunConv", "RunPieces", "actor_logits", "add_piece", "add_piece_grad", "piece_span"]
+__all__ = ["RunConv", "RunPieces", "actor_logits", "add_piece", "add_piece_grad", "four_rows", "piece_span"]
 
 PIECES_PER_ROW_GUESS = 16
 """Room for this many pieces per observation on ``RunPieces.of``'s first scan (real ones hold about 5.5)."""
@@ -304,6 +304,16 @@ def _conv_row_terms(
 _conv_row_terms_kernel = kernel(_conv_row_terms)
 
 
+def _four_rows(
+    table: npt.NDArray[np.float32], index: npt.NDArray[Any], at: int
+) -> tuple[npt.NDArray[np.float32], ...]:
+    """Rows ``index[at]`` to ``index[at + 3]`` of ``table`` (the terms a pass of the loops below adds)."""
+    return table[index[at]], table[index[at + 1]], table[index[at + 2]], table[index[at + 3]]
+
+
+four_rows = kernel(_four_rows)
+
+
 def _add_terms(
     terms: tuple[npt.NDArray[np.int32], npt.NDArray[np.int32], npt.NDArray[np.float32]],
     count: int,
@@ -321,18 +331,8 @@ def _add_terms(
             end += 1
         h_row = h[batch_row[t]]
         while t + 8 <= end:
-            w0, w1, w2, w3 = (
-                joint_conv[output[t]],
-                joint_conv[output[t + 1]],
-                joint_conv[output[t + 2]],
-                joint_conv[output[t + 3]],
-            )
-            w4, w5, w6, w7 = (
-                joint_conv[output[t + 4]],
-                joint_conv[output[t + 5]],
-                joint_conv[output[t + 6]],
-                joint_conv[output[t + 7]],
-            )
+            w0, w1, w2, w3 = four_rows(joint_conv, output, t)
+            w4, w5, w6, w7 = four_rows(joint_conv, output, t + 4)
             d0, d1, d2, d3, d4, d5, d6, d7 = (
                 factor[t],
                 factor[t + 1],

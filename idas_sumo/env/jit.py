@@ -9,7 +9,7 @@ numba tells a stale cache by the kernel's own source file only. A kernel that ca
 (the masks call ``physics/idm.py``'s ``idm_acceleration_one``; the grids call ``snapshot.same_lane``; the
 engine's own-lane masks, in ``front_cars.py``, call ``snapshot.py``'s leader walk, ``actions.py``'s mask
 kernel and ``observation.py``'s observation kernel; the engine's read, in ``routes.py``, calls ``snapshot.py``'s sort and ``collisions.py``'s overlap scan;
-``kernels.py``'s ``_allowed_step`` calls ``actions.py``'s ``_candidate``; ``agents/run_blocks.py``'s kernels call ``agents/run_conv.py``'s ``add_piece``) keeps the old machine code when only that other module changes: after editing such a callee, delete the ``*.nbi`` and
+``kernels.py``'s ``_allowed_step`` calls ``actions.py``'s ``_candidate``; ``agents/run_blocks.py``'s kernels call ``agents/run_conv.py``'s ``add_piece`` and ``four_rows``) keeps the old machine code when only that other module changes: after editing such a callee, delete the ``*.nbi`` and
 ``*.nbc`` files under ``idas_sumo/`` (a fresh checkout or install has none).
 
 Two habits keep a kernel's inner loop vectorised (numba gives LLVM no proof that two arrays do not overlap): loop
