@@ -173,9 +173,9 @@ def _forward(
         while j < table_row.shape[0] and grid_row[j] == b:
             add_piece(summed, table[table_row[j]], value[j], start[j] - lead, outs, reach, cells)
             j += 1
-        base = b * width
+        row = out[b * width : (b + 1) * width]  # (over a slice, as numba vectorises it)
         for k in range(width):
-            out[base + k] = max(summed[k] + tiled[k], zero)
+            row[k] = max(summed[k] + tiled[k], zero)
             summed[k] = zero
     return out.reshape(rows, cells, outs)
 
@@ -203,9 +203,9 @@ def _backward(
     zero = np.float32(0.0)
     j = 0
     for b in range(rows):
-        base = b * width
+        row_grad, row_out = flat_grad[b * width : (b + 1) * width], flat_out[b * width : (b + 1) * width]
         for k in range(width):
-            g = flat_grad[base + k] if flat_out[base + k] > zero else zero
+            g = row_grad[k] if row_out[k] > zero else zero
             live[k] = g
             per_place[k] += g
         while j < table_row.shape[0] and grid_row[j] == b:
